@@ -1,0 +1,199 @@
+"""The ``sapgo`` command line: argument parsing only; each command calls one function."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+from . import __version__
+from .errors import SapgoError
+
+
+def _warn(msg):
+    print(f"sapgo: warning: {msg}", file=sys.stderr)
+
+
+def _ids(ids, limit=20):
+    s = ", ".join(str(i) for i in ids[:limit])
+    return s + (", ..." if len(ids) > limit else "")
+
+
+def _report_exclusions(points, stations):
+    if points:
+        _warn(f"{len(points)} point(s) seen on fewer than 2 photos cannot be determined and "
+              f"are left out of the adjustment (they stay in the project): ids {_ids(points)}")
+    if stations:
+        _warn(f"{len(stations)} photo(s) with fewer than 3 determinable points are left out of "
+              f"the adjustment (they stay in the project): ids {_ids(stations)}")
+
+
+def cmd_generate(args):
+    from .generate import generate_block
+
+    angle = args.station_angle_perturbation
+    info = generate_block(
+        args.output, preset=args.preset, strips=args.strips,
+        photos_per_strip=args.photos_per_strip, pattern=args.pattern,
+        control_points=args.control_points, forelap=args.forelap, sidelap=args.sidelap,
+        sigma_image=None if args.sigma_image is None else args.sigma_image / 1000.0,
+        station_position_perturbation=args.station_position_perturbation,
+        station_angle_perturbation=angle, control_perturbation=args.control_perturbation,
+        terrain_relief=args.terrain_relief, seed=args.seed,
+    )
+    print(f"generated {info['path']}: {info['photos']} photos in {info['strips']} strips, "
+          f"{info['points']} points ({info['control_points']} control, "
+          f"{info['check_points']} check), {info['observations']} image observations")
+    return 0
+
+
+def cmd_order(args):
+    from .ordering import order_project
+
+    r = order_project(args.project, args.method)
+    _report_exclusions(r.excluded_points, r.excluded_stations)
+    cands = ", ".join(f"{k} {v}" for k, v in r.candidates.items())
+    print(f"band width before: {r.band_width_before}")
+    print(f"band width after:  {r.band_width}  ({r.ordering}; candidates: {cands})")
+    return 0
+
+
+def cmd_adjust(args):
+    from .adjust import Options, adjust
+    from .project import Project
+
+    opts = Options(
+        max_iterations=args.max_iterations,
+        tol_position=args.tol_position,
+        tol_angle=args.tol_angle * math.pi / (180 * 3600),
+        ordering=args.ordering,
+        keep_scratch=args.keep_scratch,
+        progress=False if args.no_progress else None,
+    )
+    with Project(args.project) as p:
+        ordered = p.ordered
+    summary = adjust(args.project, opts)
+    if not ordered:
+        _report_exclusions(summary.excluded_points, summary.excluded_stations)
+    if not summary.converged:
+        _warn(summary.termination)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(summary.to_json() + "\n")
+    if not args.quiet:
+        print(summary.full_report())
+    return 0
+
+
+def cmd_info(args):
+    import numpy as np
+
+    from .project import KIND_NAMES, Project
+
+    with Project(args.project) as p:
+        kinds = {}
+        for a, b in p.chunks("points"):
+            values, counts = np.unique(p.read_field("points", "kind", a, b),
+                                       return_counts=True)
+            for k, n in zip(values, counts):
+                kinds[KIND_NAMES[int(k)]] = kinds.get(KIND_NAMES[int(k)], 0) + int(n)
+        info = {
+            "path": str(p.path),
+            "schema_version": int(p.attr("schema_version")),
+            "created": p.attr("created"),
+            "cameras": p.n_cameras,
+            "stations": p.n_stations,
+            "points": p.n_points,
+            "points_by_kind": kinds,
+            "observations": p.n_observations,
+            "station_priors": p.n_priors,
+            "ordered": p.ordered,
+            "ordering": p.attr("ordering"),
+            "band_width": p.band_width,
+            "has_truth": p.has_truth,
+            "adjusted": p.has_solution and p.file["solution"].attrs.get("state") == "adjusted",
+        }
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        for k, v in info.items():
+            print(f"{k:16s} {v}")
+    return 0
+
+
+def build_parser():
+    ap = argparse.ArgumentParser(
+        prog="sapgo",
+        description="Out-of-core bundle block adjustment (after the 1974 SAPGO program).",
+    )
+    ap.add_argument("--version", action="version", version=f"sapgo {__version__}")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    g = sub.add_parser("generate", help="generate a synthetic block (SAPGO-P presets)",
+                       description="Generate a SAPGO-P block with known truth into a new "
+                                   "project file. Without --preset the parameters below "
+                                   "describe the block (defaults: SAPGO-P data set 1).")
+    from .generate import PRESETS
+
+    g.add_argument("output", help="project file to create (e.g. data/generated/p3.h5)")
+    g.add_argument("--preset", choices=sorted(PRESETS), help="a block of seeds/002 Table 2")
+    g.add_argument("--strips", type=int)
+    g.add_argument("--photos-per-strip", type=int)
+    g.add_argument("--pattern", type=int, choices=(9, 25), help="points per photo")
+    g.add_argument("--control-points", type=int, help="number of full control points")
+    g.add_argument("--forelap", type=float, help="fraction, default 0.6")
+    g.add_argument("--sidelap", type=float, help="fraction, default 0.2")
+    g.add_argument("--sigma-image", type=float, help="image perturbation, um (default 6)")
+    g.add_argument("--station-position-perturbation", type=float, help="m (default 5)")
+    g.add_argument("--station-angle-perturbation", type=float, help="arc seconds (default 20)")
+    g.add_argument("--control-perturbation", type=float, help="m (default 0.001)")
+    g.add_argument("--terrain-relief", type=float, help="standard deviation of terrain heights, m (default 100)")
+    g.add_argument("--seed", type=int, help="random seed (default 1)")
+    g.set_defaults(func=cmd_generate)
+
+    o = sub.add_parser("order", help="order stations and points to minimise the band width")
+    o.add_argument("project")
+    o.add_argument("--method", default="best",
+                   help="best (default), across_strip, down_strip, reverse_cuthill_mckee, "
+                        "across_strip_by_position")
+    o.set_defaults(func=cmd_order)
+
+    a = sub.add_parser("adjust", help="adjust the block (orders it first if needed)")
+    a.add_argument("project")
+    a.add_argument("--json", metavar="PATH", help="write the report as JSON")
+    a.add_argument("--max-iterations", type=int, default=10)
+    a.add_argument("--tol-position", type=float, default=1e-4,
+                   help="convergence: corrections of positions below this, m (default 1e-4)")
+    a.add_argument("--tol-angle", type=float, default=0.1,
+                   help="convergence: corrections of angles below this, arc seconds "
+                        "(default 0.1)")
+    a.add_argument("--ordering", default="best", help="ordering when the project is unordered")
+    a.add_argument("--keep-scratch", action="store_true",
+                   help="keep NAME.scratch.h5 (band and factor rows)")
+    a.add_argument("--no-progress", action="store_true", help="no progress bars")
+    a.add_argument("--quiet", action="store_true", help="do not print the report")
+    a.set_defaults(func=cmd_adjust)
+
+    i = sub.add_parser("info", help="describe a project file")
+    i.add_argument("project")
+    i.add_argument("--json", action="store_true")
+    i.set_defaults(func=cmd_info)
+    return ap
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except SapgoError as exc:
+        print(f"sapgo: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("sapgo: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

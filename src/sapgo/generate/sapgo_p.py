@@ -1,0 +1,302 @@
+"""SAPGO-P: generated vertical blocks of parallel strips (seeds/002, Tables 2 and 3).
+
+Geometry. Strips run along +X (alternate strips flown back, kappa = 180 deg); photo ``g`` of
+strip ``s`` is exposed above ``X = g B``, ``Y = (s + 1/2) A`` with the photo base
+``B = (1 - forelap) * format * scale`` and strip spacing ``A = (1 - sidelap) * format * scale``.
+Pass points lie on a grid: the 9-point pattern puts on every photo the three columns at the
+neighbours' nadirs (``X = (g-1) B, g B, (g+1) B``) and the three rows at the strip centre and
+the middles of the two sidelaps; the 25-point pattern halves both spacings. Columns run from
+the first to the last nadir of a strip, rows are shared between neighbouring strips, so a block
+of S strips of G photos has ``(2S+1) G`` (9-point) or ``(4S+1)(2G-1)`` (25-point) points:
+225, 833, 1100 and 1050 for the four presets of Table 2.
+
+Perturbations as Table 3: station positions 5 m, angles 20", image coordinates 6 um, ground
+control 1 mm. Approximate pass-point coordinates are intersected from the perturbed stations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..errors import ParameterError
+from ..geometry import intersect_points, project_observations
+from ..project import (
+    CAMERA_DTYPE,
+    KIND_CHECK,
+    KIND_CONTROL,
+    OBSERVATION_DTYPE,
+    POINT_DTYPE,
+    STATION_DTYPE,
+    TRUTH_POINT_DTYPE,
+    TRUTH_STATION_DTYPE,
+)
+from .terrain import Terrain
+
+ARCSEC = math.pi / (180 * 3600)
+
+
+@dataclasses.dataclass
+class BlockSpec:
+    """Parameters of a generated block; every field has the SAPGO-P default."""
+
+    strips: int = 4
+    photos_per_strip: int = 25
+    pattern: int = 9  # points per photo: 9 (3x3) or 25 (5x5)
+    control_points: int = 16  # full (XYZ) control points; all other points are check points
+    forelap: float = 0.6
+    sidelap: float = 0.2
+    focal_length: float = 152.0  # mm
+    scale: float = 25000.0  # photo scale number
+    format: float = 230.0  # mm, square
+    sigma_image: float = 0.006  # mm: image-coordinate perturbation and its standard error
+    station_position_perturbation: float = 5.0  # m
+    station_angle_perturbation: float = 20.0  # arc seconds
+    control_perturbation: float = 0.001  # m
+    control_sigma: float | None = None  # m; default: the control perturbation
+    terrain_relief: float = 100.0  # m, standard deviation of the terrain heights
+    tilt: float = 0.5  # deg, standard deviation of the true photo tilts
+    point_jitter: float = 0.04  # fraction of the grid spacing
+    seed: int = 1
+
+    def check(self):
+        """Raise ParameterError with a readable message when a parameter is out of range."""
+        if self.strips < 1 or self.photos_per_strip < 2:
+            raise ParameterError("a block needs at least 1 strip of 2 photos")
+        if self.pattern not in (9, 25):
+            raise ParameterError("pattern must be 9 or 25 points per photo")
+        if not 0.5 <= self.forelap < 0.9:
+            raise ParameterError("forelap must be in [0.5, 0.9) so that points appear on 3 photos")
+        if not 0.1 <= self.sidelap < 0.6:
+            raise ParameterError("sidelap must be in [0.1, 0.6) so that the pattern fits the format")
+        if self.focal_length <= 0 or self.scale <= 0 or self.format <= 0:
+            raise ParameterError("focal length, scale and format must be positive")
+        if self.sigma_image < 0 or self.station_position_perturbation < 0 or \
+                self.station_angle_perturbation < 0 or self.control_perturbation < 0:
+            raise ParameterError("perturbations must not be negative")
+        n = self.n_points
+        if not 0 <= self.control_points <= n:
+            raise ParameterError(f"control_points must be between 0 and the {n} points")
+        return self
+
+    @property
+    def sub(self):
+        return 1 if self.pattern == 9 else 2
+
+    @property
+    def n_rows(self):
+        return (2 * self.sub) * self.strips + 1
+
+    @property
+    def n_cols(self):
+        return self.sub * (self.photos_per_strip - 1) + 1
+
+    @property
+    def n_points(self):
+        return self.n_rows * self.n_cols
+
+    @property
+    def n_photos(self):
+        return self.strips * self.photos_per_strip
+
+    @property
+    def base(self):
+        return (1 - self.forelap) * self.format * self.scale / 1000.0
+
+    @property
+    def strip_spacing(self):
+        return (1 - self.sidelap) * self.format * self.scale / 1000.0
+
+    @property
+    def flying_height(self):
+        return self.focal_length * self.scale / 1000.0
+
+
+def control_layout(n_rows, n_cols, n, spacing_row, spacing_col, rows_per_strip=2):
+    """Grid (row, col) indices of ``n`` full control points spread over the block.
+
+    As the classical rule for blocks of vertical photographs asks (vertical control in every
+    sidelap, horizontal control around the perimeter), the points lie on every strip boundary
+    row, evenly spaced along it; the first and last rows (the block's long edges) start and
+    end at the corners, the rows between are staggered by half a spacing on alternate rows so
+    that every strip has control at one of its edges twice as often. With fewer than two
+    points per boundary row the points form the most nearly square lattice instead.
+    """
+    if n == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    rows = np.arange(0, n_rows, rows_per_strip)
+    rr, cc = [], []
+    if n >= 2 * len(rows) and n_cols >= 2:
+        per = n / len(rows)
+        for i, r in enumerate(rows):
+            k = int(round((i + 1) * per) - round(i * per))
+            if i % 2 == 0 or i == len(rows) - 1:
+                cols = np.linspace(0, n_cols - 1, k)
+            else:
+                step = (n_cols - 1) / k
+                cols = step / 2 + step * np.arange(k)
+            cols = np.unique(np.round(cols).astype(int))
+            rr.extend([r] * len(cols))
+            cc.extend(cols.tolist())
+    else:
+        extent_r = max((n_rows - 1) * spacing_row, 1.0)
+        extent_c = max((n_cols - 1) * spacing_col, 1.0)
+        best = None
+        for nr in range(1, min(n, n_rows) + 1):
+            nc = math.ceil(n / nr)
+            if nc > n_cols:
+                continue
+            dr = extent_r / max(nr - 1, 0.5)
+            dc = extent_c / max(nc - 1, 0.5)
+            cost = (nr * nc > n, abs(math.log(dr / dc)) + 0.05 * (nr * nc - n))
+            if best is None or cost < best[0]:
+                best = (cost, nr, nc)
+        _, nr, nc = best
+        lr = np.unique(np.round(np.linspace(0, n_rows - 1, nr)).astype(int))
+        lc = np.unique(np.round(np.linspace(0, n_cols - 1, nc)).astype(int))
+        g1, g2 = np.meshgrid(lr, lc, indexing="ij")
+        rr, cc = g1.ravel().tolist(), g2.ravel().tolist()
+        surplus = len(rr) - n
+        if surplus > 0:  # drop surplus points evenly, corners kept
+            corners = {(lr[0], lc[0]), (lr[0], lc[-1]), (lr[-1], lc[0]), (lr[-1], lc[-1])}
+            pool = [i for i in range(len(rr)) if (rr[i], cc[i]) not in corners]
+            drop = {pool[i] for i in np.round(np.linspace(0, len(pool) - 1, surplus)).astype(int)}
+            rr = [v for i, v in enumerate(rr) if i not in drop]
+            cc = [v for i, v in enumerate(cc) if i not in drop]
+    rr, cc = np.asarray(rr, int), np.asarray(cc, int)
+    if len(rr) < n:  # lines too short for distinct points: take further points evenly
+        taken = set(zip(rr.tolist(), cc.tolist()))
+        rest = [(r, c) for r in range(n_rows) for c in range(n_cols) if (r, c) not in taken]
+        pick = np.round(np.linspace(0, len(rest) - 1, n - len(rr))).astype(int)
+        extra = np.array([rest[i] for i in pick]).reshape(-1, 2)
+        rr = np.concatenate([rr, extra[:, 0]])
+        cc = np.concatenate([cc, extra[:, 1]])
+    return rr, cc
+
+
+def make_block(spec: BlockSpec):
+    """Generate the records of a SAPGO-P block. Returns a dict of record arrays and truth."""
+    spec.check()
+    rng = np.random.default_rng(spec.seed)
+    S, G, sub = spec.strips, spec.photos_per_strip, spec.sub
+    B, A, H = spec.base, spec.strip_spacing, spec.flying_height
+    n_rows, n_cols = spec.n_rows, spec.n_cols
+    row_step = A / (2 * sub)
+    col_step = B / sub
+    terrain = Terrain(
+        (n_cols - 1) * col_step, (n_rows - 1) * row_step, relief=spec.terrain_relief,
+        seed=spec.seed,
+    )
+
+    # --- camera
+    cameras = np.zeros(1, CAMERA_DTYPE)
+    cameras[0] = (1, spec.focal_length, 0.0, 0.0, spec.format, spec.format,
+                  max(spec.sigma_image, 1e-6), 0, 0, 0, 0, 0)
+
+    # --- points on the grid
+    r_idx, c_idx = np.divmod(np.arange(n_rows * n_cols), n_cols)
+    jit = spec.point_jitter
+    px = c_idx * col_step + rng.uniform(-jit, jit, len(c_idx)) * col_step
+    py = r_idx * row_step + rng.uniform(-jit, jit, len(r_idx)) * row_step
+    pz = terrain(px, py)
+    true_xyz = np.column_stack([px, py, pz])
+    n_pts = len(px)
+
+    # --- true and approximate stations
+    st_strip, st_g = np.divmod(np.arange(S * G), G)
+    z_mean = float(pz.mean())
+    heading = np.where(st_strip % 2 == 0, 0.0, math.pi)
+    tilt = math.radians(spec.tilt)
+    true_eo = np.column_stack([
+        rng.normal(0, tilt, S * G),
+        rng.normal(0, tilt, S * G),
+        heading + rng.normal(0, math.radians(1.0), S * G),
+        st_g * B + rng.normal(0, 0.01 * B, S * G),
+        (st_strip + 0.5) * A + rng.normal(0, 0.01 * A, S * G),
+        z_mean + H + rng.normal(0, 0.003 * H, S * G),
+    ])
+    approx_eo = true_eo.copy()
+    approx_eo[:, :3] += rng.normal(0, spec.station_angle_perturbation * ARCSEC, (S * G, 3))
+    approx_eo[:, 3:] += rng.normal(0, spec.station_position_perturbation, (S * G, 3))
+
+    # --- observations: the n x n pattern of every photo
+    k = np.arange(-sub, sub + 1)
+    dr, dc = np.meshgrid(np.arange(0, 2 * sub + 1), k, indexing="ij")
+    obs_station = np.repeat(np.arange(S * G), dr.size)
+    obs_row = (2 * sub * st_strip)[:, None] + dr.ravel()[None, :]
+    obs_col = (sub * st_g)[:, None] + dc.ravel()[None, :]
+    obs_row, obs_col = obs_row.ravel(), obs_col.ravel()
+    inside = (obs_col >= 0) & (obs_col < n_cols)
+    obs_station, obs_row, obs_col = obs_station[inside], obs_row[inside], obs_col[inside]
+    obs_point = obs_row * n_cols + obs_col
+    order = np.lexsort((obs_station, obs_point))
+    obs_station, obs_point = obs_station[order], obs_point[order]
+    n_obs = len(obs_point)
+
+    cam_of_station = np.zeros(S * G, np.int64)
+    f = np.array([spec.focal_length])
+    zero = np.zeros(1)
+    xy_true = np.empty((n_obs, 2))
+    project_observations(obs_station, obs_point, true_eo, true_xyz, cam_of_station, f, zero,
+                         zero, xy_true)
+    xy = xy_true + rng.normal(0, spec.sigma_image, (n_obs, 2))
+    half = spec.format / 2
+    if np.abs(xy).max() >= half:
+        raise ParameterError("the point pattern does not fit the image format; "
+                         "increase the sidelap/forelap or reduce the tilt")
+
+    # --- control and check points
+    rr, cc = control_layout(n_rows, n_cols, spec.control_points, row_step, col_step,
+                             2 * sub)
+    is_control = np.zeros(n_pts, bool)
+    is_control[rr * n_cols + cc] = True
+    control = true_xyz.copy()
+    control[is_control] += rng.normal(0, spec.control_perturbation, (is_control.sum(), 3))
+    csig = spec.control_sigma if spec.control_sigma is not None else spec.control_perturbation
+
+    # --- approximate point coordinates: intersection from the approximate stations
+    counts = np.bincount(obs_point, minlength=n_pts)
+    starts = np.zeros(n_pts, np.int64)
+    np.cumsum(counts[:-1], out=starts[1:])
+    approx_xyz = np.empty((n_pts, 3))
+    ok = np.zeros(n_pts, np.bool_)
+    intersect_points(starts, counts, obs_station, xy, approx_eo, cam_of_station, f, zero, zero,
+                     approx_xyz, ok)
+    approx_xyz[~ok] = true_xyz[~ok] + rng.normal(0, spec.station_position_perturbation,
+                                                 (int((~ok).sum()), 3))
+    approx_xyz[is_control] = control[is_control]
+
+    stations = np.zeros(S * G, STATION_DTYPE)
+    stations["id"] = np.arange(1, S * G + 1)
+    stations["camera"] = 0
+    stations["strip"] = st_strip + 1
+    stations["eo"] = approx_eo
+
+    points = np.zeros(n_pts, POINT_DTYPE)
+    points["id"] = np.arange(1, n_pts + 1)
+    points["kind"] = np.where(is_control, KIND_CONTROL, KIND_CHECK)
+    points["xyz"] = approx_xyz
+    points["control"] = control
+    points["control_sigma"] = np.where(is_control[:, None], csig, 0.0)
+    points["obs_start"] = starts
+    points["n_obs"] = counts
+    points["station_min"] = -1
+    points["station_max"] = -1
+
+    observations = np.zeros(n_obs, OBSERVATION_DTYPE)
+    observations["point"] = obs_point
+    observations["station"] = obs_station
+    observations["x"] = xy[:, 0]
+    observations["y"] = xy[:, 1]
+    observations["sigma"] = max(spec.sigma_image, 1e-6)
+
+    truth_st = np.zeros(S * G, TRUTH_STATION_DTYPE)
+    truth_st["id"] = stations["id"]
+    truth_st["eo"] = true_eo
+    truth_pt = np.zeros(n_pts, TRUTH_POINT_DTYPE)
+    truth_pt["id"] = points["id"]
+    truth_pt["xyz"] = true_xyz
+    return dict(cameras=cameras, stations=stations, points=points, observations=observations,
+                truth={"stations": truth_st, "points": truth_pt})

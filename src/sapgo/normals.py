@@ -1,0 +1,302 @@
+"""Streaming build of the reduced normal equations, band row by band row (DESIGN sections 2-3).
+
+For every point ``j`` (in logical order) and every station ``s`` that observes it, the
+linearised collinearity equations give ``A`` (2x6, station) and ``B`` (2x3, point). With weight
+``p = 1/sigma^2`` the point contributes (Brown's reduction; seeds/003)
+
+    N_ss   += p A'A          c_s  += p A'l                          (station diagonal)
+    Nbar_s  = p A'B          Ndd_j = sum_s p B'B + control weight    cdd_j = sum_s p B'l + ...
+    M_st   -= Nbar_s Ndd_j^-1 Nbar_t'       d_s -= Nbar_s Ndd_j^-1 cdd_j
+
+so the point is eliminated as soon as it is formed and only the 6x6 station blocks remain.
+Band row ``s`` holds ``M[s, s + k]`` for ``k = 0 .. b-1`` (a 6 x 6b array, the diagonal block
+full). Points are sorted by their smallest logical station, so once a point with smallest
+station ``t`` is reached no later point touches the rows before ``t``: those rows are finished
+and written to the band dataset. In core there is only a window of ``b + chunk`` rows.
+
+Control components enter as weighted observations of the point (a sigma of 0 fixes the
+component: it is eliminated, never divided by zero); station priors add their weight matrix
+to the diagonal block when the row enters the window.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .geometry import linearize, project
+from .project import CONTROL_MASK, STATUS_ACTIVE
+
+# kernel status codes
+OK = 0
+SINGULAR_POINT = 1
+BEHIND_CAMERA = 2
+
+
+@njit(cache=True)
+def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, obs_station,
+                  obs_xy, obs_sigma, obs_active, eo, cam_of_station, cam_f, cam_x0, cam_y0,
+                  ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc):
+    """Linearise point ``j``: fill its rays' A, l, p, Nbar and its 3x3 system nn, cc.
+
+    Returns the number of active rays ``k`` (negative when a point is behind a camera).
+    ``xyz`` receives the point's current coordinates (fixed control components replaced by
+    their control values).
+    """
+    kind = pt_kind[j]
+    for c in range(3):
+        xyz[c] = pt_xyz[j, c]
+        if ctrl_mask[kind, c] and pt_csig[j, c] == 0.0:
+            xyz[c] = pt_ctrl[j, c]
+    nn[:, :] = 0.0
+    cc[:] = 0.0
+    a = np.empty((2, 6))
+    b = np.empty((2, 3))
+    k = 0
+    for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+        if not obs_active[i]:
+            continue
+        s = obs_station[i]
+        cam = cam_of_station[s]
+        x, y, w = linearize(eo[s], xyz, cam_f[cam], cam_x0[cam], cam_y0[cam], a, b)
+        if w >= 0.0:
+            return -1
+        p = 1.0 / (obs_sigma[i] * obs_sigma[i])
+        l0 = obs_xy[i, 0] - x
+        l1 = obs_xy[i, 1] - y
+        for r in range(6):
+            for c in range(3):
+                nbar[k, r, c] = p * (a[0, r] * b[0, c] + a[1, r] * b[1, c])
+        for r in range(3):
+            for c in range(3):
+                nn[r, c] += p * (b[0, r] * b[0, c] + b[1, r] * b[1, c])
+            cc[r] += p * (b[0, r] * l0 + b[1, r] * l1)
+        a_all[k] = a
+        l_all[k, 0] = l0
+        l_all[k, 1] = l1
+        w_all[k] = p
+        st_all[k] = s
+        k += 1
+    for c in range(3):
+        if ctrl_mask[kind, c]:
+            sig = pt_csig[j, c]
+            if sig > 0.0:
+                wc = 1.0 / (sig * sig)
+                nn[c, c] += wc
+                cc[c] += wc * (pt_ctrl[j, c] - xyz[c])
+            else:  # fixed component: eliminated
+                for r in range(3):
+                    nn[r, c] = 0.0
+                    nn[c, r] = 0.0
+                nn[c, c] = 1.0
+                cc[c] = 0.0
+                for q in range(k):
+                    for r in range(6):
+                        nbar[q, r, c] = 0.0
+    return k
+
+
+@njit(cache=True)
+def _chol3(nn, lo):
+    """Cholesky factor ``lo`` (lower) of the 3x3 SPD matrix ``nn``; False if not SPD."""
+    scale = max(nn[0, 0], nn[1, 1], nn[2, 2])
+    for i in range(3):
+        for j in range(i + 1):
+            s = nn[i, j]
+            for k in range(j):
+                s -= lo[i, k] * lo[j, k]
+            if i == j:
+                if s <= 1e-13 * scale:
+                    return False
+                lo[i, i] = np.sqrt(s)
+            else:
+                lo[i, j] = s / lo[j, j]
+    return True
+
+
+@njit(cache=True)
+def _solve3(lo, rhs, out):
+    y0 = rhs[0] / lo[0, 0]
+    y1 = (rhs[1] - lo[1, 0] * y0) / lo[1, 1]
+    y2 = (rhs[2] - lo[2, 0] * y0 - lo[2, 1] * y1) / lo[2, 2]
+    out[2] = y2 / lo[2, 2]
+    out[1] = (y1 - lo[2, 1] * out[2]) / lo[1, 1]
+    out[0] = (y0 - lo[1, 0] * out[1] - lo[2, 0] * out[2]) / lo[0, 0]
+
+
+@njit(cache=True)
+def build_points(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_smax, pt_active,
+                 obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cam_f, cam_x0,
+                 cam_y0, ctrl_mask, band, rhs, base, max_rays):
+    """Add points ``j0, j0+1, ...`` of a chunk into the band-row window.
+
+    ``band[r]`` (6 x 6b) and ``rhs[r]`` (6) are the rows of logical station ``base + r``.
+    Processing stops before the first active point whose largest station lies beyond the
+    window. Returns ``(next_point, status, point)``: status OK, or SINGULAR_POINT /
+    BEHIND_CAMERA with the offending point.
+    """
+    cap = band.shape[0]
+    nbar = np.empty((max_rays, 6, 3))
+    g = np.empty((max_rays, 6, 3))
+    a_all = np.empty((max_rays, 2, 6))
+    l_all = np.empty((max_rays, 2))
+    w_all = np.empty(max_rays)
+    st_all = np.empty(max_rays, np.int64)
+    nn = np.empty((3, 3))
+    cc = np.empty(3)
+    lo = np.zeros((3, 3))
+    xyz = np.empty(3)
+    h = np.empty(3)
+    col = np.empty(3)
+    tmp = np.empty(3)
+    n_pts = pt_xyz.shape[0]
+    for j in range(j0, n_pts):
+        if pt_active[j] != 0:
+            continue
+        if pt_smax[j] >= base + cap:
+            return j, OK, -1
+        k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs,
+                          obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
+                          cam_f, cam_x0, cam_y0, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
+                          st_all, nn, cc)
+        if k < 0:
+            return j, BEHIND_CAMERA, j
+        if not _chol3(nn, lo):
+            return j, SINGULAR_POINT, j
+        _solve3(lo, cc, h)
+        for q in range(k):
+            r = st_all[q] - base
+            p = w_all[q]
+            a = a_all[q]
+            # station diagonal block and right-hand side
+            for u in range(6):
+                for v in range(6):
+                    band[r, u, v] += p * (a[0, u] * a[0, v] + a[1, u] * a[1, v])
+                s = p * (a[0, u] * l_all[q, 0] + a[1, u] * l_all[q, 1])
+                for c in range(3):
+                    s -= nbar[q, u, c] * h[c]
+                rhs[r, u] += s
+            # G = Nbar Ndd^-1 (row by row)
+            for u in range(6):
+                for c in range(3):
+                    col[c] = nbar[q, u, c]
+                _solve3(lo, col, tmp)
+                for c in range(3):
+                    g[q, u, c] = tmp[c]
+        # Schur complement into the band rows: M[s_q, s_t] -= G_q Nbar_t'
+        for q in range(k):
+            r = st_all[q] - base
+            for t in range(q, k):
+                off = 6 * (st_all[t] - st_all[q])
+                same = st_all[t] == st_all[q]
+                for u in range(6):
+                    for v in range(6):
+                        x = 0.0
+                        for c in range(3):
+                            x += g[q, u, c] * nbar[t, v, c]
+                        band[r, u, off + v] -= x
+                        if same and t != q:
+                            band[r, v, off + u] -= x
+    return n_pts, OK, -1
+
+
+@njit(cache=True)
+def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_active, obs_station,
+                  obs_xy, obs_sigma, obs_active, eo, eo_new, delta, cam_of_station, cam_f,
+                  cam_x0, cam_y0, ctrl_mask, max_rays, xyz_out, resid_out, stats):
+    """Back-solve point corrections and compute residuals for a chunk of points.
+
+    ``eps_j = Ndd_j^-1 (cdd_j - sum_s Nbar_s' delta_s)`` with the system linearised at the
+    values the normals were built with (``eo``, ``pt_xyz``); the residuals
+    ``v = computed - observed`` are then evaluated at the new values (``eo_new``,
+    ``xyz_out``). ``stats`` accumulates: 0 vPv image, 1 vPv control, 2 sum vx^2, 3 sum vy^2,
+    4 image rays, 5 max |eps|, 6 control components, 7 bad point (index+1) or 0.
+    """
+    nbar = np.empty((max_rays, 6, 3))
+    a_all = np.empty((max_rays, 2, 6))
+    l_all = np.empty((max_rays, 2))
+    w_all = np.empty(max_rays)
+    st_all = np.empty(max_rays, np.int64)
+    nn = np.empty((3, 3))
+    cc = np.empty(3)
+    lo = np.zeros((3, 3))
+    xyz = np.empty(3)
+    eps = np.empty(3)
+    for j in range(pt_xyz.shape[0]):
+        if pt_active[j] != 0:
+            xyz_out[j] = pt_xyz[j]
+            continue
+        k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs,
+                          obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
+                          cam_f, cam_x0, cam_y0, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
+                          st_all, nn, cc)
+        if k < 0 or not _chol3(nn, lo):
+            stats[7] = j + 1
+            return
+        for q in range(k):
+            s = st_all[q]
+            for c in range(3):
+                x = 0.0
+                for u in range(6):
+                    x += nbar[q, u, c] * delta[s, u]
+                cc[c] -= x
+        _solve3(lo, cc, eps)
+        kind = pt_kind[j]
+        for c in range(3):
+            xyz_out[j, c] = xyz[c] + eps[c]
+            if abs(eps[c]) > stats[5]:
+                stats[5] = abs(eps[c])
+            if ctrl_mask[kind, c] and pt_csig[j, c] > 0.0:
+                v = xyz_out[j, c] - pt_ctrl[j, c]
+                stats[1] += v * v / (pt_csig[j, c] * pt_csig[j, c])
+                stats[6] += 1
+        for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+            if not obs_active[i]:
+                resid_out[i, 0] = 0.0
+                resid_out[i, 1] = 0.0
+                continue
+            s = obs_station[i]
+            cam = cam_of_station[s]
+            x, y = project(eo_new[s], xyz_out[j], cam_f[cam], cam_x0[cam], cam_y0[cam])
+            vx = x - obs_xy[i, 0]
+            vy = y - obs_xy[i, 1]
+            resid_out[i, 0] = vx
+            resid_out[i, 1] = vy
+            p = 1.0 / (obs_sigma[i] * obs_sigma[i])
+            stats[0] += p * (vx * vx + vy * vy)
+            stats[2] += vx * vx
+            stats[3] += vy * vy
+            stats[4] += 1
+
+
+class PointChunk:
+    """The arrays of a chunk of points and their observations, ready for the kernels."""
+
+    __slots__ = ("start", "stop", "o0", "o1", "xyz", "kind", "ctrl", "csig", "pt_start",
+                 "nobs", "smax", "smin", "active", "obs_station", "obs_xy", "obs_sigma",
+                 "obs_active", "max_rays")
+
+    def __init__(self, project, start, stop, xyz):
+        pts = project.read("points", start, stop)
+        self.start, self.stop = start, stop
+        self.o0 = int(pts["obs_start"][0]) if len(pts) else 0
+        self.o1 = int(pts["obs_start"][-1] + pts["n_obs"][-1]) if len(pts) else 0
+        obs = project.read("observations", self.o0, self.o1)
+        c = np.ascontiguousarray
+        self.xyz = c(xyz, dtype=np.float64)
+        self.kind = c(pts["kind"], dtype=np.int64)
+        self.ctrl = c(pts["control"])
+        self.csig = c(pts["control_sigma"])
+        self.pt_start = c(pts["obs_start"] - self.o0)
+        self.nobs = c(pts["n_obs"], dtype=np.int64)
+        self.smax = c(pts["station_max"])
+        self.smin = c(pts["station_min"])
+        self.active = c(pts["status"], dtype=np.int64)
+        self.obs_station = c(obs["station"])
+        self.obs_xy = c(np.column_stack([obs["x"], obs["y"]]))
+        self.obs_sigma = c(obs["sigma"])
+        self.obs_active = c(obs["status"] == STATUS_ACTIVE)
+        self.max_rays = int(max(1, self.nobs.max() if len(self.nobs) else 1))
+
+
+CTRL_MASK = np.ascontiguousarray(CONTROL_MASK.astype(np.int64))

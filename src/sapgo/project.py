@@ -1,0 +1,427 @@
+"""The project file, ``project.h5``: SAPGO's direct-access record files as HDF5 datasets.
+
+Each dataset holds fixed-length records addressed by record number, like SAPGO's DEFINE FILE
+units (seeds/002, "Data storage"). After ordering, record number == logical number: station
+record ``i`` is the ``i``-th station of the bandwidth-minimising order, points are sorted by
+(min, max) logical station and observations are grouped by point in that order, so every phase
+reads the files front to back in chunks.
+
+Inputs (``/cameras``, ``/stations``, ``/station_priors``, ``/points``, ``/observations``) are
+never written by an adjustment; results go to ``/solution``. The band rows of the reduced normal
+equations live in a scratch file beside the project (see :mod:`sapgo.normals`).
+
+The schema, field by field, is documented in ``docs/project-schema.md``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from . import __version__
+from .errors import ClosedProjectError, DataError, ProjectFormatError
+
+FORMAT_NAME = "sapgo project"
+SCHEMA_VERSION = 1
+
+#: Records per HDF5 chunk and per processing chunk.
+CHUNK_RECORDS = 65536
+
+# Point kinds (``/points`` field ``kind``).
+KIND_PASS = 0
+KIND_CONTROL = 1  # full control: X, Y, Z
+KIND_HORIZONTAL = 2  # horizontal control: X, Y
+KIND_VERTICAL = 3  # vertical control: Z
+KIND_CHECK = 4  # known on the ground, not used as control; compared in the report
+KIND_NAMES = {
+    KIND_PASS: "pass",
+    KIND_CONTROL: "control",
+    KIND_HORIZONTAL: "horizontal",
+    KIND_VERTICAL: "vertical",
+    KIND_CHECK: "check",
+}
+#: Which coordinate components each kind uses as control observations.
+CONTROL_MASK = np.array(
+    [[0, 0, 0], [1, 1, 1], [1, 1, 0], [0, 0, 1], [0, 0, 0]], dtype=np.int8
+)
+
+# Record status (``status`` field of stations, points and observations).
+STATUS_ACTIVE = 0
+STATUS_EXCLUDED = 1  # left out of the adjustment (undeterminable); kept in the project
+
+EO_NAMES = ("omega", "phi", "kappa", "X", "Y", "Z")
+
+CAMERA_DTYPE = np.dtype(
+    [
+        ("id", "<i8"),
+        ("focal_length", "<f8"),  # mm
+        ("x0", "<f8"),  # principal point, mm
+        ("y0", "<f8"),
+        ("format_x", "<f8"),  # image format, mm
+        ("format_y", "<f8"),
+        ("sigma_image", "<f8"),  # default image-coordinate standard error, mm
+        ("k1", "<f8"),  # radial distortion (Brown), mm^-2, mm^-4, mm^-6
+        ("k2", "<f8"),
+        ("k3", "<f8"),
+        ("p1", "<f8"),  # decentring distortion (Brown), mm^-1
+        ("p2", "<f8"),
+    ]
+)
+
+STATION_DTYPE = np.dtype(
+    [
+        ("id", "<i8"),
+        ("camera", "<i4"),  # record index into /cameras
+        ("strip", "<i4"),  # flight line number (-1 if unknown)
+        ("status", "i1"),
+        ("eo", "<f8", (6,)),  # approximate omega, phi, kappa (rad), X, Y, Z (m)
+    ]
+)
+
+PRIOR_DTYPE = np.dtype(
+    [
+        ("station", "<i8"),  # record index into /stations
+        ("value", "<f8", (6,)),  # observed omega, phi, kappa (rad), X, Y, Z (m)
+        ("weight", "<f8", (6, 6)),  # weight matrix, units 1/rad^2, 1/m^2
+    ]
+)
+
+POINT_DTYPE = np.dtype(
+    [
+        ("id", "<i8"),
+        ("kind", "i1"),
+        ("status", "i1"),
+        ("xyz", "<f8", (3,)),  # approximate X, Y, Z (m)
+        ("control", "<f8", (3,)),  # known X, Y, Z (m) for control and check points
+        ("control_sigma", "<f8", (3,)),  # standard error of the control (m); 0 = fixed
+        ("obs_start", "<i8"),  # first record in /observations
+        ("n_obs", "<i4"),  # number of records in /observations
+        ("station_min", "<i8"),  # smallest / largest station record of its active rays
+        ("station_max", "<i8"),
+    ]
+)
+
+OBSERVATION_DTYPE = np.dtype(
+    [
+        ("point", "<i8"),  # record index into /points
+        ("station", "<i8"),  # record index into /stations
+        ("x", "<f8"),  # image coordinates, mm
+        ("y", "<f8"),
+        ("sigma", "<f8"),  # standard error of x and y, mm
+        ("status", "i1"),
+    ]
+)
+
+TRUTH_STATION_DTYPE = np.dtype([("id", "<i8"), ("eo", "<f8", (6,))])
+TRUTH_POINT_DTYPE = np.dtype([("id", "<i8"), ("xyz", "<f8", (3,))])
+
+RECORD_DTYPES = {
+    "cameras": CAMERA_DTYPE,
+    "stations": STATION_DTYPE,
+    "station_priors": PRIOR_DTYPE,
+    "points": POINT_DTYPE,
+    "observations": OBSERVATION_DTYPE,
+}
+TRUTH_DTYPES = {"truth/stations": TRUTH_STATION_DTYPE, "truth/points": TRUTH_POINT_DTYPE}
+
+#: Result datasets in ``/solution`` (shape per record, dtype).
+SOLUTION_LAYOUT = {
+    "station_corr": ("stations", (6,)),  # total corrections to eo
+    "point_corr": ("points", (3,)),  # total corrections to xyz
+    "residuals": ("observations", (2,)),  # vx, vy (mm), adjusted minus observed
+}
+
+
+def _now():
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+
+
+def _chunks(n, row_bytes):
+    """HDF5 chunk shape of about 1 MiB for a record dataset of ``n`` rows."""
+    rows = max(1, min(CHUNK_RECORDS, (1 << 20) // max(1, row_bytes), n))
+    return (rows,)
+
+
+def _create_records(group, name, data, dtype):
+    data = np.asarray(data, dtype=dtype)
+    kw = {}
+    if len(data):
+        kw = dict(chunks=_chunks(len(data), dtype.itemsize))
+    else:
+        kw = dict(chunks=(1,))
+    return group.create_dataset(name, data=data, maxshape=(None,), **kw)
+
+
+def write_project(path, cameras, stations, points, observations, priors=None, truth=None,
+                  attrs=None):
+    """Write a new project file atomically (a temporary file renamed into place).
+
+    ``cameras``, ``stations``, ``points``, ``observations`` and ``priors`` are structured
+    arrays of the record dtypes (or anything convertible); ``truth`` is an optional dict with
+    ``stations`` and ``points`` structured arrays in record order. Points must already hold
+    ``obs_start``/``n_obs`` consistent with ``observations``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format"] = FORMAT_NAME
+            f.attrs["schema_version"] = SCHEMA_VERSION
+            f.attrs["sapgo_version"] = __version__
+            f.attrs["created"] = _now()
+            f.attrs["units"] = json.dumps(
+                {"object": "m", "image": "mm", "angles": "rad", "weights": "1/unit^2"}
+            )
+            f.attrs["frame"] = "local space rectangular"
+            f.attrs["crs"] = ""
+            f.attrs["ordered"] = False
+            f.attrs["ordering"] = ""
+            f.attrs["band_width"] = 0
+            f.attrs["history"] = json.dumps([])
+            for k, v in (attrs or {}).items():
+                f.attrs[k] = v
+            _create_records(f, "cameras", cameras, CAMERA_DTYPE)
+            _create_records(f, "stations", stations, STATION_DTYPE)
+            _create_records(f, "station_priors",
+                            priors if priors is not None else np.zeros(0, PRIOR_DTYPE),
+                            PRIOR_DTYPE)
+            _create_records(f, "points", points, POINT_DTYPE)
+            _create_records(f, "observations", observations, OBSERVATION_DTYPE)
+            if truth is not None:
+                g = f.create_group("truth")
+                _create_records(g, "stations", truth["stations"], TRUTH_STATION_DTYPE)
+                _create_records(g, "points", truth["points"], TRUTH_POINT_DTYPE)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def _dtype_matches(actual, expected):
+    if actual.names is None or set(actual.names) != set(expected.names):
+        return False
+    for name in expected.names:
+        a, e = actual.fields[name][0], expected.fields[name][0]
+        if a.shape != e.shape or a.base.kind != e.base.kind:
+            return False
+    return True
+
+
+class Project:
+    """An open sapgo project file.
+
+    Opening validates the file: that it is HDF5, that it is a sapgo project of this schema
+    version and that every record dataset has the documented fields. Values are checked by
+    :func:`sapgo.validate.check_values` before an adjustment.
+
+    Use it as a context manager::
+
+        with Project("block.h5") as p:
+            print(p.n_stations, p.band_width)
+    """
+
+    def __init__(self, path, mode="r"):
+        self.path = Path(path)
+        if mode not in ("r", "r+"):
+            raise ValueError("mode must be 'r' or 'r+'")
+        if not self.path.exists():
+            raise ProjectFormatError(f"{self.path}: no such file")
+        if self.path.is_dir():
+            raise ProjectFormatError(f"{self.path}: is a directory, not a sapgo project")
+        if not h5py.is_hdf5(self.path):
+            raise ProjectFormatError(
+                f"{self.path}: not a sapgo project (the file is not HDF5)"
+            )
+        try:
+            self._f = h5py.File(self.path, mode)
+        except OSError as exc:
+            raise ProjectFormatError(f"{self.path}: cannot open as HDF5 ({exc})") from None
+        try:
+            self._validate_structure()
+        except Exception:
+            self._f.close()
+            raise
+
+    # -- validation ---------------------------------------------------------------------
+    def _validate_structure(self):
+        f = self._f
+        fmt = f.attrs.get("format")
+        if isinstance(fmt, bytes):
+            fmt = fmt.decode()
+        if fmt != FORMAT_NAME:
+            raise ProjectFormatError(
+                f"{self.path}: not a sapgo project (HDF5 file without the "
+                f"'format = {FORMAT_NAME}' attribute)"
+            )
+        version = f.attrs.get("schema_version")
+        if version is None or int(version) != SCHEMA_VERSION:
+            raise ProjectFormatError(
+                f"{self.path}: project schema version {version}, but this sapgo "
+                f"({__version__}) reads schema version {SCHEMA_VERSION}"
+            )
+        for name, dtype in list(RECORD_DTYPES.items()) + (
+            list(TRUTH_DTYPES.items()) if "truth" in f else []
+        ):
+            if name not in f:
+                raise ProjectFormatError(f"{self.path}: dataset /{name} is missing")
+            ds = f[name]
+            if not isinstance(ds, h5py.Dataset) or ds.ndim != 1:
+                raise ProjectFormatError(f"{self.path}: /{name} is not a record dataset")
+            if not _dtype_matches(ds.dtype, dtype):
+                raise ProjectFormatError(
+                    f"{self.path}: /{name} records have fields {ds.dtype.names}, "
+                    f"expected {dtype.names} (see docs/project-schema.md)"
+                )
+        if "truth" in f:
+            if len(f["truth/stations"]) != len(f["stations"]) or len(f["truth/points"]) != len(
+                f["points"]
+            ):
+                raise ProjectFormatError(
+                    f"{self.path}: /truth does not have one record per station and point"
+                )
+        if "solution" in f:
+            for name, (parent, shape) in SOLUTION_LAYOUT.items():
+                ds = f["solution"].get(name)
+                if ds is None or ds.shape != (len(f[parent]),) + shape:
+                    raise ProjectFormatError(
+                        f"{self.path}: /solution/{name} is missing or does not match /{parent}"
+                    )
+
+    # -- life cycle ---------------------------------------------------------------------
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self):
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+
+    @property
+    def file(self):
+        if self._f is None:
+            raise ClosedProjectError(f"{self.path}: the project is closed")
+        return self._f
+
+    # -- sizes and attributes -----------------------------------------------------------
+    def __len_of(self, name):
+        return int(self.file[name].shape[0])
+
+    @property
+    def n_cameras(self):
+        return self.__len_of("cameras")
+
+    @property
+    def n_stations(self):
+        return self.__len_of("stations")
+
+    @property
+    def n_points(self):
+        return self.__len_of("points")
+
+    @property
+    def n_observations(self):
+        return self.__len_of("observations")
+
+    @property
+    def n_priors(self):
+        return self.__len_of("station_priors")
+
+    @property
+    def ordered(self):
+        return bool(self.file.attrs.get("ordered", False))
+
+    @property
+    def band_width(self):
+        return int(self.file.attrs.get("band_width", 0))
+
+    @property
+    def has_truth(self):
+        return "truth" in self.file
+
+    @property
+    def has_solution(self):
+        return "solution" in self.file
+
+    def attr(self, name, default=None):
+        v = self.file.attrs.get(name, default)
+        return v.decode() if isinstance(v, bytes) else v
+
+    def history(self):
+        return json.loads(self.attr("history", "[]"))
+
+    def add_history(self, entry):
+        h = self.history()
+        h.append(dict(entry, time=_now(), sapgo_version=__version__))
+        self.file.attrs["history"] = json.dumps(h)
+
+    # -- record access ------------------------------------------------------------------
+    def read(self, name, start=0, stop=None):
+        """Records ``start:stop`` of dataset ``name`` (e.g. ``"points"``, ``"truth/points"``)."""
+        ds = self.file[name]
+        stop = ds.shape[0] if stop is None else stop
+        return ds[start:stop]
+
+    def read_field(self, name, field, start=0, stop=None):
+        ds = self.file[name]
+        stop = ds.shape[0] if stop is None else stop
+        if stop <= start:
+            return np.zeros((0,) + ds.dtype.fields[field][0].shape, ds.dtype.fields[field][0].base)
+        return ds.fields(field)[start:stop]
+
+    def chunks(self, name, size=CHUNK_RECORDS):
+        """Yield ``(start, stop)`` ranges covering dataset ``name`` in processing order."""
+        n = self.file[name].shape[0]
+        for start in range(0, n, size):
+            yield start, min(n, start + size)
+
+    def cameras(self):
+        return self.read("cameras")
+
+    # -- solution -----------------------------------------------------------------------
+    def solution(self, name, start=0, stop=None):
+        """Slice of a /solution dataset; zeros when the project has not been adjusted."""
+        parent, shape = SOLUTION_LAYOUT[name]
+        n = self.__len_of(parent)
+        stop = n if stop is None else stop
+        if not self.has_solution:
+            return np.zeros((stop - start,) + shape)
+        return self.file["solution"][name][start:stop]
+
+    def reset_solution(self):
+        """Create (or zero) the /solution group sized to the current records."""
+        f = self.file
+        if "solution" in f:
+            del f["solution"]
+        g = f.create_group("solution")
+        for name, (parent, shape) in SOLUTION_LAYOUT.items():
+            n = len(f[parent])
+            g.create_dataset(
+                name, shape=(n,) + shape, dtype="<f8",
+                chunks=(max(1, min(n, CHUNK_RECORDS)),) + shape, fillvalue=0.0,
+            )
+        g.attrs["state"] = "initial"
+        g.attrs["iterations"] = 0
+        g.attrs["converged"] = False
+        return g
+
+
+def open_project(path, mode="r"):
+    """Open and validate a project file; see :class:`Project`."""
+    return Project(path, mode)
+
+
+def require_finite(values, what):
+    """Raise DataError when ``values`` holds NaN or infinities; ``what`` names them."""
+    bad = ~np.isfinite(values)
+    if bad.any():
+        raise DataError(f"{what}: non-finite value ({values[bad][0]})")

@@ -1,0 +1,220 @@
+"""Statistics of an adjusted block and the reports (text and JSON) of a run.
+
+Check points are compared with their known ground coordinates, as in seeds/002 Table 4:
+``sX, sY, sZ`` are root mean squares of (adjusted - known), ``sXY = sqrt(sX^2 + sY^2)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+
+from .project import CONTROL_MASK, KIND_CHECK
+
+ARCSEC = math.pi / (180 * 3600)
+
+
+class _Rms:
+    """Running sums for the RMS of 3-D differences."""
+
+    def __init__(self):
+        self.n = 0
+        self.ss = np.zeros(3)
+        self.s = np.zeros(3)
+        self.max_xy = 0.0
+        self.max_z = 0.0
+
+    def add(self, d):
+        if len(d) == 0:
+            return
+        self.n += len(d)
+        self.ss += (d * d).sum(axis=0)
+        self.s += d.sum(axis=0)
+        self.max_xy = max(self.max_xy, float(np.hypot(d[:, 0], d[:, 1]).max()))
+        self.max_z = max(self.max_z, float(np.abs(d[:, 2]).max()))
+
+    def result(self):
+        if self.n == 0:
+            return {"n": 0, "sx": None, "sy": None, "sz": None, "sxy": None}
+        sx, sy, sz = np.sqrt(self.ss / self.n)
+        mx, my, mz = self.s / self.n
+        return {
+            "n": self.n, "sx": float(sx), "sy": float(sy), "sz": float(sz),
+            "sxy": float(math.hypot(sx, sy)),
+            "mean_dx": float(mx), "mean_dy": float(my), "mean_dz": float(mz),
+            "max_dxy": self.max_xy, "max_dz": self.max_z,
+        }
+
+
+class check_point_statistics:
+    """Accumulates check-point errors and control-point residuals chunk by chunk."""
+
+    def __init__(self):
+        self.check = _Rms()
+        self.ctrl_n = np.zeros(3, np.int64)
+        self.ctrl_ss = np.zeros(3)
+
+    def add(self, points, adjusted):
+        chk = points["kind"] == KIND_CHECK
+        self.check.add(adjusted[chk] - points["control"][chk])
+        mask = CONTROL_MASK[points["kind"]].astype(bool)
+        d = np.where(mask, adjusted - points["control"], 0.0)
+        self.ctrl_n += mask.sum(axis=0)
+        self.ctrl_ss += (d * d).sum(axis=0)
+
+    def result(self):
+        return self.check.result()
+
+    def control_result(self):
+        rms = [float(math.sqrt(s / k)) if k else None for s, k in zip(self.ctrl_ss, self.ctrl_n)]
+        return {"n_x": int(self.ctrl_n[0]), "n_y": int(self.ctrl_n[1]),
+                "n_z": int(self.ctrl_n[2]), "rms_x": rms[0], "rms_y": rms[1], "rms_z": rms[2]}
+
+
+class truth_statistics:
+    """Errors against the generator's true values (points and stations)."""
+
+    def __init__(self):
+        self.points = _Rms()
+        self.st_n = 0
+        self.st_pos = 0.0
+        self.st_ang = 0.0
+
+    def add_points(self, true_xyz, adjusted):
+        self.points.add(adjusted - true_xyz)
+
+    def add_stations(self, true_eo, eo):
+        d = eo - true_eo
+        d[:, :3] = (d[:, :3] + np.pi) % (2 * np.pi) - np.pi
+        self.st_n += len(d)
+        self.st_pos += float((d[:, 3:] ** 2).sum())
+        self.st_ang += float((d[:, :3] ** 2).sum())
+
+    def result(self):
+        n = max(self.st_n, 1)
+        return {
+            "points": self.points.result(),
+            "stations": {
+                "n": self.st_n,
+                "position_rms_m": math.sqrt(self.st_pos / (3 * n)),
+                "angle_rms_arcsec": math.sqrt(self.st_ang / (3 * n)) / ARCSEC,
+            },
+        }
+
+
+@dataclasses.dataclass
+class Summary:
+    """The outcome of :func:`sapgo.adjust`: usable result, statistics and timings."""
+
+    path: str
+    converged: bool
+    termination: str
+    iterations: int
+    iteration_log: list
+    sigma0: float
+    redundancy: int
+    image_rms_um: float
+    image_rms_x_um: float
+    image_rms_y_um: float
+    band_width: int
+    ordering: str
+    band_width_before: int | None
+    n_stations: int
+    n_points: int
+    n_observations: int
+    n_cameras: int
+    n_control: dict
+    excluded_stations: list
+    excluded_points: list
+    check_points: dict
+    control_points: dict
+    truth: dict | None = None
+    timings_s: dict = dataclasses.field(default_factory=dict)
+    timings_per_iteration_s: dict = dataclasses.field(default_factory=dict)
+
+    def to_dict(self):
+        return dataclasses.asdict(self)
+
+    def to_json(self, indent=2):
+        return json.dumps(self.to_dict(), indent=indent)
+
+    def brief_report(self):
+        c = self.check_points
+        chk = (f", check points sXY {c['sxy']:.3f} m sZ {c['sz']:.3f} m" if c["n"] else "")
+        return (f"{'converged' if self.converged else 'NOT converged'} in {self.iterations} "
+                f"iterations: sigma0 {self.sigma0:.3f}, image RMS {self.image_rms_um:.2f} um"
+                f"{chk}, band width {self.band_width}, {self.timings_s.get('total', 0):.2f} s")
+
+    def full_report(self):
+        L = []
+        ctrl = self.n_control
+        L.append(f"sapgo adjustment of {self.path}")
+        L.append(
+            f"  block: {self.n_stations} photos, {self.n_points} points "
+            f"({ctrl.get('full', 0)} full, {ctrl.get('horizontal', 0)} horizontal, "
+            f"{ctrl.get('vertical', 0)} vertical control; {self.check_points['n']} check), "
+            f"{self.n_observations} image observations, {self.n_cameras} camera(s)"
+        )
+        before = (f" (record order: {self.band_width_before})"
+                  if self.band_width_before is not None else "")
+        L.append(f"  order: {self.ordering}, band width {self.band_width} stations{before}")
+        if self.excluded_stations:
+            L.append(f"  left out, too few points: {len(self.excluded_stations)} photos "
+                     f"{_ids(self.excluded_stations)}")
+        if self.excluded_points:
+            L.append(f"  left out, too few rays: {len(self.excluded_points)} points "
+                     f"{_ids(self.excluded_points)}")
+        L.append("")
+        L.append("  iter   sigma0  image RMS  max dXYZc   max dang  max dXYZ    build    solve"
+                 "   update")
+        L.append("                      [um]        [m]       [\"]       [m]      [s]      [s]"
+                 "      [s]")
+        for r in self.iteration_log:
+            L.append(
+                f"  {r['iteration']:4d} {r['sigma0']:8.3f} {r['image_rms_um']:10.2f} "
+                f"{r['max_station_position_corr_m']:10.4f} "
+                f"{r['max_station_angle_corr_arcsec']:10.3f} {r['max_point_corr_m']:9.4f} "
+                f"{r['build_s']:8.3f} {r['solve_s']:8.3f} {r['update_s']:8.3f}"
+            )
+        L.append("")
+        L.append(f"  {self.termination}")
+        L.append(f"  sigma0 = {self.sigma0:.4f}  (redundancy {self.redundancy})")
+        L.append(f"  image residuals RMS: x {self.image_rms_x_um:.2f} um, "
+                 f"y {self.image_rms_y_um:.2f} um, both {self.image_rms_um:.2f} um")
+        c = self.check_points
+        if c["n"]:
+            L.append(
+                f"  check points ({c['n']}): sX {c['sx']:.3f} m  sY {c['sy']:.3f} m  "
+                f"sZ {c['sz']:.3f} m  sXY {c['sxy']:.3f} m  (max |dXY| {c['max_dxy']:.3f} m,"
+                f" max |dZ| {c['max_dz']:.3f} m)"
+            )
+        cp = self.control_points
+        if cp["n_x"] or cp["n_z"]:
+            parts = [f"{a} {cp['rms_' + a.lower()]:.4f} m"
+                     for a in ("X", "Y", "Z") if cp["rms_" + a.lower()] is not None]
+            L.append(f"  control residuals RMS: {', '.join(parts)}")
+        if self.truth:
+            tp, ts = self.truth["points"], self.truth["stations"]
+            if tp["n"]:
+                L.append(f"  against the generator's truth: {tp['n']} points sXY "
+                         f"{tp['sxy']:.3f} m sZ {tp['sz']:.3f} m; {ts['n']} stations "
+                         f"position RMS {ts['position_rms_m']:.3f} m, angles RMS "
+                         f"{ts['angle_rms_arcsec']:.2f}\"")
+        t = self.timings_s
+        if t:
+            L.append(
+                f"  time [s]: order {t['order']:.2f}, build {t['build']:.2f}, solve "
+                f"{t['solve']:.2f}, update {t['update']:.2f}, total {t['total']:.2f}"
+            )
+            ti = self.timings_per_iteration_s
+            L.append(f"  per iteration [s]: build {ti['build']:.3f}, solve {ti['solve']:.3f}, "
+                     f"update {ti['update']:.3f}")
+        return "\n".join(L)
+
+
+def _ids(ids, limit=20):
+    s = ", ".join(str(i) for i in ids[:limit])
+    return f"(ids {s}{', ...' if len(ids) > limit else ''})"

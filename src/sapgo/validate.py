@@ -1,0 +1,145 @@
+"""Value checks of a project's inputs, chunk by chunk, before anything is computed.
+
+Each problem is reported as one line naming the dataset, the record number and the user's id
+(``points record 17 (id 18): control[2] is NaN``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import DataError
+from .project import CONTROL_MASK, KIND_CHECK, KIND_NAMES, Project
+
+
+def _first_bad(mask):
+    idx = np.flatnonzero(mask)
+    return int(idx[0]) if len(idx) else -1
+
+
+def _describe(value):
+    if np.isnan(value):
+        return "NaN"
+    if np.isinf(value):
+        return "infinite"
+    return repr(float(value))
+
+
+def _check_finite(name, start, ids, field, values):
+    """Raise for the first non-finite entry of ``values`` (n, ...) in a chunk."""
+    v = values.reshape(len(values), -1)
+    bad = ~np.isfinite(v)
+    rows = bad.any(axis=1)
+    i = _first_bad(rows)
+    if i >= 0:
+        comp = int(np.flatnonzero(bad[i])[0])
+        label = field if v.shape[1] == 1 else f"{field}[{comp}]"
+        idtxt = f" (id {ids[i]})" if ids is not None else ""
+        raise DataError(f"{name} record {start + i}{idtxt}: {label} is {_describe(v[i, comp])}")
+
+
+def check_values(project: Project):
+    """Check every input value; raise :class:`DataError` at the first problem."""
+    path = project.path
+    n_cam = project.n_cameras
+    n_st = project.n_stations
+    n_pt = project.n_points
+    if n_cam == 0:
+        raise DataError(f"{path}: the project has no camera")
+    if n_st == 0:
+        raise DataError(f"{path}: the project has no station (photo)")
+    cams = project.cameras()
+    for f in ("focal_length", "x0", "y0", "format_x", "format_y", "sigma_image",
+              "k1", "k2", "k3", "p1", "p2"):
+        _check_finite("cameras", 0, cams["id"], f, cams[f])
+    for i, c in enumerate(cams):
+        if c["focal_length"] <= 0:
+            raise DataError(f"cameras record {i} (id {c['id']}): focal length must be positive")
+        if c["sigma_image"] <= 0:
+            raise DataError(f"cameras record {i} (id {c['id']}): sigma_image must be positive")
+        if any(c[k] != 0 for k in ("k1", "k2", "k3", "p1", "p2")):
+            raise DataError(
+                f"cameras record {i} (id {c['id']}): lens distortion is not supported by "
+                f"this version of sapgo; correct the image coordinates beforehand"
+            )
+    for a, b in project.chunks("stations"):
+        st = project.read("stations", a, b)
+        _check_finite("stations", a, st["id"], "eo", st["eo"])
+        i = _first_bad((st["camera"] < 0) | (st["camera"] >= n_cam))
+        if i >= 0:
+            raise DataError(f"stations record {a + i} (id {st['id'][i]}): camera index "
+                            f"{st['camera'][i]} is not one of the {n_cam} cameras")
+    for a, b in project.chunks("station_priors"):
+        pr = project.read("station_priors", a, b)
+        i = _first_bad((pr["station"] < 0) | (pr["station"] >= n_st))
+        if i >= 0:
+            raise DataError(f"station_priors record {a + i}: station {pr['station'][i]} "
+                            f"does not exist")
+        _check_finite("station_priors", a, None, "value", pr["value"])
+        _check_finite("station_priors", a, None, "weight", pr["weight"])
+        w = pr["weight"]
+        asym = np.abs(w - np.transpose(w, (0, 2, 1))).max(axis=(1, 2)) > 1e-9 * (
+            np.abs(w).max(axis=(1, 2)) + 1e-300)
+        neg = (np.diagonal(w, axis1=1, axis2=2) < 0).any(axis=1)
+        i = _first_bad(asym | neg)
+        if i >= 0:
+            raise DataError(f"station_priors record {a + i}: the weight matrix must be "
+                            f"symmetric with a non-negative diagonal")
+    expected_start = 0
+    for a, b in project.chunks("points"):
+        pts = project.read("points", a, b)
+        ids = pts["id"]
+        _check_finite("points", a, ids, "xyz", pts["xyz"])
+        kind = pts["kind"]
+        i = _first_bad((kind < 0) | (kind > KIND_CHECK))
+        if i >= 0:
+            raise DataError(f"points record {a + i} (id {ids[i]}): unknown kind {kind[i]}; "
+                            f"kinds are {KIND_NAMES}")
+        known = CONTROL_MASK[kind].astype(bool) | (kind == KIND_CHECK)[:, None]
+        ctrl = np.where(known, pts["control"], 0.0)
+        _check_finite("points", a, ids, "control", ctrl)
+        csig = np.where(CONTROL_MASK[kind].astype(bool), pts["control_sigma"], 0.0)
+        _check_finite("points", a, ids, "control_sigma", csig)
+        i = _first_bad((csig < 0).any(axis=1))
+        if i >= 0:
+            raise DataError(f"points record {a + i} (id {ids[i]}): control_sigma must not be "
+                            f"negative (0 fixes the coordinate)")
+        starts = pts["obs_start"]
+        counts = pts["n_obs"]
+        exp = expected_start + np.concatenate([[0], np.cumsum(counts[:-1])])
+        i = _first_bad((starts != exp) | (counts < 0))
+        if i >= 0:
+            raise DataError(f"points record {a + i} (id {ids[i]}): obs_start/n_obs do not "
+                            f"follow the observations grouped by point")
+        expected_start = int(starts[-1] + counts[-1])
+    if expected_start != project.n_observations:
+        raise DataError(f"{path}: the points reference {expected_start} observations, "
+                        f"the project has {project.n_observations}")
+    for a, b in project.chunks("observations"):
+        obs = project.read("observations", a, b)
+        pt = obs["point"]
+        i = _first_bad((pt < 0) | (pt >= n_pt))
+        if i >= 0:
+            raise DataError(f"observations record {a + i}: point {pt[i]} does not exist")
+        i = _first_bad((obs["station"] < 0) | (obs["station"] >= n_st))
+        if i >= 0:
+            pid = project.read("points", int(pt[i]), int(pt[i]) + 1)["id"][0]
+            raise DataError(f"observations record {a + i} (point id {pid}): station "
+                            f"{obs['station'][i]} does not exist")
+        for f in ("x", "y", "sigma"):
+            bad = ~np.isfinite(obs[f])
+            i = _first_bad(bad)
+            if i >= 0:
+                pid = project.read("points", int(pt[i]), int(pt[i]) + 1)["id"][0]
+                sid = project.read("stations", int(obs["station"][i]),
+                                   int(obs["station"][i]) + 1)["id"][0]
+                raise DataError(f"observations record {a + i} (point id {pid}, photo id "
+                                f"{sid}): {f} is {_describe(obs[f][i])}")
+        i = _first_bad(obs["sigma"] <= 0)
+        if i >= 0:
+            raise DataError(f"observations record {a + i}: sigma must be positive")
+    if project.has_truth:
+        for a, b in project.chunks("truth/points"):
+            _check_finite("truth/points", a, None, "xyz", project.read_field("truth/points", "xyz", a, b))
+        for a, b in project.chunks("truth/stations"):
+            _check_finite("truth/stations", a, None, "eo", project.read_field("truth/stations", "eo", a, b))

@@ -1,0 +1,139 @@
+"""Slow, obvious reference implementations the fast kernels are tested against.
+
+Nothing here shares code with ``sapgo``'s kernels: the rotation, the projection, the Jacobian
+(complex-step differentiation, exact to rounding) and the dense normal equations are written
+again in plain numpy.
+"""
+
+import numpy as np
+import scipy.linalg
+
+
+def rotation(omega, phi, kappa):
+    """M = R3(kappa) R2(phi) R1(omega); works for complex arguments (complex step)."""
+    cw, sw = np.cos(omega), np.sin(omega)
+    cp, sp = np.cos(phi), np.sin(phi)
+    ck, sk = np.cos(kappa), np.sin(kappa)
+    one, zero = np.ones_like(cw), np.zeros_like(cw)
+    r1 = np.array([[one, zero, zero], [zero, cw, sw], [zero, -sw, cw]])
+    r2 = np.array([[cp, zero, -sp], [zero, one, zero], [sp, zero, cp]])
+    r3 = np.array([[ck, sk, zero], [-sk, ck, zero], [zero, zero, one]])
+    return np.einsum("ij...,jk...,kl...->il...", r3, r2, r1)
+
+
+def project(eo, xyz, f, x0=0.0, y0=0.0):
+    """Collinearity for arrays: eo (..., 6), xyz (..., 3) -> (..., 2)."""
+    m = rotation(eo[..., 0], eo[..., 1], eo[..., 2])
+    d = xyz - eo[..., 3:6]
+    q = np.einsum("ij...,...j->...i", m, d)
+    return np.stack([x0 - f * q[..., 0] / q[..., 2], y0 - f * q[..., 1] / q[..., 2]], axis=-1)
+
+
+def jacobian_complex_step(eo, xyz, f, x0=0.0, y0=0.0, h=1e-30):
+    """d(x, y)/d(eo, xyz) for one ray by complex step: (2 x 6), (2 x 3)."""
+    p = np.concatenate([eo, xyz]).astype(complex)
+    jac = np.zeros((2, 9))
+    for k in range(9):
+        q = p.copy()
+        q[k] += 1j * h
+        jac[:, k] = project(q[:6], q[6:], f, x0, y0).imag / h
+    return jac[:, :6], jac[:, 6:]
+
+
+def reduced_normals_dense(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma,
+                          ctrl_mask=None, ctrl=None, ctrl_sigma=None):
+    """Full normal matrix of stations and points, reduced with numpy: (M, d).
+
+    Builds ``N = J' P J`` and ``c = J' P l`` over all unknowns, then
+    ``M = N_ss - N_sp N_pp^-1 N_ps``, ``d = c_s - N_sp N_pp^-1 c_p`` densely.
+    """
+    ns, npnt = len(eo), len(xyz)
+    nu = 6 * ns + 3 * npnt
+    n = np.zeros((nu, nu))
+    c = np.zeros(nu)
+    for i in range(len(obs_station)):
+        s, j = obs_station[i], obs_point[i]
+        a, b = jacobian_complex_step(eo[s], xyz[j], f)
+        row = np.zeros((2, nu))
+        row[:, 6 * s:6 * s + 6] = a
+        row[:, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b
+        l = obs_xy[i] - project(eo[s], xyz[j], f)
+        w = 1.0 / obs_sigma[i] ** 2
+        n += w * row.T @ row
+        c += w * row.T @ l
+    if ctrl_mask is not None:
+        for j in range(npnt):
+            for k in range(3):
+                if ctrl_mask[j, k]:
+                    w = 1.0 / ctrl_sigma[j, k] ** 2
+                    q = 6 * ns + 3 * j + k
+                    n[q, q] += w
+                    c[q] += w * (ctrl[j, k] - xyz[j, k])
+    s = slice(0, 6 * ns)
+    p = slice(6 * ns, nu)
+    npp_inv_nps = np.linalg.solve(n[p, p], n[p, s])
+    m = n[s, s] - n[s, p] @ npp_inv_nps
+    d = c[s] - n[s, p] @ np.linalg.solve(n[p, p], c[p])
+    return m, d
+
+
+def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma, ctrl_mask,
+                            ctrl, ctrl_sigma, iterations=30, tol=1e-11):
+    """Gauss-Newton on the full dense normal equations (no reduction, no band).
+
+    Control components with sigma 0 are held at their control values. Returns adjusted
+    ``(eo, xyz, sigma0, iterations)``.
+    """
+    eo = eo.astype(float).copy()
+    xyz = xyz.astype(float).copy()
+    fixed = ctrl_mask & (ctrl_sigma == 0)
+    xyz[fixed] = ctrl[fixed]
+    weighted = ctrl_mask & (ctrl_sigma > 0)
+    ns, npnt = len(eo), len(xyz)
+    free_pt = ~fixed.ravel()
+    index = np.concatenate([np.ones(6 * ns, bool), free_pt])
+    nobs = len(obs_station)
+    for it in range(1, iterations + 1):
+        rows = []
+        jac = np.zeros((2 * nobs + weighted.sum(), 6 * ns + 3 * npnt))
+        res = np.zeros(jac.shape[0])
+        for i in range(nobs):
+            s, j = obs_station[i], obs_point[i]
+            a, b = jacobian_complex_step(eo[s], xyz[j], f)
+            sw = 1.0 / obs_sigma[i]
+            jac[2 * i:2 * i + 2, 6 * s:6 * s + 6] = a * sw
+            jac[2 * i:2 * i + 2, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b * sw
+            res[2 * i:2 * i + 2] = (project(eo[s], xyz[j], f) - obs_xy[i]) * sw
+        r = 2 * nobs
+        for j, k in zip(*np.nonzero(weighted)):
+            jac[r, 6 * ns + 3 * j + k] = 1.0 / ctrl_sigma[j, k]
+            res[r] = (xyz[j, k] - ctrl[j, k]) / ctrl_sigma[j, k]
+            r += 1
+        del rows
+        jr = jac[:, index]
+        n = jr.T @ jr
+        g = jr.T @ res
+        dx = np.zeros(len(index))
+        dx[index] = -scipy.linalg.solve(n, g, assume_a="pos")
+        eo += dx[:6 * ns].reshape(ns, 6)
+        xyz += dx[6 * ns:].reshape(npnt, 3)
+        if np.abs(dx).max() < tol:
+            break
+    # final residuals
+    v = project(eo[obs_station], xyz[obs_point], f) - obs_xy
+    vpv = float(((v / obs_sigma[:, None]) ** 2).sum())
+    vc = (xyz - ctrl)[weighted] / ctrl_sigma[weighted]
+    vpv += float((vc ** 2).sum())
+    redundancy = 2 * nobs + weighted.sum() - 6 * ns - 3 * npnt + fixed.sum()
+    return eo, xyz, np.sqrt(vpv / redundancy), it
+
+
+def banded_from_dense(m, band_width):
+    """scipy ``cholesky_banded`` upper storage ``ab[u + i - j, j] == a[i, j]`` of ``m``."""
+    u = 6 * band_width - 1
+    n = m.shape[0]
+    ab = np.zeros((u + 1, n))
+    for j in range(n):
+        for i in range(max(0, j - u), j + 1):
+            ab[u + i - j, j] = m[i, j]
+    return ab
