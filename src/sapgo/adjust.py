@@ -373,6 +373,21 @@ def _pivot_error(exc: PivotError, blk: _Block, p: Project):
     )
 
 
+def create_scratch(spath, p: Project, band_width):
+    """The scratch file: band rows, right-hand side, current point coordinates, residuals."""
+    n, m, nobs = p.n_stations, p.n_points, p.n_observations
+    bw = band_width
+    rows = max(1, min(n, (1 << 20) // (36 * bw * 8)))
+    scratch = h5py.File(spath, "w")
+    scratch.create_dataset("band", (n, 6, 6 * bw), "<f8", chunks=(rows, 6, 6 * bw))
+    scratch.create_dataset("rhs", (n, 6), "<f8", chunks=(max(1, min(n, 65536)), 6))
+    xyz = scratch.create_dataset("xyz", (m, 3), "<f8", chunks=(max(1, min(m, 65536)), 3))
+    scratch.create_dataset("residuals", (nobs, 2), "<f8", chunks=(max(1, min(nobs, 65536)), 2))
+    for a, b in p.chunks("points"):
+        xyz[a:b] = p.read_field("points", "xyz", a, b)
+    return scratch
+
+
 # -- the loop --------------------------------------------------------------------------
 
 def adjust(path, options: Options | None = None) -> Summary:
@@ -404,16 +419,7 @@ def adjust(path, options: Options | None = None) -> Summary:
                              f"unknowns than observations")
         n, m, nobs = p.n_stations, p.n_points, p.n_observations
         bw = blk.band_width
-        rows = max(1, min(n, (1 << 20) // (36 * bw * 8)))
-        with h5py.File(spath, "w") as scratch:
-            scratch.create_dataset("band", (n, 6, 6 * bw), "<f8", chunks=(rows, 6, 6 * bw))
-            scratch.create_dataset("rhs", (n, 6), "<f8", chunks=(max(1, min(n, 65536)), 6))
-            xyz = scratch.create_dataset("xyz", (m, 3), "<f8",
-                                         chunks=(max(1, min(m, 65536)), 3))
-            scratch.create_dataset("residuals", (nobs, 2), "<f8",
-                                   chunks=(max(1, min(nobs, 65536)), 2))
-            for a, b in p.chunks("points", opts.chunk_points):
-                xyz[a:b] = p.read_field("points", "xyz", a, b)
+        with create_scratch(spath, p, bw) as scratch:
             try:
                 for it in range(1, opts.max_iterations + 1):
                     t0 = time.perf_counter()

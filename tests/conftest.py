@@ -1,0 +1,66 @@
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+import sapgo  # noqa: E402
+from sapgo.project import Project, write_project  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def block_cache(tmp_path_factory):
+    """Generated projects, made once per session; tests get copies."""
+    root = tmp_path_factory.mktemp("blocks")
+    made = {}
+
+    def get(name, **params):
+        key = (name, tuple(sorted(params.items())))
+        if key not in made:
+            path = root / f"{name}-{len(made)}.h5"
+            sapgo.generate_block(path, **params)
+            made[key] = path
+        return made[key]
+
+    return get
+
+
+@pytest.fixture
+def small_block(block_cache, tmp_path):
+    """A copy of a 2-strip, 6-photo block (unordered, not adjusted)."""
+    src = block_cache("small", strips=2, photos_per_strip=6, control_points=6)
+    dst = tmp_path / "small.h5"
+    shutil.copy(src, dst)
+    return dst
+
+
+@pytest.fixture
+def p1_block(block_cache, tmp_path):
+    """A copy of the SAPGO-P data set 1 block (unordered, not adjusted)."""
+    dst = tmp_path / "p1.h5"
+    shutil.copy(block_cache("p1", preset="sapgo-p-1"), dst)
+    return dst
+
+
+def read_records(path):
+    with Project(path) as p:
+        rec = {k: p.read(k) for k in ("cameras", "stations", "points", "observations",
+                                      "station_priors")}
+        rec["truth"] = ({"stations": p.read("truth/stations"), "points": p.read("truth/points")}
+                        if p.has_truth else None)
+    return rec
+
+
+def rewrite(path, rec):
+    """Write records (possibly changed) back as a new, unordered project."""
+    obs = rec["observations"]
+    counts = np.bincount(obs["point"], minlength=len(rec["points"]))
+    starts = np.zeros(len(counts), np.int64)
+    np.cumsum(counts[:-1], out=starts[1:])
+    rec["points"]["obs_start"] = starts
+    rec["points"]["n_obs"] = counts
+    write_project(path, rec["cameras"], rec["stations"], rec["points"], obs,
+                  rec["station_priors"], rec["truth"])

@@ -1,0 +1,100 @@
+"""The recursive-partitioning block-banded Cholesky against LAPACK and dense solves."""
+
+import h5py
+import numpy as np
+import pytest
+import scipy.linalg
+
+from naive import banded_from_dense
+from sapgo.bandsolve import (
+    PivotError,
+    band_to_dense,
+    dense_to_band,
+    solve_in_core,
+    solve_out_of_core,
+)
+
+
+def random_block_banded(n, bw, seed=0):
+    """A symmetric positive definite matrix, 6x6 blocks, band width ``bw`` stations."""
+    rng = np.random.default_rng(seed)
+    a = np.zeros((6 * n, 6 * n))
+    for i in range(n):
+        for k in range(1, bw):
+            j = i + k
+            if j < n:
+                blk = rng.normal(0, 1, (6, 6))
+                a[6 * i:6 * i + 6, 6 * j:6 * j + 6] = blk
+                a[6 * j:6 * j + 6, 6 * i:6 * i + 6] = blk.T
+    # scale rows very differently, as angles and positions are
+    d = np.tile([1e8, 1e8, 1e8, 1.0, 1.0, 1.0], n) * rng.uniform(0.5, 2, 6 * n)
+    a += np.diag(np.abs(a).sum(axis=1) + 1.0)
+    s = np.sqrt(d)
+    a = a * s[:, None] * s[None, :]
+    return (a + a.T) / 2
+
+
+@pytest.mark.parametrize("n,bw", [(1, 1), (5, 1), (12, 3), (30, 10), (40, 26)])
+def test_in_core_matches_lapack_and_dense(n, bw):
+    a = random_block_banded(n, bw, seed=n + bw)
+    rhs = np.random.default_rng(1).normal(0, 1, 6 * n)
+    band = dense_to_band(a, bw)
+    np.testing.assert_array_equal(band_to_dense(band), a)
+    factor, delta = solve_in_core(band, rhs.reshape(n, 6))
+    # the same upper factor as LAPACK's dpbtrf
+    cb = scipy.linalg.cholesky_banded(banded_from_dense(a, bw), lower=False)
+    u_lapack = np.zeros_like(a)
+    ud = 6 * bw - 1
+    for j in range(6 * n):
+        for i in range(max(0, j - ud), j + 1):
+            u_lapack[i, j] = cb[ud + i - j, j]
+    u_ours = np.triu(band_to_dense(factor))
+    np.testing.assert_allclose(u_ours, u_lapack, rtol=1e-10, atol=1e-10 * np.abs(u_lapack).max())
+    x_dense = scipy.linalg.solve(a, rhs, assume_a="pos")
+    np.testing.assert_allclose(delta.ravel(), x_dense, rtol=1e-9,
+                               atol=1e-12 * np.abs(x_dense).max())
+
+
+@pytest.mark.parametrize("chunk_rows", [1, 2, 7, 1000])
+def test_out_of_core_equals_in_core(tmp_path, chunk_rows):
+    n, bw = 37, 6
+    a = random_block_banded(n, bw, seed=3)
+    band = dense_to_band(a, bw)
+    rhs = np.random.default_rng(2).normal(0, 1, (n, 6))
+    factor_ref, delta_ref = solve_in_core(band, rhs)
+    with h5py.File(tmp_path / "s.h5", "w") as f:
+        bds = f.create_dataset("band", data=band, chunks=(4, 6, 6 * bw))
+        rds = f.create_dataset("rhs", data=rhs)
+        delta = solve_out_of_core(bds, rds, bw, chunk_rows=chunk_rows)
+        np.testing.assert_allclose(bds[...], factor_ref, rtol=1e-13, atol=1e-300)
+    np.testing.assert_allclose(delta, delta_ref, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(a @ delta.ravel(), rhs.ravel(), rtol=1e-8,
+                               atol=1e-8 * np.abs(rhs).max())
+
+
+def test_non_positive_pivot_names_the_row():
+    n, bw = 10, 3
+    a = random_block_banded(n, bw, seed=5)
+    a[6 * 6 + 2, 6 * 6 + 2] = -1.0  # row 6, parameter 2 is indefinite
+    with pytest.raises(PivotError) as e:
+        solve_in_core(dense_to_band(a, bw), np.zeros((n, 6)))
+    assert e.value.row == 6 and e.value.parameter == 2
+    with pytest.raises(PivotError) as e:
+        solve_out_of_core(dense_to_band(a, bw), np.zeros((n, 6)), bw, chunk_rows=2)
+    assert e.value.row == 6
+
+
+def test_singular_matrix_is_caught_by_the_relative_pivot_test():
+    # a rank-deficient (positive semi-definite) block-banded matrix: rounding leaves a tiny
+    # positive pivot that must still count as zero
+    n, bw = 8, 2
+    a = random_block_banded(n, bw, seed=9)
+    v = np.random.default_rng(0).normal(0, 1, 6 * n)
+    v[6 * 5:] = 0
+    v[6 * 3:6 * 4] = 0
+    a_sing = a - 0.0 * np.outer(v, v)
+    w, q = np.linalg.eigh(a[:12, :12])
+    a_sing[:12, :12] = (q * np.r_[0.0, w[1:]]) @ q.T  # first two stations: one zero eigenvalue
+    with pytest.raises(PivotError) as e:
+        solve_in_core(dense_to_band(a_sing, bw), np.zeros((n, 6)))
+    assert e.value.row in (0, 1)

@@ -1,0 +1,119 @@
+"""Bad input: one clear line, a non-zero exit code, and the project left as it was."""
+
+import hashlib
+
+import h5py
+import numpy as np
+import pytest
+
+import sapgo
+from conftest import read_records, rewrite
+from sapgo.cli import main
+from sapgo.errors import DataError, DatumDefectError, ProjectFormatError
+
+
+def digest(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def run_cli(capsys, *args):
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code, err, *words):
+    assert code == 2
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("sapgo: error: ")
+    assert "Traceback" not in err
+    for w in words:
+        assert w in lines[0]
+
+
+def test_a_text_file_is_not_a_project(tmp_path, capsys):
+    f = tmp_path / "notes.h5"
+    f.write_text("photo point x y\n")
+    with pytest.raises(ProjectFormatError, match="not a sapgo project"):
+        sapgo.open_project(f)
+    assert_one_line_error(*run_cli(capsys, "adjust", f)[::2], "not a sapgo project")
+
+
+def test_a_foreign_hdf5_file_is_not_a_project(tmp_path, capsys):
+    f = tmp_path / "other.h5"
+    with h5py.File(f, "w") as h:
+        h["x"] = np.arange(3)
+    before = digest(f)
+    assert_one_line_error(*run_cli(capsys, "adjust", f)[::2], "not a sapgo project")
+    assert_one_line_error(*run_cli(capsys, "order", f)[::2], "not a sapgo project")
+    assert digest(f) == before
+
+
+def test_missing_file(tmp_path, capsys):
+    assert_one_line_error(*run_cli(capsys, "info", tmp_path / "nope.h5")[::2], "no such file")
+
+
+def test_another_schema_version(small_block, capsys):
+    with h5py.File(small_block, "r+") as h:
+        h.attrs["schema_version"] = 99
+    before = digest(small_block)
+    with pytest.raises(ProjectFormatError, match="schema version 99"):
+        sapgo.open_project(small_block)
+    assert_one_line_error(*run_cli(capsys, "adjust", small_block)[::2], "schema version 99")
+    assert digest(small_block) == before
+
+
+def test_block_without_control(small_block, capsys):
+    rec = read_records(small_block)
+    rec["points"]["kind"][rec["points"]["kind"] == 1] = 4
+    rewrite(small_block, rec)
+    before = digest(small_block)
+    with pytest.raises(DatumDefectError, match="datum defect"):
+        sapgo.adjust(small_block, sapgo.Options(progress=False))
+    code, _, err = run_cli(capsys, "adjust", small_block)
+    assert_one_line_error(code, err, "datum defect", "control points")
+    assert digest(small_block) == before
+    assert not small_block.with_name("small.scratch.h5").exists()
+
+
+def test_collinear_control_is_a_datum_defect_found_by_the_pivot(small_block):
+    # 3 full control points on one straight line pass the count check, but leave the
+    # rotation about that line free: the factorisation must find it and say so
+    rec = read_records(small_block)
+    pt = rec["points"]
+    ctrl = np.flatnonzero(pt["kind"] == 1)
+    pt["kind"][ctrl[3:]] = 4
+    line = pt["control"][ctrl[0]]
+    for i, j in enumerate(ctrl[:3]):
+        pt["control"][j] = line + i * np.array([1000.0, 10.0, 0.0])
+        pt["xyz"][j] = pt["control"][j]
+    rewrite(small_block, rec)
+    with pytest.raises(DatumDefectError, match="datum defect") as e:
+        sapgo.adjust(small_block, sapgo.Options(progress=False))
+    assert "station id" in str(e.value)
+
+
+@pytest.mark.parametrize("dataset,field,index,value,words", [
+    ("observations", "x", 5, np.nan, ("observations record 5", "x is NaN")),
+    ("stations", "eo", 3, np.inf, ("stations record 3", "eo[", "infinite")),
+    ("points", "xyz", 7, np.nan, ("points record 7", "xyz[", "NaN")),
+])
+def test_non_finite_values(small_block, capsys, dataset, field, index, value, words):
+    with h5py.File(small_block, "r+") as h:
+        rec = h[dataset][index]
+        if rec[field].ndim:
+            rec[field][1] = value
+        else:
+            rec[field] = value
+        h[dataset][index] = rec
+    before = digest(small_block)
+    with pytest.raises(DataError):
+        sapgo.adjust(small_block, sapgo.Options(progress=False))
+    assert_one_line_error(*run_cli(capsys, "adjust", small_block)[::2], *words)
+    assert digest(small_block) == before
+
+
+def test_bad_generator_parameters(tmp_path, capsys):
+    assert_one_line_error(*run_cli(capsys, "generate", "--pattern", "9", "--forelap", "0.2",
+                                   tmp_path / "x.h5")[::2], "forelap")
+    assert not (tmp_path / "x.h5").exists()

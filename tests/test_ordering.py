@@ -1,0 +1,112 @@
+"""Station graph, band width and the rewriting of records in logical order."""
+
+import numpy as np
+import pytest
+
+import sapgo
+from conftest import read_records, rewrite
+from sapgo.ordering import band_width_of, order_project, station_edges
+from sapgo.project import STATUS_ACTIVE, STATUS_EXCLUDED, Project
+
+TABLE2 = {  # photos, strips, points, control points (seeds/002 Table 2)
+    "sapgo-p-1": (100, 4, 225, 16),
+    "sapgo-p-2": (100, 4, 833, 32),
+    "sapgo-p-3": (500, 5, 1100, 48),
+    "sapgo-p-4": (504, 12, 1050, 44),
+}
+TABLE4_BAND_WIDTH = {"sapgo-p-1": 10, "sapgo-p-2": 10, "sapgo-p-3": 12, "sapgo-p-4": 26}
+
+
+def brute_force_band_width(path):
+    """1 + max over points of (max - min logical station), from the records directly."""
+    with Project(path) as p:
+        ob = p.read("observations")
+    act = ob["status"] == STATUS_ACTIVE
+    b = 1
+    for j in np.unique(ob["point"][act]):
+        s = ob["station"][act & (ob["point"] == j)]
+        b = max(b, 1 + int(s.max() - s.min()))
+    return b
+
+
+@pytest.mark.parametrize("preset", sorted(TABLE2))
+def test_presets_have_table2_counts_and_table4_band_widths(block_cache, tmp_path, preset):
+    import shutil
+
+    path = tmp_path / "b.h5"
+    shutil.copy(block_cache(preset, preset=preset), path)
+    photos, strips, points, control = TABLE2[preset]
+    rec = read_records(path)
+    assert len(rec["stations"]) == photos
+    assert len(np.unique(rec["stations"]["strip"])) == strips
+    assert len(rec["points"]) == points
+    assert (rec["points"]["kind"] == 1).sum() == control
+    assert (rec["points"]["kind"] == 4).sum() == points - control
+    result = order_project(path)
+    assert result.band_width <= TABLE4_BAND_WIDTH[preset]
+    assert result.band_width < result.band_width_before
+    assert brute_force_band_width(path) == result.band_width
+    with Project(path) as p:
+        assert p.ordered and p.band_width == result.band_width
+
+
+def test_records_are_rewritten_in_logical_order(p1_block):
+    before = read_records(p1_block)
+    order_project(p1_block)
+    after = read_records(p1_block)
+    st, pt, ob = after["stations"], after["points"], after["observations"]
+    # same content, new order
+    assert sorted(st["id"]) == sorted(before["stations"]["id"])
+    key = lambda r, s, p: {(int(p["id"][o["point"]]), int(s["id"][o["station"]]),
+                            float(o["x"]), float(o["y"])) for o in r}
+    assert key(ob, st, pt) == key(before["observations"], before["stations"],
+                                  before["points"])
+    # points sorted by (min, max) logical station; observations grouped by point, by station
+    keys = list(zip(pt["station_min"], pt["station_max"]))
+    assert keys == sorted(keys)
+    assert (np.diff(ob["point"]) >= 0).all()
+    for j in range(len(pt)):
+        s = ob["station"][pt["obs_start"][j]:pt["obs_start"][j] + pt["n_obs"][j]]
+        assert (np.diff(s) >= 0).all()
+        assert s.min() == pt["station_min"][j] and s.max() == pt["station_max"][j]
+    # truth follows its records
+    np.testing.assert_array_equal(after["truth"]["stations"]["id"], st["id"])
+    np.testing.assert_array_equal(after["truth"]["points"]["id"], pt["id"])
+
+
+def test_band_width_from_edges_matches_definition():
+    # three points: on stations {0, 1, 2}, {2, 5}, {4, 5}
+    starts = np.array([0, 3, 5])
+    counts = np.array([3, 2, 2])
+    stations = np.array([0, 1, 2, 2, 5, 4, 5])
+    edges = station_edges(starts, counts, stations, np.ones(7, bool), 6)
+    assert band_width_of(np.arange(6), edges) == 4
+    pos = np.array([0, 1, 2, 5, 4, 3])  # stations 3 and 5 swapped
+    assert band_width_of(pos, edges) == 3
+
+
+def test_undeterminable_points_and_photos_are_left_out(small_block):
+    rec = read_records(small_block)
+    ob, pt = rec["observations"], rec["points"]
+    # a check point seen on one photo only
+    single = int(np.flatnonzero((pt["kind"] == 4) & (np.bincount(ob["point"]) >= 2))[0])
+    drop = np.flatnonzero(ob["point"] == single)[1:]
+    # a photo keeping only two of its points
+    photo = 2
+    drop = np.union1d(drop, np.flatnonzero(ob["station"] == photo)[2:])
+    rec["observations"] = np.delete(ob, drop)
+    rewrite(small_block, rec)
+    result = order_project(small_block)
+    assert int(pt["id"][single]) in result.excluded_points
+    assert int(rec["stations"]["id"][photo]) in result.excluded_stations
+    after = read_records(small_block)
+    assert len(after["points"]) == len(pt)  # nothing deleted
+    ex = after["points"][after["points"]["id"] == pt["id"][single]][0]
+    assert ex["status"] == STATUS_EXCLUDED
+    exs = after["stations"][after["stations"]["id"] == rec["stations"]["id"][photo]][0]
+    assert exs["status"] == STATUS_EXCLUDED
+    assert after["stations"]["status"][-1] == STATUS_EXCLUDED  # excluded stations go last
+    summary = sapgo.adjust(small_block, sapgo.Options(progress=False))
+    assert summary.converged
+    assert int(pt["id"][single]) in summary.excluded_points
+    assert int(rec["stations"]["id"][photo]) in summary.excluded_stations
