@@ -193,7 +193,7 @@ class Summary:
             )
         cp = self.control_points
         if cp["n_x"] or cp["n_z"]:
-            parts = [f"{a} {cp['rms_' + a.lower()]:.4f} m"
+            parts = [f"{a} {1000 * cp['rms_' + a.lower()]:.2f} mm"
                      for a in ("X", "Y", "Z") if cp["rms_" + a.lower()] is not None]
             L.append(f"  control residuals RMS: {', '.join(parts)}")
         if self.truth:
