@@ -94,7 +94,6 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
     index = np.concatenate([np.ones(6 * ns, bool), free_pt])
     nobs = len(obs_station)
     for it in range(1, iterations + 1):
-        rows = []
         jac = np.zeros((2 * nobs + weighted.sum(), 6 * ns + 3 * npnt))
         res = np.zeros(jac.shape[0])
         for i in range(nobs):
@@ -109,7 +108,6 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
             jac[r, 6 * ns + 3 * j + k] = 1.0 / ctrl_sigma[j, k]
             res[r] = (xyz[j, k] - ctrl[j, k]) / ctrl_sigma[j, k]
             r += 1
-        del rows
         jr = jac[:, index]
         n = jr.T @ jr
         g = jr.T @ res

@@ -417,7 +417,7 @@ def adjust(path, options: Options | None = None) -> Summary:
         if blk.redundancy <= 0:
             raise SapgoError(f"{path}: the block has no redundancy ({blk.redundancy}): more "
                              f"unknowns than observations")
-        n, m, nobs = p.n_stations, p.n_points, p.n_observations
+        n = p.n_stations
         bw = blk.band_width
         with create_scratch(spath, p, bw) as scratch:
             try:
@@ -475,7 +475,10 @@ def adjust(path, options: Options | None = None) -> Summary:
     its = max(1, len(log))
     summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}
     with Project(path, "r+") as q:
-        q.file["solution"].attrs["report"] = json.dumps(summary.to_dict())
+        g = q.file["solution"]
+        if "report" in g:
+            del g["report"]
+        g.create_dataset("report", data=json.dumps(summary.to_dict()))
     return summary
 
 

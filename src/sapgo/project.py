@@ -24,7 +24,7 @@ import h5py
 import numpy as np
 
 from . import __version__
-from .errors import ClosedProjectError, DataError, ProjectFormatError
+from .errors import ClosedProjectError, ProjectFormatError
 
 FORMAT_NAME = "sapgo project"
 SCHEMA_VERSION = 1
@@ -53,6 +53,9 @@ CONTROL_MASK = np.array(
 # Record status (``status`` field of stations, points and observations).
 STATUS_ACTIVE = 0
 STATUS_EXCLUDED = 1  # left out of the adjustment (undeterminable); kept in the project
+
+#: Provenance entries kept in the ``history`` attribute (the newest).
+HISTORY_LIMIT = 100
 
 EO_NAMES = ("omega", "phi", "kappa", "X", "Y", "Z")
 
@@ -362,7 +365,7 @@ class Project:
     def add_history(self, entry):
         h = self.history()
         h.append(dict(entry, time=_now(), sapgo_version=__version__))
-        self.file.attrs["history"] = json.dumps(h)
+        self.file.attrs["history"] = json.dumps(h[-HISTORY_LIMIT:])
 
     # -- record access ------------------------------------------------------------------
     def read(self, name, start=0, stop=None):
@@ -418,10 +421,3 @@ class Project:
 def open_project(path, mode="r"):
     """Open and validate a project file; see :class:`Project`."""
     return Project(path, mode)
-
-
-def require_finite(values, what):
-    """Raise DataError when ``values`` holds NaN or infinities; ``what`` names them."""
-    bad = ~np.isfinite(values)
-    if bad.any():
-        raise DataError(f"{what}: non-finite value ({values[bad][0]})")
