@@ -71,3 +71,40 @@ def test_intersection_recovers_the_point(rng):
     np.testing.assert_allclose(p, xyz, atol=1e-6)
     _, ok = intersect(eos[:1], xy[:1], np.full(1, 152.0), np.zeros(1), np.zeros(1))
     assert not ok
+
+
+def test_project_observations_and_intersect_points_kernels(rng):
+    from sapgo.geometry import intersect_points, project_observations
+
+    eo = np.array([[0.01, -0.01, 0.0, 0.0, 0.0, 3800.0],
+                   [0.0, 0.02, 0.05, 2300.0, 0.0, 3810.0],
+                   [-0.02, 0.0, np.pi, 1100.0, 2300.0, 3790.0]])
+    xyz = np.array([[500.0, 300.0, 120.0], [1500.0, 900.0, 80.0], [1000.0, 1200.0, 200.0]])
+    st = np.array([0, 1, 2, 0, 1, 1, 2])
+    pt = np.array([0, 0, 0, 1, 1, 2, 2])
+    cams = np.zeros(3, np.int64)
+    out = np.empty((7, 2))
+    project_observations(st, pt, eo, xyz, cams, np.array([152.0]), np.zeros(1), np.zeros(1),
+                         out)
+    np.testing.assert_allclose(out, naive.project(eo[st], xyz[pt], 152.0), atol=1e-12)
+    got = np.empty((3, 3))
+    ok = np.zeros(3, np.bool_)
+    intersect_points(np.array([0, 3, 5]), np.array([3, 2, 2]), st, out, eo, cams,
+                     np.array([152.0]), np.zeros(1), np.zeros(1), got, ok)
+    assert ok.all()
+    np.testing.assert_allclose(got, xyz, atol=1e-6)
+
+
+def test_3x3_cholesky_solve_against_numpy(rng):
+    from sapgo.normals import _chol3, _solve3
+
+    for _ in range(20):
+        a = rng.normal(0, 1, (3, 3))
+        a = a @ a.T + 0.1 * np.eye(3)
+        b = rng.normal(0, 1, 3)
+        lo = np.zeros((3, 3))
+        assert _chol3(a, lo)
+        x = np.empty(3)
+        _solve3(lo, b, x)
+        np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-10)
+    assert not _chol3(np.diag([1.0, 1.0, 0.0]), np.zeros((3, 3)))

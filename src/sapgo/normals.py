@@ -125,6 +125,14 @@ def _solve3(lo, rhs, out):
 
 
 @njit(cache=True)
+def _workspace(max_rays):
+    """Per-point work arrays of :func:`_point_system` for points of up to ``max_rays`` rays."""
+    return (np.empty((max_rays, 6, 3)), np.empty((max_rays, 2, 6)), np.empty((max_rays, 2)),
+            np.empty(max_rays), np.empty(max_rays, np.int64), np.empty((3, 3)), np.empty(3),
+            np.zeros((3, 3)), np.empty(3))
+
+
+@njit(cache=True)
 def build_points(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_smax, pt_active,
                  obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cam_f, cam_x0,
                  cam_y0, ctrl_mask, band, rhs, base, max_rays):
@@ -136,16 +144,8 @@ def build_points(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_sm
     BEHIND_CAMERA with the offending point.
     """
     cap = band.shape[0]
-    nbar = np.empty((max_rays, 6, 3))
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
     g = np.empty((max_rays, 6, 3))
-    a_all = np.empty((max_rays, 2, 6))
-    l_all = np.empty((max_rays, 2))
-    w_all = np.empty(max_rays)
-    st_all = np.empty(max_rays, np.int64)
-    nn = np.empty((3, 3))
-    cc = np.empty(3)
-    lo = np.zeros((3, 3))
-    xyz = np.empty(3)
     h = np.empty(3)
     col = np.empty(3)
     tmp = np.empty(3)
@@ -212,15 +212,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_activ
     ``xyz_out``). ``stats`` accumulates: 0 vPv image, 1 vPv control, 2 sum vx^2, 3 sum vy^2,
     4 image rays, 5 max |eps|, 6 control components, 7 bad point (index+1) or 0.
     """
-    nbar = np.empty((max_rays, 6, 3))
-    a_all = np.empty((max_rays, 2, 6))
-    l_all = np.empty((max_rays, 2))
-    w_all = np.empty(max_rays)
-    st_all = np.empty(max_rays, np.int64)
-    nn = np.empty((3, 3))
-    cc = np.empty(3)
-    lo = np.zeros((3, 3))
-    xyz = np.empty(3)
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
     eps = np.empty(3)
     for j in range(pt_xyz.shape[0]):
         if pt_active[j] != 0:
