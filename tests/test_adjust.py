@@ -98,3 +98,17 @@ def test_presets_converge_with_table4_accuracy(block_cache, tmp_path, preset, ma
     assert s.image_rms_um == pytest.approx(6.0 * np.sqrt(share), rel=0.15)
     assert s.band_width == {"sapgo-p-1": 10, "sapgo-p-2": 10, "sapgo-p-3": 12,
                             "sapgo-p-4": 26}[preset]
+
+
+def test_observation_sigma_zero_takes_the_cameras_sigma(small_block, tmp_path):
+    import shutil
+
+    other = tmp_path / "zero.h5"
+    shutil.copy(small_block, other)
+    rec = read_records(other)
+    assert np.allclose(rec["observations"]["sigma"], rec["cameras"]["sigma_image"][0])
+    rec["observations"]["sigma"] = 0.0
+    rewrite(other, rec)
+    a = sapgo.adjust(small_block, sapgo.Options(progress=False))
+    b = sapgo.adjust(other, sapgo.Options(progress=False))
+    assert b.sigma0 == pytest.approx(a.sigma0, rel=1e-12)

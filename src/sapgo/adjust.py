@@ -40,7 +40,6 @@ from .project import (
     CHUNK_RECORDS,
     CONTROL_MASK,
     EO_NAMES,
-    KIND_CHECK,
     STATUS_ACTIVE,
     Project,
 )
@@ -58,8 +57,8 @@ class Options:
     max_iterations: int = 10
     #: Converged when every station position and point correction is below this (m) ...
     tol_position: float = 1e-4
-    #: ... and every station angle correction below this (rad; 5e-7 rad is about 0.1").
-    tol_angle: float = 5e-7
+    #: ... and every station angle correction below this (rad; default 0.1").
+    tol_angle: float = 0.1 * ARCSEC
     #: Station ordering when the project is not ordered yet: "best" or a candidate name.
     ordering: str = "best"
     #: Points read per chunk in the streaming passes.
@@ -153,6 +152,7 @@ class _Block:
     cam_f: np.ndarray
     cam_x0: np.ndarray
     cam_y0: np.ndarray
+    default_sigma: np.ndarray  # per station: its camera's sigma_image (mm)
     band_width: int
     n_points: int = 0
     n_rays: int = 0
@@ -160,7 +160,6 @@ class _Block:
     n_weighted_control: int = 0
     n_fixed: int = 0
     n_prior_params: int = 0
-    n_check: int = 0
 
     @property
     def n_stations(self):
@@ -185,6 +184,7 @@ def _load_block(p: Project) -> _Block:
         cam_f=np.ascontiguousarray(cams["focal_length"]),
         cam_x0=np.ascontiguousarray(cams["x0"]),
         cam_y0=np.ascontiguousarray(cams["y0"]),
+        default_sigma=np.ascontiguousarray(cams["sigma_image"][st["camera"]]),
         band_width=p.band_width,
     )
     names = {1: "full", 2: "horizontal", 3: "vertical"}
@@ -198,7 +198,6 @@ def _load_block(p: Project) -> _Block:
         sig = pts["control_sigma"][act]
         blk.n_weighted_control += int((mask & (sig > 0)).sum())
         blk.n_fixed += int((mask & (sig == 0)).sum())
-        blk.n_check += int((kind == KIND_CHECK).sum())
         for k, name in names.items():
             counts[name] += int((kind == k).sum())
     blk.n_control = counts
@@ -207,7 +206,8 @@ def _load_block(p: Project) -> _Block:
     for a, b in p.chunks("station_priors"):
         pr = p.read("station_priors", a, b)
         act = blk.station_active[pr["station"]]
-        blk.n_prior_params += int((np.diagonal(pr["weight"][act], axis1=1, axis2=2) > 0).sum())
+        if act.any():
+            blk.n_prior_params += int(np.linalg.matrix_rank(pr["weight"][act]).sum())
     return blk
 
 
@@ -296,7 +296,7 @@ def build(p: Project, scratch, blk: _Block, opts: Options):
 
     with _progress(opts.progress, p.n_points, "build") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
-            c = PointChunk(p, a, b, xyz_ds[a:b])
+            c = PointChunk(p, a, b, xyz_ds[a:b], blk.default_sigma)
             j = 0
             while j < len(c.xyz):
                 j, status, bad = build_points(
@@ -316,11 +316,11 @@ def build(p: Project, scratch, blk: _Block, opts: Options):
 def update(p: Project, scratch, blk: _Block, delta, opts: Options):
     """Stream the points: back-solve their corrections, new coordinates and residuals."""
     eo_new = blk.eo + delta
-    stats = np.zeros(8)
+    stats = np.zeros(9)
     xyz_ds, res_ds = scratch["xyz"], scratch["residuals"]
     with _progress(opts.progress, p.n_points, "update") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
-            c = PointChunk(p, a, b, xyz_ds[a:b])
+            c = PointChunk(p, a, b, xyz_ds[a:b], blk.default_sigma)
             xyz_out = np.empty_like(c.xyz)
             res_out = np.zeros((c.o1 - c.o0, 2))
             update_points(
@@ -330,7 +330,7 @@ def update(p: Project, scratch, blk: _Block, delta, opts: Options):
                 stats,
             )
             if stats[7]:
-                raise _point_error(p, c, int(stats[7]) - 1, 0, blk)
+                raise _point_error(p, c, int(stats[7]) - 1, int(stats[8]), blk)
             xyz_ds[a:b] = xyz_out
             res_ds[c.o0:c.o1] = res_out
             bar.update(b - a)
@@ -388,7 +388,54 @@ def create_scratch(spath, p: Project, band_width):
     return scratch
 
 
-# -- the loop --------------------------------------------------------------------------
+def _iterate(p: Project, scratch, blk: _Block, opts: Options, timings, log):
+    """Gauss-Newton iterations; appends to ``log`` and ``timings``; returns converged."""
+    n = len(blk.station_ids)
+    bw = blk.band_width
+    for it in range(1, opts.max_iterations + 1):
+        t0 = time.perf_counter()
+        build(p, scratch, blk, opts)
+        t1 = time.perf_counter()
+        with _progress(opts.progress, n, "solve") as bar:
+            try:
+                delta = solve_out_of_core(
+                    scratch["band"], scratch["rhs"], bw, opts.chunk_rows,
+                    opts.pivot_tolerance, progress=bar.update,
+                )
+            except PivotError as exc:
+                raise _pivot_error(exc, blk, p) from None
+        delta[~blk.station_active] = 0.0
+        t2 = time.perf_counter()
+        st = update(p, scratch, blk, delta, opts)
+        t3 = time.perf_counter()
+        timings["build"] += t1 - t0
+        timings["solve"] += t2 - t1
+        timings["update"] += t3 - t2
+        d_ang = float(np.abs(delta[:, :3]).max()) if n else 0.0
+        d_pos = float(np.abs(delta[:, 3:]).max()) if n else 0.0
+        sigma0 = math.sqrt(st["vpv"] / blk.redundancy)
+        log.append({
+            "iteration": it,
+            "sigma0": sigma0,
+            "image_rms_um": st["image_rms_um"],
+            "image_rms_x_um": st["rms_x_um"],
+            "image_rms_y_um": st["rms_y_um"],
+            "max_station_position_corr_m": d_pos,
+            "max_station_angle_corr_arcsec": d_ang / ARCSEC,
+            "max_point_corr_m": st["max_point_corr"],
+            "build_s": t1 - t0,
+            "solve_s": t2 - t1,
+            "update_s": t3 - t2,
+        })
+        if (d_pos < opts.tol_position and st["max_point_corr"] < opts.tol_position
+                and d_ang < opts.tol_angle):
+            return True
+        if not np.isfinite(sigma0):
+            raise SapgoError("the adjustment diverged (sigma0 is not finite)")
+    return False
+
+
+# -- the run -----------------------------------------------------------------------------
 
 def adjust(path, options: Options | None = None) -> Summary:
     """Adjust the project at ``path``; see the module docstring. Returns a :class:`Summary`."""
@@ -408,7 +455,6 @@ def adjust(path, options: Options | None = None) -> Summary:
 
     log = []
     spath = scratch_path(path)
-    converged = False
     with Project(path, "r") as p:
         blk = _load_block(p)
         if blk.n_stations == 0:
@@ -417,59 +463,13 @@ def adjust(path, options: Options | None = None) -> Summary:
         if blk.redundancy <= 0:
             raise SapgoError(f"{path}: the block has no redundancy ({blk.redundancy}): more "
                              f"unknowns than observations")
-        n = p.n_stations
-        bw = blk.band_width
-        with create_scratch(spath, p, bw) as scratch:
-            try:
-                for it in range(1, opts.max_iterations + 1):
-                    t0 = time.perf_counter()
-                    build(p, scratch, blk, opts)
-                    t1 = time.perf_counter()
-                    with _progress(opts.progress, n, "solve") as bar:
-                        try:
-                            delta = solve_out_of_core(
-                                scratch["band"], scratch["rhs"], bw, opts.chunk_rows,
-                                opts.pivot_tolerance, progress=bar.update,
-                            )
-                        except PivotError as exc:
-                            raise _pivot_error(exc, blk, p) from None
-                    delta[~blk.station_active] = 0.0
-                    t2 = time.perf_counter()
-                    st = update(p, scratch, blk, delta, opts)
-                    t3 = time.perf_counter()
-                    timings["build"] += t1 - t0
-                    timings["solve"] += t2 - t1
-                    timings["update"] += t3 - t2
-                    d_ang = float(np.abs(delta[:, :3]).max()) if n else 0.0
-                    d_pos = float(np.abs(delta[:, 3:]).max()) if n else 0.0
-                    sigma0 = math.sqrt(st["vpv"] / blk.redundancy)
-                    log.append({
-                        "iteration": it,
-                        "sigma0": sigma0,
-                        "image_rms_um": st["image_rms_um"],
-                        "image_rms_x_um": st["rms_x_um"],
-                        "image_rms_y_um": st["rms_y_um"],
-                        "max_station_position_corr_m": d_pos,
-                        "max_station_angle_corr_arcsec": d_ang / ARCSEC,
-                        "max_point_corr_m": st["max_point_corr"],
-                        "build_s": t1 - t0,
-                        "solve_s": t2 - t1,
-                        "update_s": t3 - t2,
-                    })
-                    if (d_pos < opts.tol_position and st["max_point_corr"] < opts.tol_position
-                            and d_ang < opts.tol_angle):
-                        converged = True
-                        break
-                    if not np.isfinite(sigma0):
-                        raise SapgoError("the adjustment diverged (sigma0 is not finite)")
-            except BaseException:
-                scratch.close()
-                if not opts.keep_scratch:
-                    spath.unlink(missing_ok=True)
-                raise
-            summary = _commit(path, p, scratch, blk, log, converged, opts, order_info)
-    if not opts.keep_scratch:
-        spath.unlink(missing_ok=True)
+        try:
+            with create_scratch(spath, p, blk.band_width) as scratch:
+                converged = _iterate(p, scratch, blk, opts, timings, log)
+                summary = _commit(path, p, scratch, blk, log, converged, opts, order_info)
+        finally:
+            if not opts.keep_scratch:
+                spath.unlink(missing_ok=True)
     timings["total"] = time.perf_counter() - t_start
     summary.timings_s = timings
     its = max(1, len(log))

@@ -210,7 +210,8 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_activ
     values the normals were built with (``eo``, ``pt_xyz``); the residuals
     ``v = computed - observed`` are then evaluated at the new values (``eo_new``,
     ``xyz_out``). ``stats`` accumulates: 0 vPv image, 1 vPv control, 2 sum vx^2, 3 sum vy^2,
-    4 image rays, 5 max |eps|, 6 control components, 7 bad point (index+1) or 0.
+    4 image rays, 5 max |eps|, 6 control components, 7 bad point (index+1) or 0,
+    8 its status code.
     """
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
     eps = np.empty(3)
@@ -224,6 +225,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_activ
                           st_all, nn, cc)
         if k < 0 or not _chol3(nn, lo):
             stats[7] = j + 1
+            stats[8] = BEHIND_CAMERA if k < 0 else SINGULAR_POINT
             return
         for q in range(k):
             s = st_all[q]
@@ -268,7 +270,7 @@ class PointChunk:
                  "nobs", "smax", "smin", "active", "obs_station", "obs_xy", "obs_sigma",
                  "obs_active", "max_rays")
 
-    def __init__(self, project, start, stop, xyz):
+    def __init__(self, project, start, stop, xyz, default_sigma):
         pts = project.read("points", start, stop)
         self.start, self.stop = start, stop
         self.o0 = int(pts["obs_start"][0]) if len(pts) else 0
@@ -286,7 +288,9 @@ class PointChunk:
         self.active = c(pts["status"], dtype=np.int64)
         self.obs_station = c(obs["station"])
         self.obs_xy = c(np.column_stack([obs["x"], obs["y"]]))
-        self.obs_sigma = c(obs["sigma"])
+        # sigma 0: the standard error of the station's camera (``default_sigma[station]``)
+        self.obs_sigma = c(np.where(obs["sigma"] > 0, obs["sigma"],
+                                    default_sigma[obs["station"]]))
         self.obs_active = c(obs["status"] == STATUS_ACTIVE)
         self.max_rays = int(max(1, self.nobs.max() if len(self.nobs) else 1))
 

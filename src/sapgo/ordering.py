@@ -7,8 +7,8 @@ observe a common point. For a logical order ``pos`` (``pos[s]`` = logical number
 
     b = 1 + max over edges (s, t) of |pos[s] - pos[t]|.
 
-Candidate orders: across-strip (->S, photo columns numbered across the strips), down-strip
-(->G, strip after strip), both also by plain along-track coordinate, and reverse Cuthill-McKee
+Candidate orders: across-strip (->S, photo columns numbered across the strips; also by plain
+along-track coordinate), down-strip (->G, strip after strip) and reverse Cuthill-McKee
 (``scipy.sparse.csgraph``) on the graph; the one with the smallest band width wins (ties: the
 smallest profile). Points are then sorted by (min logical station, max logical station) so
 that a single pass over the points builds the band rows in order (seeds/002, "Data sorting").
@@ -22,7 +22,6 @@ stations go to the end of the order, excluded points after all active ones.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from .project import (
     STATUS_ACTIVE,
     STATUS_EXCLUDED,
     Project,
+    append_history,
     write_project,
 )
 
@@ -184,8 +184,11 @@ def candidate_orders(xy, strip, active, edges):
         strip_key = np.zeros(len(st))
         for s in np.unique(st):
             strip_key[st == s] = v[st == s].mean()
-    else:
-        strip_key = np.floor(v / base + 0.5)
+    else:  # strips unknown: a new strip wherever the across-track gap exceeds half a base
+        vs = np.argsort(v)
+        breaks = np.concatenate([[0], np.cumsum(np.diff(v[vs]) > 0.5 * base)])
+        strip_key = np.empty(len(v))
+        strip_key[vs] = breaks
     cands = {
         "across_strip": idx[np.lexsort((v, column))],
         "across_strip_by_position": idx[np.lexsort((v, u))],
@@ -268,6 +271,7 @@ def order_project(path, method="best"):
             else None
         )
         sol_attrs = dict(p.file["solution"].attrs) if p.has_solution else None
+        report = p.file["solution/report"][()] if "solution/report" in p.file else None
         attrs = {k: p.file.attrs[k] for k in p.file.attrs}
     n_st = len(stations)
     n_pt = len(points)
@@ -347,10 +351,9 @@ def order_project(path, method="best"):
         excluded_points=[int(i) for i in points["id"][~pt_active]],
         excluded_stations=[int(i) for i in stations["id"][~st_active]],
     )
-    history = json.loads(attrs.get("history", "[]"))
-    history.append({"command": "order", "ordering": name, "band_width": b,
-                    "band_width_before": b_before})
-    attrs.update(ordered=True, ordering=name, band_width=b, history=json.dumps(history))
+    history = append_history(attrs.get("history", "[]"), {
+        "command": "order", "ordering": name, "band_width": b, "band_width_before": b_before})
+    attrs.update(ordered=True, ordering=name, band_width=b, history=history)
     tmp = path.with_name(path.name + ".order.tmp")
     write_project(tmp, cameras, new_stations, new_points, new_obs, new_priors, new_truth,
                   attrs=attrs)
@@ -360,6 +363,8 @@ def order_project(path, method="best"):
             g["station_corr"][...] = solution["station_corr"][perm]
             g["point_corr"][...] = solution["point_corr"][pt_perm]
             g["residuals"][...] = solution["residuals"][obs_perm]
+            if report is not None:
+                g.create_dataset("report", data=report)
             for k, v in sol_attrs.items():
                 g.attrs[k] = v
     os.replace(tmp, path)

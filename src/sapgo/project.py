@@ -8,7 +8,7 @@ reads the files front to back in chunks.
 
 Inputs (``/cameras``, ``/stations``, ``/station_priors``, ``/points``, ``/observations``) are
 never written by an adjustment; results go to ``/solution``. The band rows of the reduced normal
-equations live in a scratch file beside the project (see :mod:`sapgo.normals`).
+equations live in a scratch file beside the project (see :mod:`sapgo.adjust`).
 
 The schema, field by field, is documented in ``docs/project-schema.md``.
 """
@@ -115,7 +115,7 @@ OBSERVATION_DTYPE = np.dtype(
         ("station", "<i8"),  # record index into /stations
         ("x", "<f8"),  # image coordinates, mm
         ("y", "<f8"),
-        ("sigma", "<f8"),  # standard error of x and y, mm
+        ("sigma", "<f8"),  # standard error of x and y, mm; 0 = the camera's sigma_image
         ("status", "i1"),
     ]
 )
@@ -142,6 +142,13 @@ SOLUTION_LAYOUT = {
 
 def _now():
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+
+
+def append_history(history_json, entry):
+    """The ``history`` attribute with ``entry`` (time and version added) appended."""
+    h = json.loads(history_json or "[]")
+    h.append(dict(entry, time=_now(), sapgo_version=__version__))
+    return json.dumps(h[-HISTORY_LIMIT:])
 
 
 def _chunks(n, row_bytes):
@@ -212,7 +219,8 @@ def _dtype_matches(actual, expected):
         return False
     for name in expected.names:
         a, e = actual.fields[name][0], expected.fields[name][0]
-        if a.shape != e.shape or a.base.kind != e.base.kind:
+        if a.shape != e.shape or a.base.kind != e.base.kind or \
+                a.base.itemsize != e.base.itemsize:
             return False
     return True
 
@@ -363,9 +371,7 @@ class Project:
         return json.loads(self.attr("history", "[]"))
 
     def add_history(self, entry):
-        h = self.history()
-        h.append(dict(entry, time=_now(), sapgo_version=__version__))
-        self.file.attrs["history"] = json.dumps(h[-HISTORY_LIMIT:])
+        self.file.attrs["history"] = append_history(self.attr("history", "[]"), entry)
 
     # -- record access ------------------------------------------------------------------
     def read(self, name, start=0, stop=None):

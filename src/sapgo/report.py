@@ -50,7 +50,7 @@ class _Rms:
 
 
 class check_point_statistics:
-    """Accumulates check-point errors and control-point residuals chunk by chunk."""
+    """Accumulates check-point errors and control residuals (weighted components) by chunk."""
 
     def __init__(self):
         self.check = _Rms()
@@ -60,7 +60,7 @@ class check_point_statistics:
     def add(self, points, adjusted):
         chk = points["kind"] == KIND_CHECK
         self.check.add(adjusted[chk] - points["control"][chk])
-        mask = CONTROL_MASK[points["kind"]].astype(bool)
+        mask = CONTROL_MASK[points["kind"]].astype(bool) & (points["control_sigma"] > 0)
         d = np.where(mask, adjusted - points["control"], 0.0)
         self.ctrl_n += mask.sum(axis=0)
         self.ctrl_ss += (d * d).sum(axis=0)

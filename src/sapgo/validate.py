@@ -9,7 +9,14 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import DataError
-from .project import CONTROL_MASK, KIND_CHECK, KIND_NAMES, Project
+from .project import (
+    CONTROL_MASK,
+    KIND_CHECK,
+    KIND_NAMES,
+    STATUS_ACTIVE,
+    STATUS_EXCLUDED,
+    Project,
+)
 
 
 def _first_bad(mask):
@@ -85,6 +92,15 @@ def check_values(project: Project):
         if i >= 0:
             raise DataError(f"station_priors record {a + i}: the weight matrix must be "
                             f"symmetric with a non-negative diagonal")
+    if project.ordered:
+        last = -1
+        for a, b in project.chunks("station_priors"):
+            st = project.read_field("station_priors", "station", a, b)
+            i = _first_bad(np.diff(np.concatenate([[last], st])) < 0)
+            if i >= 0:
+                raise DataError(f"station_priors record {a + i}: priors of an ordered project "
+                                f"must be sorted by station (run 'sapgo order')")
+            last = st[-1]
     expected_start = 0
     for a, b in project.chunks("points"):
         pts = project.read("points", a, b)
@@ -111,6 +127,12 @@ def check_values(project: Project):
         if i >= 0:
             raise DataError(f"points record {a + i} (id {ids[i]}): obs_start/n_obs do not "
                             f"follow the observations grouped by point")
+        owners = project.read_field("observations", "point", int(starts[0]),
+                                    int(starts[-1] + counts[-1]))
+        i = _first_bad(owners != np.repeat(np.arange(a, b), counts))
+        if i >= 0:
+            raise DataError(f"observations record {int(starts[0]) + i}: its point "
+                            f"{owners[i]} is not the point whose range holds it")
         expected_start = int(starts[-1] + counts[-1])
     if expected_start != project.n_observations:
         raise DataError(f"{path}: the points reference {expected_start} observations, "
@@ -135,9 +157,13 @@ def check_values(project: Project):
                                    int(obs["station"][i]) + 1)["id"][0]
                 raise DataError(f"observations record {a + i} (point id {pid}, photo id "
                                 f"{sid}): {f} is {_describe(obs[f][i])}")
-        i = _first_bad(obs["sigma"] <= 0)
+        i = _first_bad(obs["sigma"] < 0)
         if i >= 0:
-            raise DataError(f"observations record {a + i}: sigma must be positive")
+            raise DataError(f"observations record {a + i}: sigma must not be negative "
+                            f"(0 takes the camera's sigma_image)")
+        i = _first_bad((obs["status"] != STATUS_ACTIVE) & (obs["status"] != STATUS_EXCLUDED))
+        if i >= 0:
+            raise DataError(f"observations record {a + i}: unknown status {obs['status'][i]}")
     if project.has_truth:
         for a, b in project.chunks("truth/points"):
             _check_finite("truth/points", a, None, "xyz", project.read_field("truth/points", "xyz", a, b))

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from ..errors import ParameterError
-from ..project import write_project
+from ..project import append_history, write_project
 from .sapgo_p import BlockSpec, make_block
 
 #: SAPGO-P data sets 1-4 (seeds/002, Table 2).
@@ -42,7 +42,7 @@ def generate_block(path, preset=None, **overrides):
     write_project(
         Path(path), rec["cameras"], rec["stations"], rec["points"], rec["observations"],
         truth=rec["truth"],
-        attrs={"creator": json.dumps(creator), "history": json.dumps([creator])},
+        attrs={"creator": json.dumps(creator), "history": append_history("[]", creator)},
     )
     kinds = rec["points"]["kind"]
     return {
