@@ -117,3 +117,55 @@ def test_bad_generator_parameters(tmp_path, capsys):
     assert_one_line_error(*run_cli(capsys, "generate", "--pattern", "9", "--forelap", "0.2",
                                    tmp_path / "x.h5")[::2], "forelap")
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_indefinite_prior_weight_is_refused(small_block, capsys):
+    from sapgo.project import PRIOR_DTYPE
+
+    rec = read_records(small_block)
+    prior = np.zeros(1, PRIOR_DTYPE)
+    prior["station"] = 1
+    prior["value"] = rec["stations"]["eo"][1]
+    w = np.eye(6)
+    w[3, 4] = w[4, 3] = 3.0  # eigenvalue -2
+    prior["weight"] = w
+    rec["station_priors"] = prior
+    rewrite(small_block, rec)
+    assert_one_line_error(*run_cli(capsys, "adjust", small_block)[::2], "station_priors record 0",
+                          "positive semi-definite")
+
+
+def test_records_changed_after_ordering_are_detected(small_block, capsys):
+    sapgo.order_project(small_block)
+    with h5py.File(small_block, "r+") as h:
+        h.attrs["band_width"] = int(h.attrs["band_width"]) - 2
+    code, _, err = run_cli(capsys, "adjust", small_block)
+    assert_one_line_error(code, err, "sapgo order")
+
+
+def test_point_in_the_plane_of_a_photo(small_block, capsys):
+    rec = read_records(small_block)
+    ob = rec["observations"]
+    j = int(np.flatnonzero(rec["points"]["kind"] == 4)[0])
+    s = int(ob["station"][ob["point"] == j][0])
+    rec["points"]["xyz"][j] = rec["stations"]["eo"][s, 3:]
+    rewrite(small_block, rec)
+    code, _, err = run_cli(capsys, "adjust", small_block)
+    assert_one_line_error(code, err, f"point id {rec['points']['id'][j]}", "behind a photo")
+
+
+def test_order_validates_references(small_block, capsys):
+    with h5py.File(small_block, "r+") as h:
+        r = h["observations"][4]
+        r["station"] = 999
+        h["observations"][4] = r
+    before = digest(small_block)
+    assert_one_line_error(*run_cli(capsys, "order", small_block)[::2], "observations record 4",
+                          "station 999")
+    assert digest(small_block) == before
+
+
+def test_output_path_that_is_a_directory(tmp_path, capsys):
+    (tmp_path / "d.h5").mkdir()
+    assert_one_line_error(*run_cli(capsys, "generate", "--preset", "sapgo-p-1",
+                                   tmp_path / "d.h5")[::2])

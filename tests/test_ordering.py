@@ -110,3 +110,38 @@ def test_undeterminable_points_and_photos_are_left_out(small_block):
     assert summary.converged
     assert int(pt["id"][single]) in summary.excluded_points
     assert int(rec["stations"]["id"][photo]) in summary.excluded_stations
+
+
+def test_duplicate_measurements_on_one_photo_are_one_ray(small_block):
+    rec = read_records(small_block)
+    ob, pt = rec["observations"], rec["points"]
+    j = int(np.flatnonzero(pt["kind"] == 4)[0])
+    mine = np.flatnonzero(ob["point"] == j)
+    dup = ob[mine[:1]].copy()
+    dup["x"] += 0.001
+    rec["observations"] = np.concatenate([np.delete(ob, mine[1:]), dup])
+    rec["observations"] = rec["observations"][np.argsort(rec["observations"]["point"],
+                                                         kind="stable")]
+    rewrite(small_block, rec)
+    result = order_project(small_block)
+    assert int(pt["id"][j]) in result.excluded_points
+    assert sapgo.adjust(small_block, sapgo.Options(progress=False)).converged
+
+
+def test_rejected_observations_stay_rejected(small_block):
+    from sapgo.project import STATUS_REJECTED
+
+    rec = read_records(small_block)
+    rec["observations"]["x"][10] += 0.5  # a 500 um blunder, rejected by the user
+    rec["observations"]["status"][10] = STATUS_REJECTED
+    key = (int(rec["observations"]["point"][10]), int(rec["observations"]["station"][10]))
+    pid = int(rec["points"]["id"][key[0]])
+    sid = int(rec["stations"]["id"][key[1]])
+    rewrite(small_block, rec)
+    s = sapgo.adjust(small_block, sapgo.Options(progress=False))
+    assert s.sigma0 < 1.5
+    after = read_records(small_block)
+    ob = after["observations"]
+    hit = (after["points"]["id"][ob["point"]] == pid) & (after["stations"]["id"][ob["station"]] == sid)
+    assert ob["status"][hit][0] == STATUS_REJECTED
+    assert s.n_observations == len(ob) - 1

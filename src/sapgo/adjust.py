@@ -28,6 +28,7 @@ import numpy as np
 from .bandsolve import PIVOT_TOLERANCE, PivotError, solve_out_of_core
 from .errors import DatumDefectError, SapgoError, SingularNormalsError
 from .normals import (
+    BAD_LAYOUT,
     BEHIND_CAMERA,
     CTRL_MASK,
     OK,
@@ -47,6 +48,8 @@ from .report import Summary, check_point_statistics, truth_statistics
 from .validate import check_values
 
 ARCSEC = math.pi / (180 * 3600)
+#: At most this many ids of excluded points or stations are listed in a report.
+LISTED_IDS = 1000
 
 
 @dataclasses.dataclass
@@ -59,6 +62,8 @@ class Options:
     tol_position: float = 1e-4
     #: ... and every station angle correction below this (rad; default 0.1").
     tol_angle: float = 0.1 * ARCSEC
+    #: ... and sigma0 changed by less than this fraction since the previous iteration.
+    tol_sigma0: float = 1e-3
     #: Station ordering when the project is not ordered yet: "best" or a candidate name.
     ordering: str = "best"
     #: Points read per chunk in the streaming passes.
@@ -75,7 +80,7 @@ class Options:
     def check(self):
         if self.max_iterations < 1:
             raise SapgoError("max_iterations must be at least 1")
-        if not (self.tol_position > 0 and self.tol_angle > 0):
+        if not (self.tol_position > 0 and self.tol_angle > 0 and self.tol_sigma0 > 0):
             raise SapgoError("the convergence tolerances must be positive")
         if self.chunk_points < 1 or self.chunk_rows < 1:
             raise SapgoError("chunk sizes must be positive")
@@ -206,8 +211,9 @@ def _load_block(p: Project) -> _Block:
     for a, b in p.chunks("station_priors"):
         pr = p.read("station_priors", a, b)
         act = blk.station_active[pr["station"]]
-        if act.any():
-            blk.n_prior_params += int(np.linalg.matrix_rank(pr["weight"][act]).sum())
+        if act.any():  # the rank of each weight matrix (validated positive semi-definite)
+            ev = np.linalg.eigvalsh(pr["weight"][act])
+            blk.n_prior_params += int((ev > 1e-12 * ev.max(axis=1, keepdims=True)).sum())
     return blk
 
 
@@ -258,11 +264,24 @@ def _init_rows(band, rhs, base, lo, hi, blk, priors):
 
 
 def _point_error(p, chunk, j, status, blk):
-    pid = int(p.read("points", chunk.start + j, chunk.start + j + 1)["id"][0])
+    rec = p.read("points", chunk.start + j, chunk.start + j + 1)[0]
+    pid = int(rec["id"])
+    if status == BAD_LAYOUT:
+        return SapgoError(
+            f"{p.path}: point id {pid} (record {chunk.start + j}) does not follow the stored "
+            f"logical order and band width {p.band_width}: the records were changed after "
+            f"ordering; run 'sapgo order' again"
+        )
     if status == BEHIND_CAMERA:
         return SapgoError(
             f"point id {pid} lies behind a photo at its current coordinates: check its "
             f"approximate coordinates and the photos' approximate orientation"
+        )
+    if CONTROL_MASK[rec["kind"]].any():
+        return SingularNormalsError(
+            f"point id {pid} cannot be determined: its rays are (nearly) parallel and its "
+            f"control does not fix the remaining direction (control_sigma "
+            f"{list(rec['control_sigma'])} m); check its image measurements and control"
         )
     return SingularNormalsError(
         f"point id {pid} cannot be determined: its rays are (nearly) parallel and it has no "
@@ -284,6 +303,9 @@ def build(p: Project, scratch, blk: _Block, opts: Options):
 
     def advance(new_base):
         nonlocal base
+        if new_base <= base:
+            raise SapgoError(f"{p.path}: the points are not sorted by their first station; "
+                             f"the records were changed after ordering: run 'sapgo order'")
         shift = min(new_base, n) - base
         band_ds[base:base + shift] = band[:shift]
         rhs_ds[base:base + shift] = rhs[:shift]
@@ -335,12 +357,12 @@ def update(p: Project, scratch, blk: _Block, delta, opts: Options):
             res_ds[c.o0:c.o1] = res_out
             bar.update(b - a)
     vpv_prior = 0.0
-    priors = _PriorCursor(p, opts.chunk_points)
-    for rec in priors.take(0, len(blk.station_ids)):
-        s = int(rec["station"])
-        if blk.station_active[s]:
-            v = _prior_residual(rec, eo_new[s])
-            vpv_prior += float(v @ rec["weight"] @ v)
+    for a, b in p.chunks("station_priors", opts.chunk_points):
+        pr = p.read("station_priors", a, b)
+        pr = pr[blk.station_active[pr["station"]]]
+        v = eo_new[pr["station"]] - pr["value"]
+        v[:, :3] = _wrap(v[:, :3])
+        vpv_prior += float(np.einsum("ni,nij,nj->", v, pr["weight"], v))
     blk.eo = eo_new
     return {
         "vpv": stats[0] + stats[1] + vpv_prior,
@@ -358,14 +380,23 @@ def _pivot_error(exc: PivotError, blk: _Block, p: Project):
     param = EO_NAMES[exc.parameter]
     active = np.flatnonzero(blk.station_active)
     last = active[-1] if len(active) else 0
+    # a datum defect spreads over the whole block and shows at the end of the elimination;
+    # in a block of a few band widths every station is "at the end", so say both
     near_end = s > last - blk.band_width
+    small = len(active) <= 3 * blk.band_width
     nh, nv, npr = _datum_counts(p)
     where = (f"the reduced normal equations are not positive definite at station id {sid} "
              f"(logical station {s}, parameter {param})")
-    if near_end or (npr == 0 and (nh < 2 or nv < 3)):
+    if npr == 0 and (nh < 2 or nv < 3) or (near_end and not small):
         return DatumDefectError(
             f"{where}: datum defect - the block as a whole is not fixed; "
             + _datum_advice(nh, nv, npr)
+        )
+    if near_end:
+        return DatumDefectError(
+            f"{where}: a datum defect (control on one line, or too little control: "
+            f"{nh} horizontal, {nv} vertical points, {npr} priors) or a station that its "
+            f"observations do not determine; check the control layout and station id {sid}"
         )
     return SingularNormalsError(
         f"{where}: the station is not determined by its observations; check its image "
@@ -413,7 +444,8 @@ def _iterate(p: Project, scratch, blk: _Block, opts: Options, timings, log):
         timings["update"] += t3 - t2
         d_ang = float(np.abs(delta[:, :3]).max()) if n else 0.0
         d_pos = float(np.abs(delta[:, 3:]).max()) if n else 0.0
-        sigma0 = math.sqrt(st["vpv"] / blk.redundancy)
+        sigma0 = math.sqrt(max(st["vpv"], 0.0) / blk.redundancy)
+        prev = log[-1]["sigma0"] if log else None
         log.append({
             "iteration": it,
             "sigma0": sigma0,
@@ -428,7 +460,8 @@ def _iterate(p: Project, scratch, blk: _Block, opts: Options, timings, log):
             "update_s": t3 - t2,
         })
         if (d_pos < opts.tol_position and st["max_point_corr"] < opts.tol_position
-                and d_ang < opts.tol_angle):
+                and d_ang < opts.tol_angle
+                and (prev is None or abs(sigma0 - prev) <= opts.tol_sigma0 * prev)):
             return True
         if not np.isfinite(sigma0):
             raise SapgoError("the adjustment diverged (sigma0 is not finite)")
@@ -511,10 +544,13 @@ def _commit(path, p_read: Project, scratch, blk: _Block, log, converged, opts, o
         g.attrs["sigma0"] = last["sigma0"]
         q.add_history({"command": "adjust", "iterations": len(log), "converged": converged,
                        "sigma0": last["sigma0"]})
-        excluded_points = []
+        excluded_points, n_excluded_points = [], 0
         for a, b in q.chunks("points", opts.chunk_points):
             pts = q.read("points", a, b)
-            excluded_points.extend(int(i) for i in pts["id"][pts["status"] != STATUS_ACTIVE])
+            ids = pts["id"][pts["status"] != STATUS_ACTIVE]
+            n_excluded_points += len(ids)
+            excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
+        excluded_stations = blk.station_ids[~blk.station_active]
         summary = Summary(
             path=str(path),
             converged=converged,
@@ -539,8 +575,10 @@ def _commit(path, p_read: Project, scratch, blk: _Block, log, converged, opts, o
             n_observations=blk.n_rays,
             n_cameras=q.n_cameras,
             n_control=blk.n_control,
-            excluded_stations=[int(i) for i in blk.station_ids[~blk.station_active]],
+            excluded_stations=[int(i) for i in excluded_stations[:LISTED_IDS]],
             excluded_points=excluded_points,
+            n_excluded_stations=len(excluded_stations),
+            n_excluded_points=n_excluded_points,
             check_points=checks.result(),
             control_points=checks.control_result(),
             truth=truth.result() if truth is not None else None,

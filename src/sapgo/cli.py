@@ -21,12 +21,14 @@ def _ids(ids, limit=20):
     return s + (", ..." if len(ids) > limit else "")
 
 
-def _report_exclusions(points, stations):
-    if points:
-        _warn(f"{len(points)} point(s) seen on fewer than 2 photos cannot be determined and "
+def _report_exclusions(points, stations, n_points=None, n_stations=None):
+    n_points = len(points) if n_points is None else n_points
+    n_stations = len(stations) if n_stations is None else n_stations
+    if n_points:
+        _warn(f"{n_points} point(s) seen on fewer than 2 photos cannot be determined and "
               f"are left out of the adjustment (they stay in the project): ids {_ids(points)}")
-    if stations:
-        _warn(f"{len(stations)} photo(s) with fewer than 3 determinable points are left out of "
+    if n_stations:
+        _warn(f"{n_stations} photo(s) with fewer than 3 determinable points are left out of "
               f"the adjustment (they stay in the project): ids {_ids(stations)}")
 
 
@@ -68,6 +70,7 @@ def cmd_adjust(args):
         max_iterations=args.max_iterations,
         tol_position=args.tol_position,
         tol_angle=args.tol_angle * math.pi / (180 * 3600),
+        tol_sigma0=args.tol_sigma0,
         ordering=args.ordering,
         keep_scratch=args.keep_scratch,
         progress=False if args.no_progress else None,
@@ -76,7 +79,8 @@ def cmd_adjust(args):
         ordered = p.ordered
     summary = adjust(args.project, opts)
     if not ordered:
-        _report_exclusions(summary.excluded_points, summary.excluded_stations)
+        _report_exclusions(summary.excluded_points, summary.excluded_stations,
+                           summary.n_excluded_points, summary.n_excluded_stations)
     if not summary.converged:
         _warn(summary.termination)
     if args.json:
@@ -98,7 +102,8 @@ def cmd_info(args):
             values, counts = np.unique(p.read_field("points", "kind", a, b),
                                        return_counts=True)
             for k, n in zip(values, counts):
-                kinds[KIND_NAMES[int(k)]] = kinds.get(KIND_NAMES[int(k)], 0) + int(n)
+                name = KIND_NAMES.get(int(k), f"unknown kind {int(k)}")
+                kinds[name] = kinds.get(name, 0) + int(n)
         info = {
             "path": str(p.path),
             "schema_version": int(p.attr("schema_version")),
@@ -169,6 +174,8 @@ def build_parser():
     a.add_argument("--tol-angle", type=float, default=0.1,
                    help="convergence: corrections of angles below this, arc seconds "
                         "(default 0.1)")
+    a.add_argument("--tol-sigma0", type=float, default=1e-3,
+                   help="convergence: relative change of sigma0 below this (default 1e-3)")
     a.add_argument("--ordering", default="best", help="ordering when the project is unordered")
     a.add_argument("--keep-scratch", action="store_true",
                    help="keep NAME.scratch.h5 (band and factor rows)")
@@ -189,6 +196,10 @@ def main(argv=None):
         return args.func(args)
     except SapgoError as exc:
         print(f"sapgo: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        print(f"sapgo: error:{where}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("sapgo: interrupted", file=sys.stderr)

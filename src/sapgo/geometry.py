@@ -75,6 +75,8 @@ def project(eo, xyz, f, x0, y0):
     u = m[0, 0] * dx + m[0, 1] * dy + m[0, 2] * dz
     v = m[1, 0] * dx + m[1, 1] * dy + m[1, 2] * dz
     w = m[2, 0] * dx + m[2, 1] * dy + m[2, 2] * dz
+    if w == 0.0:
+        return np.nan, np.nan
     return x0 - f * u / w, y0 - f * v / w
 
 
@@ -102,6 +104,8 @@ def linearize(eo, xyz, f, x0, y0, a, b):
             qp[i] += dm_p[i, k] * d[k]
             qk[i] += dm_k[i, k] * d[k]
     u, v, w = q[0], q[1], q[2]
+    if w >= 0.0:  # behind the camera or in its principal plane: no projection
+        return np.nan, np.nan, w
     fw2 = f / (w * w)
     # d x / d q = -f/w * [1, 0, -u/w];  d y / d q = -f/w * [0, 1, -v/w]
     gx0, gx2 = -f / w, f * u / (w * w)

@@ -31,6 +31,7 @@ from .project import CONTROL_MASK, STATUS_ACTIVE
 OK = 0
 SINGULAR_POINT = 1
 BEHIND_CAMERA = 2
+BAD_LAYOUT = 3  # the records do not follow the logical order the band width was computed for
 
 
 @njit(cache=True)
@@ -98,15 +99,18 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, obs_s
 
 @njit(cache=True)
 def _chol3(nn, lo):
-    """Cholesky factor ``lo`` (lower) of the 3x3 SPD matrix ``nn``; False if not SPD."""
-    scale = max(nn[0, 0], nn[1, 1], nn[2, 2])
+    """Cholesky factor ``lo`` (lower) of the 3x3 SPD matrix ``nn``; False if not SPD.
+
+    A pivot counts as zero at or below 1e-13 of its own diagonal element (scale-free, as in
+    :mod:`sapgo.bandsolve`).
+    """
     for i in range(3):
         for j in range(i + 1):
             s = nn[i, j]
             for k in range(j):
                 s -= lo[i, k] * lo[j, k]
             if i == j:
-                if s <= 1e-13 * scale:
+                if not (s > 1e-13 * nn[i, i]) or not (s > 0.0):
                     return False
                 lo[i, i] = np.sqrt(s)
             else:
@@ -161,6 +165,12 @@ def build_points(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_sm
                           st_all, nn, cc)
         if k < 0:
             return j, BEHIND_CAMERA, j
+        bw = band.shape[2] // 6
+        for q in range(k):
+            r = st_all[q] - base
+            if r < 0 or r >= cap or st_all[q] - st_all[0] >= bw or (
+                    q > 0 and st_all[q] < st_all[q - 1]):
+                return j, BAD_LAYOUT, j
         if not _chol3(nn, lo):
             return j, SINGULAR_POINT, j
         _solve3(lo, cc, h)

@@ -36,6 +36,7 @@ from .project import (
     KIND_VERTICAL,
     STATUS_ACTIVE,
     STATUS_EXCLUDED,
+    STATUS_REJECTED,
     Project,
     append_history,
     write_project,
@@ -216,17 +217,20 @@ def find_exclusions(kind, point_of_obs, station_of_obs, n_stations, obs_status=N
     """
     n_points = len(kind)
     obs_active = np.ones(len(point_of_obs), bool)
-    if obs_status is not None:
-        obs_active &= obs_status == STATUS_ACTIVE
+    if obs_status is not None:  # rejected observations stay out; exclusions are recomputed
+        obs_active &= obs_status != STATUS_REJECTED
     point_active = np.ones(n_points, bool)
     station_active = np.ones(n_stations, bool)
     single_ok = (kind == KIND_CONTROL) | (kind == KIND_VERTICAL)
     while True:
         live = obs_active & point_active[point_of_obs] & station_active[station_of_obs]
-        rays = np.bincount(point_of_obs[live], minlength=n_points)
+        # rays and points are counted once per distinct (point, station) pair
+        pairs = np.unique(point_of_obs[live] * n_stations + station_of_obs[live])
+        rays = np.bincount(pairs // n_stations, minlength=n_points)
         new_points = (rays >= MIN_RAYS_PASS) | (single_ok & (rays >= 1))
+        pairs = pairs[new_points[pairs // n_stations]]
         live = live & new_points[point_of_obs]
-        per_station = np.bincount(station_of_obs[live], minlength=n_stations)
+        per_station = np.bincount(pairs % n_stations, minlength=n_stations)
         new_stations = per_station >= MIN_POINTS_PER_STATION
         if (new_points == point_active).all() and (new_stations == station_active).all():
             return point_active, station_active, live
@@ -253,8 +257,11 @@ def order_project(path, method="best"):
     import time
 
     t0 = time.perf_counter()
+    from .validate import check_values
+
     path = Path(path)
     with Project(path, "r") as p:
+        check_values(p, ordered_layout=False)
         stations = p.read("stations")
         points = p.read("points")
         obs = p.read("observations")
@@ -279,7 +286,7 @@ def order_project(path, method="best"):
     point_of_obs = obs["point"]
     station_of_obs = obs["station"]
     pt_active, st_active, obs_active = find_exclusions(
-        points["kind"], point_of_obs, station_of_obs, n_st
+        points["kind"], point_of_obs, station_of_obs, n_st, obs["status"]
     )
 
     # edges of the station graph over active observations, in record numbering
@@ -332,6 +339,7 @@ def order_project(path, method="best"):
     new_obs["point"] = new_point[obs_perm]
     new_obs["station"] = new_station[obs_perm]
     new_obs["status"] = np.where(obs_active[obs_perm], STATUS_ACTIVE, STATUS_EXCLUDED)
+    new_obs["status"][obs["status"][obs_perm] == STATUS_REJECTED] = STATUS_REJECTED
     ostart, ocount = _group_starts(new_obs["point"], n_pt)
     new_points["obs_start"] = ostart
     new_points["n_obs"] = ocount

@@ -53,6 +53,7 @@ CONTROL_MASK = np.array(
 # Record status (``status`` field of stations, points and observations).
 STATUS_ACTIVE = 0
 STATUS_EXCLUDED = 1  # left out of the adjustment (undeterminable); kept in the project
+STATUS_REJECTED = 2  # observation rejected by the user (or blunder detection); kept, never used
 
 #: Provenance entries kept in the ``history`` attribute (the newest).
 HISTORY_LIMIT = 100

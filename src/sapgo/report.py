@@ -127,10 +127,12 @@ class Summary:
     n_observations: int
     n_cameras: int
     n_control: dict
-    excluded_stations: list
-    excluded_points: list
+    excluded_stations: list  # ids (the first 1000)
+    excluded_points: list  # ids (the first 1000)
+    n_excluded_stations: int
     check_points: dict
     control_points: dict
+    n_excluded_points: int = 0
     truth: dict | None = None
     timings_s: dict = dataclasses.field(default_factory=dict)
     timings_per_iteration_s: dict = dataclasses.field(default_factory=dict)
@@ -162,10 +164,10 @@ class Summary:
                   if self.band_width_before is not None else "")
         L.append(f"  order: {self.ordering}, band width {self.band_width} stations{before}")
         if self.excluded_stations:
-            L.append(f"  left out, too few points: {len(self.excluded_stations)} photos "
+            L.append(f"  left out, too few points: {self.n_excluded_stations} photos "
                      f"{_ids(self.excluded_stations)}")
         if self.excluded_points:
-            L.append(f"  left out, too few rays: {len(self.excluded_points)} points "
+            L.append(f"  left out, too few rays: {self.n_excluded_points} points "
                      f"{_ids(self.excluded_points)}")
         L.append("")
         L.append("  iter   sigma0  image RMS  max dXYZc   max dang  max dXYZ    build    solve"

@@ -15,6 +15,7 @@ from .project import (
     KIND_NAMES,
     STATUS_ACTIVE,
     STATUS_EXCLUDED,
+    STATUS_REJECTED,
     Project,
 )
 
@@ -45,8 +46,11 @@ def _check_finite(name, start, ids, field, values):
         raise DataError(f"{name} record {start + i}{idtxt}: {label} is {_describe(v[i, comp])}")
 
 
-def check_values(project: Project):
-    """Check every input value; raise :class:`DataError` at the first problem."""
+def check_values(project: Project, ordered_layout=True):
+    """Check every input value; raise :class:`DataError` at the first problem.
+
+    ``ordered_layout``: also check what an ordered project promises (priors by station).
+    """
     path = project.path
     n_cam = project.n_cameras
     n_st = project.n_stations
@@ -87,12 +91,16 @@ def check_values(project: Project):
         w = pr["weight"]
         asym = np.abs(w - np.transpose(w, (0, 2, 1))).max(axis=(1, 2)) > 1e-9 * (
             np.abs(w).max(axis=(1, 2)) + 1e-300)
-        neg = (np.diagonal(w, axis1=1, axis2=2) < 0).any(axis=1)
-        i = _first_bad(asym | neg)
+        i = _first_bad(asym)
         if i >= 0:
-            raise DataError(f"station_priors record {a + i}: the weight matrix must be "
-                            f"symmetric with a non-negative diagonal")
-    if project.ordered:
+            raise DataError(f"station_priors record {a + i}: the weight matrix is not "
+                            f"symmetric")
+        ev = np.linalg.eigvalsh(w)
+        i = _first_bad(ev[:, 0] < -1e-12 * np.abs(ev).max(axis=1))
+        if i >= 0:
+            raise DataError(f"station_priors record {a + i}: the weight matrix is not "
+                            f"positive semi-definite (eigenvalue {ev[i, 0]:.3g})")
+    if project.ordered and ordered_layout:
         last = -1
         for a, b in project.chunks("station_priors"):
             st = project.read_field("station_priors", "station", a, b)
@@ -161,7 +169,8 @@ def check_values(project: Project):
         if i >= 0:
             raise DataError(f"observations record {a + i}: sigma must not be negative "
                             f"(0 takes the camera's sigma_image)")
-        i = _first_bad((obs["status"] != STATUS_ACTIVE) & (obs["status"] != STATUS_EXCLUDED))
+        i = _first_bad((obs["status"] != STATUS_ACTIVE) & (obs["status"] != STATUS_EXCLUDED)
+                       & (obs["status"] != STATUS_REJECTED))
         if i >= 0:
             raise DataError(f"observations record {a + i}: unknown status {obs['status'][i]}")
     if project.has_truth:
