@@ -112,3 +112,17 @@ def test_observation_sigma_zero_takes_the_cameras_sigma(small_block, tmp_path):
     a = sapgo.adjust(small_block, sapgo.Options(progress=False))
     b = sapgo.adjust(other, sapgo.Options(progress=False))
     assert b.sigma0 == pytest.approx(a.sigma0, rel=1e-12)
+
+
+def test_an_unfinished_new_solution_leaves_the_old_one(small_block):
+    sapgo.adjust(small_block, sapgo.Options(progress=False))
+    with Project(small_block) as p:
+        before = p.solution("point_corr")
+    with Project(small_block, "r+") as p:
+        p.new_solution()  # as if a later run were killed while writing its results
+    with Project(small_block) as p:
+        np.testing.assert_array_equal(p.solution("point_corr"), before)
+        assert p.file["solution"].attrs["state"] == "adjusted"
+    sapgo.adjust(small_block, sapgo.Options(progress=False))
+    with Project(small_block) as p:
+        assert "solution.new" not in p.file

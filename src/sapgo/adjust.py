@@ -17,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -523,13 +522,17 @@ def _commit(path, p_read: Project, scratch, blk: _Block, log, converged, opts, o
     truth = truth_statistics() if p_read.has_truth else None
     p_read.close()
     with Project(path, "r+") as q:
-        g = q.reset_solution()
+        g = q.new_solution()
         g["station_corr"][...] = blk.eo - blk.eo_approx
+        excluded_points, n_excluded_points = [], 0
         for a, b in q.chunks("points", opts.chunk_points):
             pts = q.read("points", a, b)
             adj = xyz_ds[a:b]
             g["point_corr"][a:b] = adj - pts["xyz"]
             act = pts["status"] == STATUS_ACTIVE
+            ids = pts["id"][~act]
+            n_excluded_points += len(ids)
+            excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
             checks.add(pts[act], adj[act])
             if truth is not None:
                 truth.add_points(q.read_field("truth/points", "xyz", a, b)[act], adj[act])
@@ -542,14 +545,9 @@ def _commit(path, p_read: Project, scratch, blk: _Block, log, converged, opts, o
         g.attrs["iterations"] = len(log)
         g.attrs["converged"] = converged
         g.attrs["sigma0"] = last["sigma0"]
+        q.commit_solution()
         q.add_history({"command": "adjust", "iterations": len(log), "converged": converged,
                        "sigma0": last["sigma0"]})
-        excluded_points, n_excluded_points = [], 0
-        for a, b in q.chunks("points", opts.chunk_points):
-            pts = q.read("points", a, b)
-            ids = pts["id"][pts["status"] != STATUS_ACTIVE]
-            n_excluded_points += len(ids)
-            excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
         excluded_stations = blk.station_ids[~blk.station_active]
         summary = Summary(
             path=str(path),
@@ -584,10 +582,3 @@ def _commit(path, p_read: Project, scratch, blk: _Block, log, converged, opts, o
             truth=truth.result() if truth is not None else None,
         )
     return summary
-
-
-def remove_scratch(path):
-    """Delete the scratch file of a project if one was left behind."""
-    s = scratch_path(path)
-    if s.exists():
-        os.unlink(s)

@@ -367,12 +367,13 @@ def order_project(path, method="best"):
                   attrs=attrs)
     if solution is not None:
         with Project(tmp, "r+") as q:
-            g = q.reset_solution()
+            g = q.new_solution()
             g["station_corr"][...] = solution["station_corr"][perm]
             g["point_corr"][...] = solution["point_corr"][pt_perm]
             g["residuals"][...] = solution["residuals"][obs_perm]
             if report is not None:
                 g.create_dataset("report", data=report)
+            q.commit_solution()
             for k, v in sol_attrs.items():
                 g.attrs[k] = v
     os.replace(tmp, path)

@@ -407,12 +407,16 @@ class Project:
             return np.zeros((stop - start,) + shape)
         return self.file["solution"][name][start:stop]
 
-    def reset_solution(self):
-        """Create (or zero) the /solution group sized to the current records."""
+    def new_solution(self):
+        """A new, zeroed result group ``/solution.new`` sized to the current records.
+
+        Fill it, then :meth:`commit_solution` puts it in place of ``/solution``: an old
+        solution stays readable until the new one is complete.
+        """
         f = self.file
-        if "solution" in f:
-            del f["solution"]
-        g = f.create_group("solution")
+        if "solution.new" in f:
+            del f["solution.new"]
+        g = f.create_group("solution.new")
         for name, (parent, shape) in SOLUTION_LAYOUT.items():
             n = len(f[parent])
             g.create_dataset(
@@ -423,6 +427,14 @@ class Project:
         g.attrs["iterations"] = 0
         g.attrs["converged"] = False
         return g
+
+    def commit_solution(self):
+        """Replace ``/solution`` with the completed ``/solution.new``."""
+        f = self.file
+        if "solution" in f:
+            del f["solution"]
+        f.move("solution.new", "solution")
+        return f["solution"]
 
 
 def open_project(path, mode="r"):
