@@ -22,7 +22,7 @@ stations go to the end of the order, excluded points after all active ones.
 from __future__ import annotations
 
 import dataclasses
-import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -31,19 +31,27 @@ from numba import njit
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from .errors import ParameterError
+from .extsort import DEFAULT_MEMORY, ExternalSorter, parse_memory, rechunk
 from .project import (
+    CHUNK_RECORDS,
     KIND_CONTROL,
     KIND_VERTICAL,
+    OBSERVATION_DTYPE,
+    POINT_DTYPE,
+    SOLUTION_LAYOUT,
     STATUS_ACTIVE,
     STATUS_EXCLUDED,
     STATUS_REJECTED,
+    TRUTH_POINT_DTYPE,
     Project,
+    ProjectWriter,
     append_history,
-    write_project,
 )
 
 MIN_RAYS_PASS = 2
 MIN_POINTS_PER_STATION = 3
+#: At most this many ids of excluded points or stations are listed.
+LISTED_IDS = 1000
 
 
 @dataclasses.dataclass
@@ -54,8 +62,10 @@ class OrderResult:
     band_width: int
     ordering: str
     candidates: dict  # ordering name -> band width
-    excluded_points: list  # ids of points left out (too few rays)
-    excluded_stations: list  # ids of stations left out (too few points)
+    excluded_points: list  # ids of points left out (too few rays), at most LISTED_IDS
+    excluded_stations: list  # ids of stations left out (too few points), at most LISTED_IDS
+    n_excluded_points: int = 0
+    n_excluded_stations: int = 0
     seconds: float = 0.0
 
     def to_dict(self):
@@ -238,62 +248,159 @@ def find_exclusions(kind, point_of_obs, station_of_obs, n_stations, obs_status=N
         station_active &= new_stations
 
 
+# -- streaming passes --------------------------------------------------------------------
+
+@njit(cache=True)
+def _chunk_activity(starts, counts, obs_station, obs_status, single_ok, station_active,
+                    point_active, obs_active, station_points):
+    """Exclusion rules on one chunk of points, given which stations are active.
+
+    A ray is usable when the observation is not rejected and its station is active; a point
+    is active with 2 distinct usable stations (1 for full or vertical control). Fills
+    ``point_active``, ``obs_active`` (usable rays of active points) and adds 1 to
+    ``station_points[s]`` for every active point seen by station ``s``.
+    """
+    for j in range(starts.shape[0]):
+        a = starts[j]
+        b = a + counts[j]
+        k = 0
+        for i in range(a, b):
+            use = obs_status[i] != STATUS_REJECTED and station_active[obs_station[i]]
+            obs_active[i] = use
+            if use:
+                dup = False
+                for q in range(a, i):
+                    if obs_active[q] and obs_station[q] == obs_station[i]:
+                        dup = True
+                        break
+                if not dup:
+                    k += 1
+        ok = k >= MIN_RAYS_PASS or (single_ok[j] and k >= 1)
+        point_active[j] = ok
+        for i in range(a, b):
+            if not ok:
+                obs_active[i] = False
+            elif obs_active[i]:
+                dup = False
+                for q in range(a, i):
+                    if obs_active[q] and obs_station[q] == obs_station[i]:
+                        dup = True
+                        break
+                if not dup:
+                    station_points[obs_station[i]] += 1
+
+
+@njit(cache=True)
+def _ray_range_kernel(starts, counts, station, active, smin, smax):
+    for j in range(starts.shape[0]):
+        for i in range(starts[j], starts[j] + counts[j]):
+            if active[i]:
+                s = station[i]
+                if s < smin[j]:
+                    smin[j] = s
+                if s > smax[j]:
+                    smax[j] = s
+
+
+def _ray_range(starts, counts, station, active):
+    """Smallest and largest station of each point's active rays (int64 max / -1 if none)."""
+    smin = np.full(len(starts), np.iinfo(np.int64).max, np.int64)
+    smax = np.full(len(starts), -1, np.int64)
+    _ray_range_kernel(starts, counts, np.ascontiguousarray(station), active, smin, smax)
+    return smin, smax
+
+
+class _Chunk:
+    """Points ``a:b`` of a project with their observations and exclusion flags."""
+
+    def __init__(self, p, a, b, station_active, station_points=None, fields=None):
+        self.a, self.b = a, b
+        self.pts = p.read("points", a, b)
+        self.o0 = int(self.pts["obs_start"][0]) if b > a else 0
+        self.o1 = int(self.pts["obs_start"][-1] + self.pts["n_obs"][-1]) if b > a else 0
+        if fields is None:
+            self.obs = p.read("observations", self.o0, self.o1)
+        else:
+            self.obs = {f: p.read_field("observations", f, self.o0, self.o1) for f in fields}
+        self.starts = np.ascontiguousarray(self.pts["obs_start"] - self.o0)
+        self.counts = np.ascontiguousarray(self.pts["n_obs"], dtype=np.int64)
+        self.station = np.ascontiguousarray(self.obs["station"])
+        kind = self.pts["kind"]
+        single = (kind == KIND_CONTROL) | (kind == KIND_VERTICAL)
+        self.point_active = np.zeros(b - a, np.bool_)
+        self.obs_active = np.zeros(self.o1 - self.o0, np.bool_)
+        sp_counts = station_points if station_points is not None else np.zeros(
+            len(station_active), np.int64)
+        _chunk_activity(self.starts, self.counts, self.station,
+                        np.ascontiguousarray(self.obs["status"]), single, station_active,
+                        self.point_active, self.obs_active, sp_counts)
+
+
+def _station_activity(p, chunk):
+    """Active stations after the exclusion rules, by passes over the points until stable."""
+    n_st = p.n_stations
+    active = np.ones(n_st, np.bool_)
+    while True:
+        per_station = np.zeros(n_st, np.int64)
+        for a, b in p.chunks("points", chunk):
+            _Chunk(p, a, b, active, per_station, fields=("station", "status"))
+        new = active & (per_station >= MIN_POINTS_PER_STATION)
+        if (new == active).all():
+            return active
+        active = new
+
+
+def _stream_edges(p, chunk, station_active):
+    """Unique station-graph edges over the active rays, accumulated chunk by chunk."""
+    n_st = p.n_stations
+    parts, n_parts, merged = [], 0, np.zeros(0, np.int64)
+    for a, b in p.chunks("points", chunk):
+        c = _Chunk(p, a, b, station_active, fields=("station", "status"))
+        k = np.unique(_point_pairs(c.starts, c.counts, c.station, c.obs_active, n_st))
+        parts.append(k)
+        n_parts += len(k)
+        if n_parts > max(len(merged), 1 << 20):
+            merged = np.unique(np.concatenate([merged] + parts))
+            parts, n_parts = [], 0
+    keys = np.unique(np.concatenate([merged] + parts))
+    return keys // n_st, keys % n_st
+
+
 # -- the order command -----------------------------------------------------------------
 
-def _group_starts(sorted_keys, n):
-    counts = np.bincount(sorted_keys, minlength=n)
-    starts = np.zeros(n, np.int64)
-    np.cumsum(counts[:-1], out=starts[1:])
-    return starts, counts
-
-
-def order_project(path, method="best"):
+def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS):
     """Order a project: exclusions, station order, point order, records rewritten.
 
     ``method`` is ``"best"`` (smallest band width of all candidates) or one candidate name
-    (``across_strip``, ``down_strip``, ``reverse_cuthill_mckee``, ...). The project is
+    (``across_strip``, ``down_strip``, ``reverse_cuthill_mckee``, ...). Every pass streams
+    the records in chunks; the points and observations are put in their new order by external
+    sorts within ``memory`` bytes (default :data:`sapgo.extsort.DEFAULT_MEMORY`). In core:
+    per-station vectors and the station graph (a few edges per station). The project is
     rewritten through a temporary file that replaces it only when complete.
     """
     import time
 
-    t0 = time.perf_counter()
     from .validate import check_values
 
+    t0 = time.perf_counter()
+    memory = DEFAULT_MEMORY if memory is None else parse_memory(memory)
     path = Path(path)
+    work = path.with_name(path.name + ".order.work")
     with Project(path, "r") as p:
         check_values(p, ordered_layout=False)
-        stations = p.read("stations")
-        points = p.read("points")
-        obs = p.read("observations")
-        priors = p.read("station_priors")
-        cameras = p.read("cameras")
-        truth = (
-            {"stations": p.read("truth/stations"), "points": p.read("truth/points")}
-            if p.has_truth
-            else None
-        )
-        solution = (
-            {k: p.solution(k) for k in ("station_corr", "point_corr", "residuals")}
-            if p.has_solution
-            else None
-        )
-        sol_attrs = dict(p.file["solution"].attrs) if p.has_solution else None
-        report = p.file["solution/report"][()] if "solution/report" in p.file else None
-        attrs = {k: p.file.attrs[k] for k in p.file.attrs}
-    n_st = len(stations)
-    n_pt = len(points)
+        try:
+            result = _order(p, work, method, memory, chunk)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    result.seconds = time.perf_counter() - t0
+    return result
 
-    point_of_obs = obs["point"]
-    station_of_obs = obs["station"]
-    pt_active, st_active, obs_active = find_exclusions(
-        points["kind"], point_of_obs, station_of_obs, n_st, obs["status"]
-    )
 
-    # edges of the station graph over active observations, in record numbering
-    order_obs = np.lexsort((station_of_obs, point_of_obs))
-    ps = point_of_obs[order_obs]
-    starts, counts = _group_starts(ps, n_pt)
-    edges = station_edges(starts, counts, station_of_obs[order_obs], obs_active[order_obs], n_st)
+def _order(p, work, method, memory, chunk):
+    stations = p.read("stations")
+    n_st, n_pt = p.n_stations, p.n_points
+    st_active = _station_activity(p, chunk)
+    edges = _stream_edges(p, chunk, st_active)
 
     identity = np.arange(n_st)
     b_before = band_width_of(identity, edges)
@@ -307,75 +414,139 @@ def order_project(path, method="best"):
         pos = np.empty(n_st, np.int64)
         pos[full] = np.arange(n_st)
         scored[name] = (band_width_of(pos, edges), profile_of(pos, edges), full, pos)
-    if method == "best":
-        name = min(scored, key=lambda k: scored[k][:2])
-    else:
-        name = method
+    name = min(scored, key=lambda k: scored[k][:2]) if method == "best" else method
     b, _, perm, pos = scored[name]
+    candidates = {k: int(v[0]) for k, v in scored.items()}
+    del edges
+    scored.clear()
 
-    # points by (min, max) logical station over active rays; excluded points last
-    new_station = pos[station_of_obs]
-    big = np.iinfo(np.int64).max
-    smin = np.full(n_pt, big, np.int64)
-    smax = np.full(n_pt, -1, np.int64)
-    np.minimum.at(smin, point_of_obs[obs_active], new_station[obs_active])
-    np.maximum.at(smax, point_of_obs[obs_active], new_station[obs_active])
-    key_min = np.where(pt_active, smin, n_st)
-    key_max = np.where(pt_active, smax, n_st)
-    pt_perm = np.lexsort((points["id"], key_max, key_min))
-    pt_pos = np.empty(n_pt, np.int64)
-    pt_pos[pt_perm] = np.arange(n_pt)
+    has_truth, has_solution = p.has_truth, p.has_solution
+    pt_fields = [("kmin", "<i8"), ("kmax", "<i8"), ("id", "<i8"), ("old", "<i8"),
+                 ("rec", POINT_DTYPE)]
+    if has_truth:
+        pt_fields.append(("truth", TRUTH_POINT_DTYPE))
+    if has_solution:
+        pt_fields.append(("corr", "<f8", (3,)))
+    ob_fields = [("point", "<i8"), ("station", "<i8"), ("seq", "<i8"),
+                 ("rec", OBSERVATION_DTYPE)]
+    if has_solution:
+        ob_fields.append(("res", "<f8", (2,)))
+    pt_dtype, ob_dtype = np.dtype(pt_fields), np.dtype(ob_fields)
+    map_dtype = np.dtype([("old", "<i8"), ("new", "<i8")])
 
-    new_point = pt_pos[point_of_obs]
-    obs_perm = np.lexsort((new_station, new_point))
-
-    new_stations = stations[perm].copy()
-    new_stations["status"] = np.where(st_active[perm], STATUS_ACTIVE, STATUS_EXCLUDED)
-    new_points = points[pt_perm].copy()
-    new_points["status"] = np.where(pt_active[pt_perm], STATUS_ACTIVE, STATUS_EXCLUDED)
-    new_points["station_min"] = np.where(pt_active[pt_perm], smin[pt_perm], -1)
-    new_points["station_max"] = smax[pt_perm]
-    new_obs = obs[obs_perm].copy()
-    new_obs["point"] = new_point[obs_perm]
-    new_obs["station"] = new_station[obs_perm]
-    new_obs["status"] = np.where(obs_active[obs_perm], STATUS_ACTIVE, STATUS_EXCLUDED)
-    new_obs["status"][obs["status"][obs_perm] == STATUS_REJECTED] = STATUS_REJECTED
-    ostart, ocount = _group_starts(new_obs["point"], n_pt)
-    new_points["obs_start"] = ostart
-    new_points["n_obs"] = ocount
-    new_priors = priors.copy()
-    if len(new_priors):
-        new_priors["station"] = pos[priors["station"]]
-        new_priors = new_priors[np.argsort(new_priors["station"], kind="stable")]
-    new_truth = None
-    if truth is not None:
-        new_truth = {"stations": truth["stations"][perm], "points": truth["points"][pt_perm]}
-
-    result = OrderResult(
-        band_width_before=b_before,
-        band_width=b,
-        ordering=name,
-        candidates={k: v[0] for k, v in scored.items()},
-        excluded_points=[int(i) for i in points["id"][~pt_active]],
-        excluded_stations=[int(i) for i in stations["id"][~st_active]],
-    )
+    excluded_points, n_excluded_points = [], 0
+    attrs = {k: p.file.attrs[k] for k in p.file.attrs if k != "uuid"}
     history = append_history(attrs.get("history", "[]"), {
         "command": "order", "ordering": name, "band_width": b, "band_width_before": b_before})
     attrs.update(ordered=True, ordering=name, band_width=b, history=history)
-    tmp = path.with_name(path.name + ".order.tmp")
-    write_project(tmp, cameras, new_stations, new_points, new_obs, new_priors, new_truth,
-                  attrs=attrs)
-    if solution is not None:
-        with Project(tmp, "r+") as q:
-            g = q.new_solution()
-            g["station_corr"][...] = solution["station_corr"][perm]
-            g["point_corr"][...] = solution["point_corr"][pt_perm]
-            g["residuals"][...] = solution["residuals"][obs_perm]
-            if report is not None:
-                g.create_dataset("report", data=report)
-            q.commit_solution()
-            for k, v in sol_attrs.items():
-                g.attrs[k] = v
-    os.replace(tmp, path)
-    result.seconds = time.perf_counter() - t0
-    return result
+
+    with ExternalSorter(pt_dtype, ["kmin", "kmax", "id", "old"], memory // 2, work,
+                        "points") as pts_sort, \
+            ProjectWriter(p.path, attrs, truth=has_truth, tmp_suffix=".order.tmp") as w:
+        # 1. points keyed by (min, max) logical station of their active rays
+        for a, b_ in p.chunks("points", chunk):
+            c = _Chunk(p, a, b_, st_active, fields=("station", "status"))
+            new_st = pos[c.station]
+            smin, smax = _ray_range(c.starts, c.counts, new_st, c.obs_active)
+            rec = np.zeros(b_ - a, pt_dtype)
+            rec["kmin"] = np.where(c.point_active, smin, n_st)
+            rec["kmax"] = np.where(c.point_active, smax, n_st)
+            rec["id"] = c.pts["id"]
+            rec["old"] = np.arange(a, b_)
+            r = c.pts.copy()
+            r["status"] = np.where(c.point_active, STATUS_ACTIVE, STATUS_EXCLUDED)
+            r["station_min"] = np.where(c.point_active, smin, -1)
+            r["station_max"] = smax
+            rec["rec"] = r
+            if has_truth:
+                rec["truth"] = p.read("truth/points", a, b_)
+            if has_solution:
+                rec["corr"] = p.solution("point_corr", a, b_)
+            ids = c.pts["id"][~c.point_active]
+            n_excluded_points += len(ids)
+            excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
+            pts_sort.add(rec)
+
+        # 2. points written in the new order; the old -> new map sorted back by old number
+        if has_solution:
+            sol = w.file.create_group("solution.new")
+            for k, v in p.file["solution"].attrs.items():
+                sol.attrs[k] = v
+            for dname, (parent, shape) in SOLUTION_LAYOUT.items():
+                n = {"stations": n_st, "points": n_pt}.get(parent, p.n_observations)
+                sol.create_dataset(dname, (n,) + shape, "<f8",
+                                   chunks=(max(1, min(n, CHUNK_RECORDS)),) + shape)
+            sol["station_corr"][...] = p.solution("station_corr")[perm]
+            if "report" in p.file["solution"]:
+                sol.create_dataset("report", data=p.file["solution/report"][()])
+        with ExternalSorter(map_dtype, ["old"], memory // 4, work, "map") as map_sort:
+            new, start = 0, 0
+            for c in pts_sort.sorted_chunks():
+                r = c["rec"].copy()
+                r["obs_start"] = start + np.concatenate([[0], np.cumsum(r["n_obs"][:-1])])
+                start = int(r["obs_start"][-1] + r["n_obs"][-1])
+                w.append("points", r)
+                if has_truth:
+                    w.append("truth/points", c["truth"])
+                if has_solution:
+                    sol["point_corr"][new:new + len(c)] = c["corr"]
+                m = np.zeros(len(c), map_dtype)
+                m["old"] = c["old"]
+                m["new"] = np.arange(new, new + len(c))
+                map_sort.add(m)
+                new += len(c)
+            pts_sort.close()
+
+            # 3. observations relabelled (old point order = record order) and sorted
+            with ExternalSorter(ob_dtype, ["point", "station", "seq"], memory // 2, work,
+                                "observations") as obs_sort:
+                maps = rechunk(map_sort.sorted_chunks(), chunk)
+                for (a, b_), m in zip(p.chunks("points", chunk), maps):
+                    c = _Chunk(p, a, b_, st_active)
+                    rec = np.zeros(c.o1 - c.o0, ob_dtype)
+                    rec["point"] = np.repeat(m["new"], c.counts)
+                    rec["station"] = pos[c.station]
+                    rec["seq"] = np.arange(c.o0, c.o1)
+                    o = c.obs.copy()
+                    rejected = o["status"] == STATUS_REJECTED
+                    o["status"] = np.where(c.obs_active, STATUS_ACTIVE, STATUS_EXCLUDED)
+                    o["status"][rejected] = STATUS_REJECTED
+                    o["point"] = rec["point"]
+                    o["station"] = rec["station"]
+                    rec["rec"] = o
+                    if has_solution:
+                        rec["res"] = p.solution("residuals", c.o0, c.o1)
+                    obs_sort.add(rec)
+                map_sort.close()
+                at = 0
+                for c in obs_sort.sorted_chunks():
+                    w.append("observations", c["rec"])
+                    if has_solution:
+                        sol["residuals"][at:at + len(c)] = c["res"]
+                    at += len(c)
+
+        # 4. per-station records
+        new_stations = stations[perm].copy()
+        new_stations["status"] = np.where(st_active[perm], STATUS_ACTIVE, STATUS_EXCLUDED)
+        w.append("stations", new_stations)
+        w.append("cameras", p.read("cameras"))
+        priors = p.read("station_priors")
+        if len(priors):
+            priors["station"] = pos[priors["station"]]
+            priors = priors[np.argsort(priors["station"], kind="stable")]
+        w.append("station_priors", priors)
+        if has_truth:
+            w.append("truth/stations", p.read("truth/stations")[perm])
+        if has_solution:
+            w.file.move("solution.new", "solution")
+        w.finish()  # replaces the project (still open here for reading: POSIX keeps it)
+    return OrderResult(
+        band_width_before=b_before,
+        band_width=b,
+        ordering=name,
+        candidates=candidates,
+        excluded_points=excluded_points,
+        excluded_stations=[int(i) for i in stations["id"][~st_active][:LISTED_IDS]],
+        n_excluded_points=n_excluded_points,
+        n_excluded_stations=int((~st_active).sum()),
+    )

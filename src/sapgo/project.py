@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
+import uuid
 from pathlib import Path
 
 import h5py
@@ -152,67 +153,113 @@ def append_history(history_json, entry):
     return json.dumps(h[-HISTORY_LIMIT:])
 
 
-def _chunks(n, row_bytes):
-    """HDF5 chunk shape of about 1 MiB for a record dataset of ``n`` rows."""
-    rows = max(1, min(CHUNK_RECORDS, (1 << 20) // max(1, row_bytes), n))
-    return (rows,)
+class ProjectWriter:
+    """Write a new project file record chunk by record chunk, atomically.
 
+    The file is built as ``PATH.tmp`` and renamed over ``path`` by :meth:`finish`; if anything
+    fails first (or the process is killed), ``path`` is untouched and :meth:`abort` (or the
+    context manager) removes the temporary file. Records are appended in chunks, so nothing
+    has to be held whole::
 
-def _create_records(group, name, data, dtype):
-    data = np.asarray(data, dtype=dtype)
-    kw = {}
-    if len(data):
-        kw = dict(chunks=_chunks(len(data), dtype.itemsize))
-    else:
-        kw = dict(chunks=(1,))
-    return group.create_dataset(name, data=data, maxshape=(None,), **kw)
+        with ProjectWriter(path, attrs) as w:
+            w.append("stations", chunk)
+            ...
+            w.finish()
+    """
+
+    def __init__(self, path, attrs=None, truth=False, tmp_suffix=".tmp"):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.is_dir():
+            raise IsADirectoryError(21, "Is a directory", str(self.path))
+        self.tmp = self.path.with_name(self.path.name + tmp_suffix)
+        self._f = h5py.File(self.tmp, "w")
+        f = self._f
+        f.attrs["format"] = FORMAT_NAME
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["sapgo_version"] = __version__
+        f.attrs["created"] = _now()
+        f.attrs["units"] = json.dumps(
+            {"object": "m", "image": "mm", "angles": "rad", "weights": "1/unit^2"}
+        )
+        f.attrs["frame"] = "local space rectangular"
+        f.attrs["crs"] = ""
+        f.attrs["ordered"] = False
+        f.attrs["ordering"] = ""
+        f.attrs["band_width"] = 0
+        f.attrs["history"] = json.dumps([])
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = v
+        f.attrs["uuid"] = uuid.uuid4().hex
+        names = dict(RECORD_DTYPES)
+        if truth:
+            f.create_group("truth")
+            names.update(TRUTH_DTYPES)
+        for name, dtype in names.items():
+            rows = max(1, min(CHUNK_RECORDS, (1 << 20) // dtype.itemsize))
+            f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows,))
+
+    @property
+    def file(self):
+        return self._f
+
+    def size(self, name):
+        return int(self._f[name].shape[0])
+
+    def append(self, name, records):
+        """Append records to dataset ``name``; returns the record number of the first."""
+        ds = self._f[name]
+        records = np.asarray(records, dtype=ds.dtype)
+        n = ds.shape[0]
+        if len(records):
+            ds.resize((n + len(records),))
+            ds[n:] = records
+        return n
+
+    def set_attrs(self, **attrs):
+        for k, v in attrs.items():
+            self._f.attrs[k] = v
+
+    def finish(self):
+        """Close the file and move it into place."""
+        self._f.close()
+        self._f = None
+        os.replace(self.tmp, self.path)
+        return self.path
+
+    def abort(self):
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+        self.tmp.unlink(missing_ok=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.abort()
 
 
 def write_project(path, cameras, stations, points, observations, priors=None, truth=None,
                   attrs=None):
-    """Write a new project file atomically (a temporary file renamed into place).
+    """Write a new project file atomically from whole record arrays (small blocks, tests).
 
     ``cameras``, ``stations``, ``points``, ``observations`` and ``priors`` are structured
     arrays of the record dtypes (or anything convertible); ``truth`` is an optional dict with
     ``stations`` and ``points`` structured arrays in record order. Points must already hold
-    ``obs_start``/``n_obs`` consistent with ``observations``.
+    ``obs_start``/``n_obs`` consistent with ``observations``. Large blocks are written with
+    :class:`ProjectWriter`.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = FORMAT_NAME
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["sapgo_version"] = __version__
-            f.attrs["created"] = _now()
-            f.attrs["units"] = json.dumps(
-                {"object": "m", "image": "mm", "angles": "rad", "weights": "1/unit^2"}
-            )
-            f.attrs["frame"] = "local space rectangular"
-            f.attrs["crs"] = ""
-            f.attrs["ordered"] = False
-            f.attrs["ordering"] = ""
-            f.attrs["band_width"] = 0
-            f.attrs["history"] = json.dumps([])
-            for k, v in (attrs or {}).items():
-                f.attrs[k] = v
-            _create_records(f, "cameras", cameras, CAMERA_DTYPE)
-            _create_records(f, "stations", stations, STATION_DTYPE)
-            _create_records(f, "station_priors",
-                            priors if priors is not None else np.zeros(0, PRIOR_DTYPE),
-                            PRIOR_DTYPE)
-            _create_records(f, "points", points, POINT_DTYPE)
-            _create_records(f, "observations", observations, OBSERVATION_DTYPE)
-            if truth is not None:
-                g = f.create_group("truth")
-                _create_records(g, "stations", truth["stations"], TRUTH_STATION_DTYPE)
-                _create_records(g, "points", truth["points"], TRUTH_POINT_DTYPE)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    with ProjectWriter(path, attrs, truth=truth is not None) as w:
+        w.append("cameras", cameras)
+        w.append("stations", stations)
+        w.append("station_priors", priors if priors is not None else np.zeros(0, PRIOR_DTYPE))
+        w.append("points", points)
+        w.append("observations", observations)
+        if truth is not None:
+            w.append("truth/stations", truth["stations"])
+            w.append("truth/points", truth["points"])
+        return w.finish()
 
 
 def _dtype_matches(actual, expected):
