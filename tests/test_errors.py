@@ -73,7 +73,7 @@ def test_block_without_control(small_block, capsys):
     code, _, err = run_cli(capsys, "adjust", small_block)
     assert_one_line_error(code, err, "datum defect", "control points")
     assert digest(small_block) == before
-    assert not small_block.with_name("small.scratch.h5").exists()
+    assert not small_block.with_name("small.h5.work").exists()
 
 
 def test_collinear_control_is_a_datum_defect_found_by_the_pivot(small_block):

@@ -5,7 +5,7 @@ import pytest
 
 import naive
 from conftest import read_records, rewrite
-from sapgo.adjust import Options, _load_block, build, create_scratch
+from sapgo.adjust import Options, Work, _load_block, build
 from sapgo.bandsolve import band_to_dense
 from sapgo.ordering import order_project
 from sapgo.project import (
@@ -21,9 +21,13 @@ from sapgo.project import (
 def streamed(path, tmp_path, **opts):
     with Project(path) as p:
         blk = _load_block(p)
-        with create_scratch(tmp_path / "scratch.h5", p, blk.band_width) as s:
-            build(p, s, blk, Options(progress=False, **opts))
-            return band_to_dense(s["band"][...]), s["rhs"][...].ravel(), blk.band_width
+        w = Work(tmp_path / "work", p, blk.band_width, create=True)
+        try:
+            w.initialise(p, 1000)
+            build(p, w, blk, Options(progress=False, **opts))
+            return band_to_dense(w.band[:]), w.rhs[:].ravel(), blk.band_width
+        finally:
+            w.close()
 
 
 def dense(path):

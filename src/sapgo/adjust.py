@@ -5,11 +5,19 @@ the adjusted values to ``/solution``; it returns a :class:`Summary` (Ceres-style
 per-iteration log, statistics, time per phase; ``brief_report()`` / ``full_report()``).
 
 Every pass streams records in logical order. In core: per-station vectors (orientation,
-corrections, camera, status: about 150 bytes a station), the band-row window of
-``b + chunk_rows`` stations and one chunk of points with their observations. Band rows,
-right-hand side, current point coordinates and residuals live in a scratch file beside the
-project (``NAME.scratch.h5``), removed after the run. The project's input datasets are never
-written; results are written to ``/solution`` only when the iterations are over.
+corrections, camera, status: a few hundred bytes a station), the band-row window of
+``b + chunk_rows`` stations and one chunk of points with their observations.
+
+Crash safety. The project file is never opened for writing while the run is going on. Band
+rows, right-hand side, point coordinates and residuals live in direct-access files
+(:class:`sapgo.rawfile.RawArray`) in a work directory beside the project, ``NAME.h5.work/``.
+Point coordinates and residuals are double-buffered: iteration ``k`` reads buffer
+``(k - 1) % 2`` and writes buffer ``k % 2``, and only when it is complete is the checkpoint
+(the stations' orientation and ``checkpoint.json``) replaced atomically. A process killed at
+any moment therefore leaves the last completed iteration on disk, and ``adjust(...,
+Options(resume=True))`` (``sapgo adjust --resume``) continues from it. The results are written
+into a copy of the project that replaces it by an atomic rename; the work directory is removed
+after that.
 """
 
 from __future__ import annotations
@@ -17,11 +25,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import shutil
+import signal
 import sys
 import time
+import uuid
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from .bandsolve import PIVOT_TOLERANCE, PivotError, solve_out_of_core
@@ -36,6 +47,7 @@ from .normals import (
     update_points,
 )
 from .ordering import order_project
+from .rawfile import RawArray
 from .project import (
     CHUNK_RECORDS,
     CONTROL_MASK,
@@ -71,8 +83,12 @@ class Options:
     chunk_rows: int = 256
     #: A Cholesky pivot at or below this fraction of its original diagonal counts as zero.
     pivot_tolerance: float = PIVOT_TOLERANCE
-    #: Keep the scratch file (band and factor rows) after the run.
+    #: Keep the work directory (band and factor rows, buffers) after the run.
     keep_scratch: bool = False
+    #: Continue an interrupted run from its last completed iteration (if there is one).
+    resume: bool = False
+    #: Memory budget of the external sorts when the project has to be ordered first.
+    memory: int | str | None = None
     #: Progress bars: True, False, or None for "when stderr is a terminal".
     progress: bool | None = None
 
@@ -103,9 +119,25 @@ def _wrap(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def scratch_path(path):
+def work_path(path):
+    """The work directory of a run on ``path``: ``NAME.h5.work`` beside the project."""
     path = Path(path)
-    return path.with_name(path.stem + ".scratch.h5")
+    return path.with_name(path.name + ".work")
+
+
+#: Fault injection for the crash-safety tests: ``SAPGO_FAULT=phase:iteration`` kills the
+#: process with SIGKILL when it reaches that point (phases: build, solve, update,
+#: checkpoint, commit-copy, commit-write, commit-replace; iteration ``*`` for any).
+FAULT_ENV = "SAPGO_FAULT"
+
+
+def _fault(phase, iteration=0):
+    spec = os.environ.get(FAULT_ENV)
+    if not spec:
+        return
+    want_phase, _, want_it = spec.partition(":")
+    if want_phase == phase and want_it in ("*", "", str(iteration)):
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 class _PriorCursor:
@@ -288,14 +320,19 @@ def _point_error(p, chunk, j, status, blk):
     )
 
 
-def build(p: Project, scratch, blk: _Block, opts: Options):
-    """Stream the points and write the reduced normal band rows to ``scratch``."""
+def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0):
+    """Stream the points and write the reduced normal band rows to ``work.band``.
+
+    ``xyz`` is the array of current point coordinates (rows in point order; default
+    ``work.xyz_current``).
+    """
     n = len(blk.station_ids)
     bw = blk.band_width
     cap = min(n, bw + opts.chunk_rows)
     band = np.zeros((cap, 6, 6 * bw))
     rhs = np.zeros((cap, 6))
-    band_ds, rhs_ds, xyz_ds = scratch["band"], scratch["rhs"], scratch["xyz"]
+    band_ds, rhs_ds = work.band, work.rhs
+    xyz_ds = work.xyz_current if xyz is None else xyz
     priors = _PriorCursor(p, opts.chunk_points)
     base = 0
     _init_rows(band, rhs, base, 0, cap, blk, priors)
@@ -330,18 +367,23 @@ def build(p: Project, scratch, blk: _Block, opts: Options):
                 if j < len(c.xyz):
                     advance(int(c.smin[j]))
             bar.update(b - a)
+            _fault("build", iteration)
     while base < n:
         advance(min(n, base + cap))
 
 
-def update(p: Project, scratch, blk: _Block, delta, opts: Options):
-    """Stream the points: back-solve their corrections, new coordinates and residuals."""
+def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0):
+    """Stream the points: back-solve their corrections, new coordinates and residuals.
+
+    Reads the current coordinates from ``work.xyz_current`` and writes the new ones and the
+    residuals to the other buffer (``work.xyz_next``, ``work.res_next``).
+    """
     eo_new = blk.eo + delta
     stats = np.zeros(9)
-    xyz_ds, res_ds = scratch["xyz"], scratch["residuals"]
+    xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
     with _progress(opts.progress, p.n_points, "update") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
-            c = PointChunk(p, a, b, xyz_ds[a:b], blk.default_sigma)
+            c = PointChunk(p, a, b, xyz_in[a:b], blk.default_sigma)
             xyz_out = np.empty_like(c.xyz)
             res_out = np.zeros((c.o1 - c.o0, 2))
             update_points(
@@ -352,9 +394,10 @@ def update(p: Project, scratch, blk: _Block, delta, opts: Options):
             )
             if stats[7]:
                 raise _point_error(p, c, int(stats[7]) - 1, int(stats[8]), blk)
-            xyz_ds[a:b] = xyz_out
+            xyz_out_ds[a:b] = xyz_out
             res_ds[c.o0:c.o1] = res_out
             bar.update(b - a)
+            _fault("update", iteration)
     vpv_prior = 0.0
     for a, b in p.chunks("station_priors", opts.chunk_points):
         pr = p.read("station_priors", a, b)
@@ -403,46 +446,120 @@ def _pivot_error(exc: PivotError, blk: _Block, p: Project):
     )
 
 
-def create_scratch(spath, p: Project, band_width):
-    """The scratch file: band rows, right-hand side, current point coordinates, residuals."""
-    n, m, nobs = p.n_stations, p.n_points, p.n_observations
-    bw = band_width
-    rows = max(1, min(n, (1 << 20) // (36 * bw * 8)))
-    scratch = h5py.File(spath, "w")
-    scratch.create_dataset("band", (n, 6, 6 * bw), "<f8", chunks=(rows, 6, 6 * bw))
-    scratch.create_dataset("rhs", (n, 6), "<f8", chunks=(max(1, min(n, 65536)), 6))
-    xyz = scratch.create_dataset("xyz", (m, 3), "<f8", chunks=(max(1, min(m, 65536)), 3))
-    scratch.create_dataset("residuals", (nobs, 2), "<f8", chunks=(max(1, min(nobs, 65536)), 2))
-    for a, b in p.chunks("points"):
-        xyz[a:b] = p.read_field("points", "xyz", a, b)
-    return scratch
+class Work:
+    """The work directory of a run: scratch record files and the checkpoint.
+
+    Files: ``band.bin`` (n x 6 x 6b band rows, then factor rows), ``rhs.bin`` (n x 6),
+    ``xyz.0.bin`` / ``xyz.1.bin`` (point coordinates, double-buffered), ``residuals.0.bin`` /
+    ``residuals.1.bin`` (vx, vy of every observation), ``eo.K.npy`` (the stations'
+    orientation after iteration K) and ``checkpoint.json`` (the last completed iteration K,
+    its log, timings and the identity of the project). State K uses buffer ``K % 2``.
+    """
+
+    def __init__(self, path, p: Project, band_width, create):
+        self.dir = Path(path)
+        self.n_st, self.n_pt, self.n_obs = p.n_stations, p.n_points, p.n_observations
+        self.band_width = band_width
+        mode = "w" if create else "r+"
+        if create:
+            if self.dir.exists():
+                shutil.rmtree(self.dir)
+            self.dir.mkdir(parents=True)
+        bw = band_width
+        self.band = RawArray(self.dir / "band.bin", (self.n_st, 6, 6 * bw), mode=mode)
+        self.rhs = RawArray(self.dir / "rhs.bin", (self.n_st, 6), mode=mode)
+        self.xyz = [RawArray(self.dir / f"xyz.{i}.bin", (self.n_pt, 3), mode=mode)
+                    for i in (0, 1)]
+        self.res = [RawArray(self.dir / f"residuals.{i}.bin", (self.n_obs, 2), mode=mode)
+                    for i in (0, 1)]
+        self.state = 0  # the completed iteration whose buffers are current
+
+    @property
+    def xyz_current(self):
+        return self.xyz[self.state % 2]
+
+    @property
+    def xyz_next(self):
+        return self.xyz[(self.state + 1) % 2]
+
+    @property
+    def res_current(self):
+        return self.res[self.state % 2]
+
+    @property
+    def res_next(self):
+        return self.res[(self.state + 1) % 2]
+
+    def initialise(self, p: Project, chunk):
+        for a, b in p.chunks("points", chunk):
+            self.xyz[0][a:b] = p.read_field("points", "xyz", a, b)
+
+    def save(self, iteration, eo, record):
+        """Make iteration ``iteration`` the checkpoint (its buffers must be complete)."""
+        eo_file = self.dir / f"eo.{iteration}.npy"
+        tmp = self.dir / f"eo.{iteration}.npy.tmp"
+        with open(tmp, "wb") as f:
+            np.save(f, eo)
+        os.replace(tmp, eo_file)
+        _fault("checkpoint", iteration)
+        record = dict(record, iteration=iteration, eo_file=eo_file.name)
+        tmp = self.dir / "checkpoint.json.tmp"
+        tmp.write_text(json.dumps(record))
+        os.replace(tmp, self.dir / "checkpoint.json")
+        self.state = iteration
+        for old in self.dir.glob("eo.*.npy"):
+            if old.name != eo_file.name:
+                old.unlink(missing_ok=True)
+
+    @staticmethod
+    def load_checkpoint(path):
+        """The checkpoint record of an interrupted run in ``path``, or None."""
+        f = Path(path) / "checkpoint.json"
+        try:
+            record = json.loads(f.read_text())
+            eo = np.load(Path(path) / record["eo_file"])
+        except (OSError, ValueError, KeyError):
+            return None
+        record["eo"] = eo
+        return record
+
+    def close(self):
+        for a in [self.band, self.rhs, *self.xyz, *self.res]:
+            a.close()
 
 
-def _iterate(p: Project, scratch, blk: _Block, opts: Options, timings, log):
-    """Gauss-Newton iterations; appends to ``log`` and ``timings``; returns converged."""
+def _identity(p: Project, band_width):
+    return {"project_uuid": p.attr("uuid", ""), "stations": p.n_stations,
+            "points": p.n_points, "observations": p.n_observations, "band_width": band_width}
+
+
+def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, run):
+    """Gauss-Newton iterations from the work's state; appends to ``log``; returns converged."""
     n = len(blk.station_ids)
     bw = blk.band_width
-    for it in range(1, opts.max_iterations + 1):
+    for it in range(work.state + 1, opts.max_iterations + 1):
         t0 = time.perf_counter()
-        build(p, scratch, blk, opts)
+        build(p, work, blk, opts, iteration=it)
         t1 = time.perf_counter()
         with _progress(opts.progress, n, "solve") as bar:
             try:
                 delta = solve_out_of_core(
-                    scratch["band"], scratch["rhs"], bw, opts.chunk_rows,
-                    opts.pivot_tolerance, progress=bar.update,
+                    work.band, work.rhs, bw, opts.chunk_rows, opts.pivot_tolerance,
+                    progress=bar.update,
                 )
             except PivotError as exc:
                 raise _pivot_error(exc, blk, p) from None
+        _fault("solve", it)
         delta[~blk.station_active] = 0.0
         t2 = time.perf_counter()
-        st = update(p, scratch, blk, delta, opts)
+        st = update(p, work, blk, delta, opts, iteration=it)
         t3 = time.perf_counter()
         timings["build"] += t1 - t0
         timings["solve"] += t2 - t1
         timings["update"] += t3 - t2
         d_ang = float(np.abs(delta[:, :3]).max()) if n else 0.0
         d_pos = float(np.abs(delta[:, 3:]).max()) if n else 0.0
+        del delta
         sigma0 = math.sqrt(max(st["vpv"], 0.0) / blk.redundancy)
         prev = log[-1]["sigma0"] if log else None
         log.append({
@@ -458,12 +575,15 @@ def _iterate(p: Project, scratch, blk: _Block, opts: Options, timings, log):
             "solve_s": t2 - t1,
             "update_s": t3 - t2,
         })
-        if (d_pos < opts.tol_position and st["max_point_corr"] < opts.tol_position
-                and d_ang < opts.tol_angle
-                and (prev is None or abs(sigma0 - prev) <= opts.tol_sigma0 * prev)):
-            return True
         if not np.isfinite(sigma0):
             raise SapgoError("the adjustment diverged (sigma0 is not finite)")
+        converged = bool(
+            d_pos < opts.tol_position and st["max_point_corr"] < opts.tol_position
+            and d_ang < opts.tol_angle
+            and (prev is None or abs(sigma0 - prev) <= opts.tol_sigma0 * prev))
+        work.save(it, blk.eo, dict(run, log=log, timings=timings, converged=converged))
+        if converged:
+            return True
     return False
 
 
@@ -474,19 +594,22 @@ def adjust(path, options: Options | None = None) -> Summary:
     opts = (options or Options()).check()
     path = Path(path)
     t_start = time.perf_counter()
-    timings = {"order": 0.0, "build": 0.0, "solve": 0.0, "update": 0.0}
+    timings = {"order": 0.0, "build": 0.0, "solve": 0.0, "update": 0.0, "commit": 0.0}
+    wpath = work_path(path)
     with Project(path, "r") as p:
         check_values(p)
         check_datum(p)
         needs_order = not p.ordered
     order_info = None
+    checkpoint = Work.load_checkpoint(wpath) if opts.resume else None
     if needs_order:
+        checkpoint = None  # an unordered project has no run to resume
         t0 = time.perf_counter()
-        order_info = order_project(path, opts.ordering)
+        order_info = order_project(path, opts.ordering, memory=opts.memory)
         timings["order"] = time.perf_counter() - t0
 
     log = []
-    spath = scratch_path(path)
+    resumed_from = None
     with Project(path, "r") as p:
         blk = _load_block(p)
         if blk.n_stations == 0:
@@ -495,90 +618,148 @@ def adjust(path, options: Options | None = None) -> Summary:
         if blk.redundancy <= 0:
             raise SapgoError(f"{path}: the block has no redundancy ({blk.redundancy}): more "
                              f"unknowns than observations")
+        ident = _identity(p, blk.band_width)
+        if checkpoint is not None and checkpoint.get("identity") != ident:
+            checkpoint = None  # the project changed since: start again
+        if not opts.resume and (wpath / "checkpoint.json").exists():
+            sys.stderr.write(f"sapgo: warning: an interrupted run of {path} was found and is "
+                             f"discarded (use --resume to continue it)\n")
+        if opts.resume and checkpoint is None:
+            sys.stderr.write(f"sapgo: warning: no interrupted run of {path} to resume; "
+                             f"starting from the beginning\n")
+        converged = False
+        work = Work(wpath, p, blk.band_width, create=checkpoint is None)
         try:
-            with create_scratch(spath, p, blk.band_width) as scratch:
-                converged = _iterate(p, scratch, blk, opts, timings, log)
-                summary = _commit(path, p, scratch, blk, log, converged, opts, order_info)
-        finally:
+            if checkpoint is None:
+                run = {"run": uuid.uuid4().hex, "identity": ident}
+                work.initialise(p, opts.chunk_points)
+                work.save(0, blk.eo, dict(run, log=[], timings=timings, converged=False))
+            else:
+                run = {"run": checkpoint["run"], "identity": ident}
+                blk.eo = np.ascontiguousarray(checkpoint["eo"], dtype=np.float64)
+                log = checkpoint["log"]
+                for k, v in checkpoint["timings"].items():
+                    timings[k] = v + (timings[k] if k == "order" else 0.0)
+                work.state = int(checkpoint["iteration"])
+                converged = bool(checkpoint["converged"])
+                resumed_from = work.state
+            if not converged:
+                converged = _iterate(p, work, blk, opts, timings, log, run)
+            if not log:
+                raise SapgoError(f"{path}: no iteration was run (max_iterations "
+                                 f"{opts.max_iterations} and a checkpoint at iteration "
+                                 f"{work.state})")
+            summary = _commit(path, p, work, blk, log, converged, opts, order_info, run,
+                              timings, t_start, resumed_from)
+        except SapgoError:
+            # the data cannot be adjusted: nothing worth resuming
+            work.close()
             if not opts.keep_scratch:
-                spath.unlink(missing_ok=True)
+                shutil.rmtree(wpath, ignore_errors=True)
+            raise
+        finally:
+            work.close()
+    if not opts.keep_scratch:
+        shutil.rmtree(wpath, ignore_errors=True)
     timings["total"] = time.perf_counter() - t_start
-    summary.timings_s = timings
-    its = max(1, len(log))
-    summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}
-    with Project(path, "r+") as q:
-        g = q.file["solution"]
-        if "report" in g:
-            del g["report"]
-        g.create_dataset("report", data=json.dumps(summary.to_dict()))
     return summary
 
 
-def _commit(path, p_read: Project, scratch, blk: _Block, log, converged, opts, order_info):
-    """Write the adjusted values to /solution and compute the statistics of the result."""
+def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts, order_info,
+            run, timings, t_start, resumed_from):
+    """Write the adjusted values and the report into a copy of the project, then replace it.
+
+    The project is never opened for writing: the copy gets ``/solution`` and the history and
+    is renamed over the project when complete, so a kill at any moment leaves either the old
+    or the new project, both whole.
+    """
+    t_commit = time.perf_counter()
     last = log[-1]
-    xyz_ds, res_ds = scratch["xyz"], scratch["residuals"]
+    xyz_ds, res_ds = work.xyz_current, work.res_current
     checks = check_point_statistics()
     truth = truth_statistics() if p_read.has_truth else None
-    p_read.close()
-    with Project(path, "r+") as q:
-        g = q.new_solution()
-        g["station_corr"][...] = blk.eo - blk.eo_approx
-        excluded_points, n_excluded_points = [], 0
-        for a, b in q.chunks("points", opts.chunk_points):
-            pts = q.read("points", a, b)
-            adj = xyz_ds[a:b]
-            g["point_corr"][a:b] = adj - pts["xyz"]
-            act = pts["status"] == STATUS_ACTIVE
-            ids = pts["id"][~act]
-            n_excluded_points += len(ids)
-            excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
-            checks.add(pts[act], adj[act])
-            if truth is not None:
-                truth.add_points(q.read_field("truth/points", "xyz", a, b)[act], adj[act])
-        for a, b in q.chunks("observations", opts.chunk_points):
-            g["residuals"][a:b] = res_ds[a:b]
+    excluded_points, n_excluded_points = [], 0
+    for a, b in p_read.chunks("points", opts.chunk_points):
+        pts = p_read.read("points", a, b)
+        adj = xyz_ds[a:b]
+        act = pts["status"] == STATUS_ACTIVE
+        ids = pts["id"][~act]
+        n_excluded_points += len(ids)
+        excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
+        checks.add(pts[act], adj[act])
         if truth is not None:
-            truth.add_stations(q.read_field("truth/stations", "eo")[blk.station_active],
-                               blk.eo[blk.station_active])
-        g.attrs["state"] = "adjusted"
-        g.attrs["iterations"] = len(log)
-        g.attrs["converged"] = converged
-        g.attrs["sigma0"] = last["sigma0"]
-        q.commit_solution()
-        q.add_history({"command": "adjust", "iterations": len(log), "converged": converged,
-                       "sigma0": last["sigma0"]})
-        excluded_stations = blk.station_ids[~blk.station_active]
-        summary = Summary(
-            path=str(path),
-            converged=converged,
-            termination=(
-                f"converged after {len(log)} iterations: corrections below "
-                f"{opts.tol_position:g} m and {opts.tol_angle / ARCSEC:.2g}\""
-                if converged else
-                f"not converged after {len(log)} iterations (max_iterations)"
-            ),
-            iterations=len(log),
-            iteration_log=log,
-            sigma0=last["sigma0"],
-            redundancy=int(blk.redundancy),
-            image_rms_um=last["image_rms_um"],
-            image_rms_x_um=last["image_rms_x_um"],
-            image_rms_y_um=last["image_rms_y_um"],
-            band_width=blk.band_width,
-            ordering=q.attr("ordering"),
-            band_width_before=order_info.band_width_before if order_info else None,
-            n_stations=blk.n_stations,
-            n_points=blk.n_points,
-            n_observations=blk.n_rays,
-            n_cameras=q.n_cameras,
-            n_control=blk.n_control,
-            excluded_stations=[int(i) for i in excluded_stations[:LISTED_IDS]],
-            excluded_points=excluded_points,
-            n_excluded_stations=len(excluded_stations),
-            n_excluded_points=n_excluded_points,
-            check_points=checks.result(),
-            control_points=checks.control_result(),
-            truth=truth.result() if truth is not None else None,
-        )
+            truth.add_points(p_read.read_field("truth/points", "xyz", a, b)[act], adj[act])
+    if truth is not None:
+        for a, b in p_read.chunks("truth/stations", opts.chunk_points):
+            act = blk.station_active[a:b]
+            truth.add_stations(p_read.read_field("truth/stations", "eo", a, b)[act],
+                               blk.eo[a:b][act])
+    excluded_stations = blk.station_ids[~blk.station_active]
+    summary = Summary(
+        path=str(path),
+        converged=converged,
+        termination=(
+            f"converged after {len(log)} iterations: corrections below "
+            f"{opts.tol_position:g} m and {opts.tol_angle / ARCSEC:.2g}\""
+            if converged else
+            f"not converged after {len(log)} iterations (max_iterations)"
+        ),
+        iterations=len(log),
+        iteration_log=log,
+        sigma0=last["sigma0"],
+        redundancy=int(blk.redundancy),
+        image_rms_um=last["image_rms_um"],
+        image_rms_x_um=last["image_rms_x_um"],
+        image_rms_y_um=last["image_rms_y_um"],
+        band_width=blk.band_width,
+        ordering=p_read.attr("ordering"),
+        band_width_before=order_info.band_width_before if order_info else None,
+        n_stations=blk.n_stations,
+        n_points=blk.n_points,
+        n_observations=blk.n_rays,
+        n_cameras=p_read.n_cameras,
+        n_control=blk.n_control,
+        excluded_stations=[int(i) for i in excluded_stations[:LISTED_IDS]],
+        excluded_points=excluded_points,
+        n_excluded_stations=len(excluded_stations),
+        n_excluded_points=n_excluded_points,
+        check_points=checks.result(),
+        control_points=checks.control_result(),
+        truth=truth.result() if truth is not None else None,
+        timings_s=timings,
+        resumed_from_iteration=resumed_from,
+    )
+    its = max(1, len(log))
+    summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}
+    p_read.close()
+
+    tmp = path.with_name(path.name + ".commit.tmp")
+    try:
+        shutil.copyfile(path, tmp)
+        _fault("commit-copy")
+        with Project(tmp, "r+") as q:
+            g = q.new_solution()
+            for a in range(0, len(blk.eo), opts.chunk_points):
+                b = min(len(blk.eo), a + opts.chunk_points)
+                g["station_corr"][a:b] = blk.eo[a:b] - blk.eo_approx[a:b]
+            for a, b in q.chunks("points", opts.chunk_points):
+                g["point_corr"][a:b] = xyz_ds[a:b] - q.read_field("points", "xyz", a, b)
+            for a, b in q.chunks("observations", opts.chunk_points):
+                g["residuals"][a:b] = res_ds[a:b]
+            g.attrs["state"] = "adjusted"
+            g.attrs["iterations"] = len(log)
+            g.attrs["converged"] = converged
+            g.attrs["sigma0"] = last["sigma0"]
+            g.attrs["run"] = run["run"]
+            timings["commit"] = time.perf_counter() - t_commit
+            timings["total"] = time.perf_counter() - t_start
+            g.create_dataset("report", data=json.dumps(summary.to_dict()))
+            _fault("commit-write")
+            q.commit_solution()
+            q.add_history({"command": "adjust", "iterations": len(log),
+                           "converged": converged, "sigma0": last["sigma0"]})
+        _fault("commit-replace")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return summary

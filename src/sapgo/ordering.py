@@ -146,8 +146,10 @@ def _flight_axes(xy, strip):
     """Unit vectors along and across the flight lines, from the strips if they are known."""
     dirs = []
     if (strip >= 0).all():
-        for s in np.unique(strip):
-            p = xy[strip == s]
+        order = np.argsort(strip, kind="stable")
+        cuts = np.flatnonzero(np.diff(strip[order])) + 1
+        for group in np.split(order, cuts):
+            p = xy[group]
             if len(p) >= 2:
                 c = p - p.mean(axis=0)
                 _, _, vt = np.linalg.svd(c, full_matrices=False)
@@ -166,6 +168,28 @@ def _flight_axes(xy, strip):
     return along, np.array([-along[1], along[0]])
 
 
+def _columns(u, labels, base):
+    """Photo column numbers: counted photo by photo along each strip, so they do not drift.
+
+    A global ``u / base`` drifts by a column every few thousand photos when ``base`` is
+    estimated to a part in 10^4; counting the gaps between neighbours (each rounded to a
+    whole number of bases) keeps neighbouring strips' columns aligned over any length.
+    """
+    column = np.zeros(len(u), np.int64)
+    if base <= 0 or len(u) == 0:
+        return column
+    umin = u.min()
+    order = np.lexsort((u, labels))
+    lab = labels[order]
+    us = u[order]
+    cuts = np.flatnonzero(np.diff(lab)) + 1
+    for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(us)]])):
+        steps = np.maximum(1, np.rint(np.diff(us[a:b]) / base)).astype(np.int64)
+        first = int(np.rint((us[a] - umin) / base))
+        column[order[a:b]] = first + np.concatenate([[0], np.cumsum(steps)])
+    return column
+
+
 def candidate_orders(xy, strip, active, edges):
     """Candidate logical orders of the active stations: ``{name: perm}``.
 
@@ -179,27 +203,26 @@ def candidate_orders(xy, strip, active, edges):
     along, across = _flight_axes(xy, st)
     u = xy @ along
     v = xy @ across
+    known = bool((st >= 0).all())
     # photo spacing along the strips: median gap between neighbours sorted along track
-    if (st >= 0).all():
-        gaps = []
-        for s in np.unique(st):
-            us = np.sort(u[st == s])
-            gaps.extend(np.diff(us))
-        gaps = np.asarray(gaps)
+    if known:
+        _, labels = np.unique(st, return_inverse=True)
+        order = np.lexsort((u, labels))
+        same = np.diff(labels[order]) == 0
+        gaps = np.diff(u[order])[same]
     else:
         gaps = np.diff(np.sort(u))
     gaps = gaps[gaps > 0]
     base = float(np.median(gaps)) if len(gaps) else 1.0
-    column = np.floor(u / base + 0.5) if base > 0 else u
-    if (st >= 0).all():
-        strip_key = np.zeros(len(st))
-        for s in np.unique(st):
-            strip_key[st == s] = v[st == s].mean()
+    if known:
+        strip_key = (np.bincount(labels, v) / np.bincount(labels))[labels]
     else:  # strips unknown: a new strip wherever the across-track gap exceeds half a base
         vs = np.argsort(v)
         breaks = np.concatenate([[0], np.cumsum(np.diff(v[vs]) > 0.5 * base)])
         strip_key = np.empty(len(v))
         strip_key[vs] = breaks
+        labels = strip_key.astype(np.int64)
+    column = _columns(u, labels, base)
     cands = {
         "across_strip": idx[np.lexsort((v, column))],
         "across_strip_by_position": idx[np.lexsort((v, u))],
@@ -350,19 +373,30 @@ def _station_activity(p, chunk):
         active = new
 
 
+def _unique(x):
+    """Sorted unique values (a sort and a mask: faster than np.unique's hash for int64)."""
+    x = np.sort(x)
+    if len(x) < 2:
+        return x
+    keep = np.empty(len(x), bool)
+    keep[0] = True
+    np.not_equal(x[1:], x[:-1], out=keep[1:])
+    return x[keep]
+
+
 def _stream_edges(p, chunk, station_active):
     """Unique station-graph edges over the active rays, accumulated chunk by chunk."""
     n_st = p.n_stations
     parts, n_parts, merged = [], 0, np.zeros(0, np.int64)
     for a, b in p.chunks("points", chunk):
         c = _Chunk(p, a, b, station_active, fields=("station", "status"))
-        k = np.unique(_point_pairs(c.starts, c.counts, c.station, c.obs_active, n_st))
+        k = _unique(_point_pairs(c.starts, c.counts, c.station, c.obs_active, n_st))
         parts.append(k)
         n_parts += len(k)
         if n_parts > max(len(merged), 1 << 20):
-            merged = np.unique(np.concatenate([merged] + parts))
+            merged = _unique(np.concatenate([merged] + parts))
             parts, n_parts = [], 0
-    keys = np.unique(np.concatenate([merged] + parts))
+    keys = _unique(np.concatenate([merged] + parts))
     return keys // n_st, keys % n_st
 
 

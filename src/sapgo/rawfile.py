@@ -130,7 +130,6 @@ class RawArray:
         self.close()
 
     def __del__(self):
-        try:
-            self.close()
-        except Exception:
-            pass
+        if getattr(self, "_fd", None) is not None:
+            os.close(self._fd)
+            self._fd = None

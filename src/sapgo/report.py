@@ -136,6 +136,8 @@ class Summary:
     truth: dict | None = None
     timings_s: dict = dataclasses.field(default_factory=dict)
     timings_per_iteration_s: dict = dataclasses.field(default_factory=dict)
+    #: The iteration an interrupted run was resumed from (None: not resumed).
+    resumed_from_iteration: int | None = None
 
     def to_dict(self):
         return dataclasses.asdict(self)
@@ -182,6 +184,9 @@ class Summary:
                 f"{r['build_s']:8.3f} {r['solve_s']:8.3f} {r['update_s']:8.3f}"
             )
         L.append("")
+        if self.resumed_from_iteration is not None:
+            L.append(f"  resumed after iteration {self.resumed_from_iteration} of an "
+                     f"interrupted run")
         L.append(f"  {self.termination}")
         L.append(f"  sigma0 = {self.sigma0:.4f}  (redundancy {self.redundancy})")
         L.append(f"  image residuals RMS: x {self.image_rms_x_um:.2f} um, "
@@ -209,7 +214,8 @@ class Summary:
         if t:
             L.append(
                 f"  time [s]: order {t['order']:.2f}, build {t['build']:.2f}, solve "
-                f"{t['solve']:.2f}, update {t['update']:.2f}, total {t['total']:.2f}"
+                f"{t['solve']:.2f}, update {t['update']:.2f}, commit {t.get('commit', 0):.2f}, "
+                f"total {t['total']:.2f}"
             )
             ti = self.timings_per_iteration_s
             L.append(f"  per iteration [s]: build {ti['build']:.3f}, solve {ti['solve']:.3f}, "

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 from pathlib import Path
 
 from ..errors import ParameterError
-from ..project import append_history, write_project
-from .sapgo_p import BlockSpec, make_block
+from ..project import ProjectWriter, append_history
+from .sapgo_p import BlockSpec, write_block
 
 #: SAPGO-P data sets 1-4 (seeds/002, Table 2).
 PRESETS = {
@@ -34,24 +35,32 @@ def block_spec(preset=None, **overrides):
     return BlockSpec(**params).check()
 
 
-def generate_block(path, preset=None, **overrides):
-    """Generate a block into a new project file at ``path``; returns a summary dict."""
+def generate_block(path, preset=None, progress=None, **overrides):
+    """Generate a block into a new project file at ``path``; returns a summary dict.
+
+    The records are streamed into the file a column block at a time (memory does not grow
+    with the block beyond per-photo vectors); the file appears at ``path`` only when complete.
+    ``progress``: True, False or None (a progress bar when stderr is a terminal).
+    """
+    from tqdm import tqdm
+
     spec = block_spec(preset, **overrides)
-    rec = make_block(spec)
     creator = {"command": "generate", "preset": preset, "spec": dataclasses.asdict(spec)}
-    write_project(
-        Path(path), rec["cameras"], rec["stations"], rec["points"], rec["observations"],
-        truth=rec["truth"],
-        attrs={"creator": json.dumps(creator), "history": append_history("[]", creator)},
-    )
-    kinds = rec["points"]["kind"]
+    enabled = sys.stderr.isatty() if progress is None else progress
+    with ProjectWriter(Path(path), {"creator": json.dumps(creator),
+                                    "history": append_history("[]", creator)},
+                       truth=True) as w, \
+            tqdm(total=spec.n_cols, desc="generate", unit="col", leave=False,
+                 disable=not enabled, dynamic_ncols=True) as bar:
+        counts = write_block(spec, w, progress=bar.update)
+        w.finish()
     return {
         "path": str(path),
         "preset": preset,
-        "photos": len(rec["stations"]),
+        "photos": counts["photos"],
         "strips": spec.strips,
-        "points": len(rec["points"]),
-        "control_points": int((kinds == 1).sum()),
-        "check_points": int((kinds == 4).sum()),
-        "observations": len(rec["observations"]),
+        "points": counts["points"],
+        "control_points": counts["control"],
+        "check_points": counts["points"] - counts["control"],
+        "observations": counts["observations"],
     }

@@ -169,136 +169,174 @@ def control_layout(n_rows, n_cols, n, spacing_row, spacing_col, rows_per_strip=2
     rr, cc = np.asarray(rr, int), np.asarray(cc, int)
     if len(rr) < n:  # lines too short for distinct points: take further points evenly
         taken = set(zip(rr.tolist(), cc.tolist()))
-        rest = [(r, c) for r in range(n_rows) for c in range(n_cols) if (r, c) not in taken]
-        pick = np.round(np.linspace(0, len(rest) - 1, n - len(rr))).astype(int)
-        extra = np.array([rest[i] for i in pick]).reshape(-1, 2)
+        extra = []
+        for k in np.round(np.linspace(0, n_rows * n_cols - 1, 2 * n + 1)).astype(np.int64):
+            r, c = divmod(int(k), n_cols)
+            while (r, c) in taken:  # the next free grid point
+                k = (k + 1) % (n_rows * n_cols)
+                r, c = divmod(int(k), n_cols)
+            taken.add((r, c))
+            extra.append((r, c))
+            if len(rr) + len(extra) == n:
+                break
+        extra = np.array(extra, int).reshape(-1, 2)
         rr = np.concatenate([rr, extra[:, 0]])
         cc = np.concatenate([cc, extra[:, 1]])
     return rr, cc
 
 
-def make_block(spec: BlockSpec):
-    """Generate the records of a SAPGO-P block. Returns a dict of record arrays and truth."""
-    spec.check()
-    rng = np.random.default_rng(spec.seed)
-    S, G, sub = spec.strips, spec.photos_per_strip, spec.sub
+#: Point columns generated per block: the random numbers of a column block depend only on the
+#: seed and the block number, so the output does not depend on memory or chunking.
+COLUMN_BLOCK = 512
+
+
+def _station_arrays(spec, z_mean):
+    """True and approximate orientation of every station (per-station vectors)."""
+    rng = np.random.default_rng([spec.seed, 1])
+    S, G = spec.strips, spec.photos_per_strip
+    n = S * G
     B, A, H = spec.base, spec.strip_spacing, spec.flying_height
+    st_strip, st_g = np.divmod(np.arange(n), G)
+    heading = np.where(st_strip % 2 == 0, 0.0, math.pi)
+    tilt = math.radians(spec.tilt)
+    true_eo = np.empty((n, 6))
+    true_eo[:, 0] = np.clip(rng.normal(0, tilt, n), -3 * tilt, 3 * tilt)
+    true_eo[:, 1] = np.clip(rng.normal(0, tilt, n), -3 * tilt, 3 * tilt)
+    true_eo[:, 2] = heading + rng.normal(0, math.radians(1.0), n)
+    true_eo[:, 3] = st_g * B + rng.normal(0, 0.01 * B, n)
+    true_eo[:, 4] = (st_strip + 0.5) * A + rng.normal(0, 0.01 * A, n)
+    true_eo[:, 5] = z_mean + H + rng.normal(0, 0.003 * H, n)
+    approx_eo = true_eo.copy()
+    approx_eo[:, :3] += rng.normal(0, spec.station_angle_perturbation * ARCSEC, (n, 3))
+    approx_eo[:, 3:] += rng.normal(0, spec.station_position_perturbation, (n, 3))
+    return st_strip, true_eo, approx_eo
+
+
+def write_block(spec: BlockSpec, writer, progress=None):
+    """Generate a SAPGO-P block into ``writer`` (a :class:`sapgo.project.ProjectWriter`).
+
+    Points are numbered column by column along the strips (``id = c * rows + r + 1``) and
+    written a block of :data:`COLUMN_BLOCK` columns at a time with their observations, so
+    memory holds the per-station vectors and one column block, whatever the block's size.
+    Returns the counts.
+    """
+    spec.check()
+    S, G, sub = spec.strips, spec.photos_per_strip, spec.sub
+    B, A = spec.base, spec.strip_spacing
     n_rows, n_cols = spec.n_rows, spec.n_cols
     row_step = A / (2 * sub)
     col_step = B / sub
-    terrain = Terrain(
-        (n_cols - 1) * col_step, (n_rows - 1) * row_step, relief=spec.terrain_relief,
-        seed=spec.seed,
-    )
+    terrain = Terrain((n_cols - 1) * col_step, (n_rows - 1) * row_step,
+                      relief=spec.terrain_relief, seed=spec.seed)
+    z_mean = terrain.base
+    sigma = max(spec.sigma_image, 1e-6)
 
-    # --- camera
     cameras = np.zeros(1, CAMERA_DTYPE)
-    cameras[0] = (1, spec.focal_length, 0.0, 0.0, spec.format, spec.format,
-                  max(spec.sigma_image, 1e-6), 0, 0, 0, 0, 0)
-
-    # --- points on the grid
-    r_idx, c_idx = np.divmod(np.arange(n_rows * n_cols), n_cols)
-    jit = spec.point_jitter
-    px = c_idx * col_step + rng.uniform(-jit, jit, len(c_idx)) * col_step
-    py = r_idx * row_step + rng.uniform(-jit, jit, len(r_idx)) * row_step
-    pz = terrain(px, py)
-    true_xyz = np.column_stack([px, py, pz])
-    n_pts = len(px)
-
-    # --- true and approximate stations
-    st_strip, st_g = np.divmod(np.arange(S * G), G)
-    z_mean = float(pz.mean())
-    heading = np.where(st_strip % 2 == 0, 0.0, math.pi)
-    tilt = math.radians(spec.tilt)
-    true_eo = np.column_stack([
-        np.clip(rng.normal(0, tilt, S * G), -3 * tilt, 3 * tilt),
-        np.clip(rng.normal(0, tilt, S * G), -3 * tilt, 3 * tilt),
-        heading + rng.normal(0, math.radians(1.0), S * G),
-        st_g * B + rng.normal(0, 0.01 * B, S * G),
-        (st_strip + 0.5) * A + rng.normal(0, 0.01 * A, S * G),
-        z_mean + H + rng.normal(0, 0.003 * H, S * G),
-    ])
-    approx_eo = true_eo.copy()
-    approx_eo[:, :3] += rng.normal(0, spec.station_angle_perturbation * ARCSEC, (S * G, 3))
-    approx_eo[:, 3:] += rng.normal(0, spec.station_position_perturbation, (S * G, 3))
-
-    # --- observations: the n x n pattern of every photo
-    k = np.arange(-sub, sub + 1)
-    dr, dc = np.meshgrid(np.arange(0, 2 * sub + 1), k, indexing="ij")
-    obs_station = np.repeat(np.arange(S * G), dr.size)
-    obs_row = (2 * sub * st_strip)[:, None] + dr.ravel()[None, :]
-    obs_col = (sub * st_g)[:, None] + dc.ravel()[None, :]
-    obs_row, obs_col = obs_row.ravel(), obs_col.ravel()
-    inside = (obs_col >= 0) & (obs_col < n_cols)
-    obs_station, obs_row, obs_col = obs_station[inside], obs_row[inside], obs_col[inside]
-    obs_point = obs_row * n_cols + obs_col
-    order = np.lexsort((obs_station, obs_point))
-    obs_station, obs_point = obs_station[order], obs_point[order]
-    n_obs = len(obs_point)
-
-    cam_of_station = np.zeros(S * G, np.int64)
-    f = np.array([spec.focal_length])
-    zero = np.zeros(1)
-    xy_true = np.empty((n_obs, 2))
-    project_observations(obs_station, obs_point, true_eo, true_xyz, cam_of_station, f, zero,
-                         zero, xy_true)
-    xy = xy_true + rng.normal(0, spec.sigma_image, (n_obs, 2))
-    # a pattern point displaced off the photo (tilt, relief) cannot be measured on it
-    inside = (np.abs(xy) < spec.format / 2 - 1.0).all(axis=1)
-    if not inside.all():
-        obs_station, obs_point, xy = obs_station[inside], obs_point[inside], xy[inside]
-        n_obs = len(obs_point)
-
-    # --- control and check points
-    rr, cc = control_layout(n_rows, n_cols, spec.control_points, row_step, col_step,
-                             2 * sub)
-    is_control = np.zeros(n_pts, bool)
-    is_control[rr * n_cols + cc] = True
-    control = true_xyz.copy()
-    control[is_control] += rng.normal(0, spec.control_perturbation, (is_control.sum(), 3))
-    csig = spec.control_sigma if spec.control_sigma is not None else spec.control_perturbation
-
-    # --- approximate point coordinates: intersection from the approximate stations
-    counts = np.bincount(obs_point, minlength=n_pts)
-    starts = np.zeros(n_pts, np.int64)
-    np.cumsum(counts[:-1], out=starts[1:])
-    approx_xyz = np.empty((n_pts, 3))
-    ok = np.zeros(n_pts, np.bool_)
-    intersect_points(starts, counts, obs_station, xy, approx_eo, cam_of_station, f, zero, zero,
-                     approx_xyz, ok)
-    approx_xyz[~ok] = true_xyz[~ok] + rng.normal(0, spec.station_position_perturbation,
-                                                 (int((~ok).sum()), 3))
-    approx_xyz[is_control] = control[is_control]
-
-    stations = np.zeros(S * G, STATION_DTYPE)
-    stations["id"] = np.arange(1, S * G + 1)
-    stations["camera"] = 0
+    cameras[0] = (1, spec.focal_length, 0.0, 0.0, spec.format, spec.format, sigma,
+                  0, 0, 0, 0, 0)
+    writer.append("cameras", cameras)
+    st_strip, true_eo, approx_eo = _station_arrays(spec, z_mean)
+    n_st = S * G
+    stations = np.zeros(n_st, STATION_DTYPE)
+    stations["id"] = np.arange(1, n_st + 1)
     stations["strip"] = st_strip + 1
     stations["eo"] = approx_eo
-
-    points = np.zeros(n_pts, POINT_DTYPE)
-    points["id"] = np.arange(1, n_pts + 1)
-    points["kind"] = np.where(is_control, KIND_CONTROL, KIND_CHECK)
-    points["xyz"] = approx_xyz
-    points["control"] = control
-    points["control_sigma"] = np.where(is_control[:, None], csig, 0.0)
-    points["obs_start"] = starts
-    points["n_obs"] = counts
-    points["station_min"] = -1
-    points["station_max"] = -1
-
-    observations = np.zeros(n_obs, OBSERVATION_DTYPE)
-    observations["point"] = obs_point
-    observations["station"] = obs_station
-    observations["x"] = xy[:, 0]
-    observations["y"] = xy[:, 1]
-    observations["sigma"] = max(spec.sigma_image, 1e-6)
-
-    truth_st = np.zeros(S * G, TRUTH_STATION_DTYPE)
+    writer.append("stations", stations)
+    truth_st = np.zeros(n_st, TRUTH_STATION_DTYPE)
     truth_st["id"] = stations["id"]
     truth_st["eo"] = true_eo
-    truth_pt = np.zeros(n_pts, TRUTH_POINT_DTYPE)
-    truth_pt["id"] = points["id"]
-    truth_pt["xyz"] = true_xyz
-    return dict(cameras=cameras, stations=stations, points=points, observations=observations,
-                truth={"stations": truth_st, "points": truth_pt})
+    writer.append("truth/stations", truth_st)
+    del stations, truth_st
+
+    rr, cc = control_layout(n_rows, n_cols, spec.control_points, row_step, col_step, 2 * sub)
+    control_index = np.sort(cc.astype(np.int64) * n_rows + rr)
+    csig = spec.control_sigma if spec.control_sigma is not None else spec.control_perturbation
+    cam_of_station = np.zeros(n_st, np.int64)
+    f = np.array([spec.focal_length])
+    zero = np.zeros(1)
+    # the pattern of a photo: rows 0 .. 2 sub of its strip, columns sub g - sub .. sub g + sub
+    k = np.arange(-sub, sub + 1)
+    dr, dc = np.meshgrid(np.arange(0, 2 * sub + 1), k, indexing="ij")
+    dr, dc = dr.ravel(), dc.ravel()
+
+    counts = {"points": 0, "observations": 0, "control": 0}
+    for blk, c0 in enumerate(range(0, n_cols, COLUMN_BLOCK)):
+        c1 = min(n_cols, c0 + COLUMN_BLOCK)
+        rng = np.random.default_rng([spec.seed, 2, blk])
+        # points of columns c0 .. c1-1, column by column
+        cols = np.repeat(np.arange(c0, c1), n_rows)
+        rows = np.tile(np.arange(n_rows), c1 - c0)
+        n_pts = len(cols)
+        first = c0 * n_rows
+        jit = spec.point_jitter
+        px = cols * col_step + rng.uniform(-jit, jit, n_pts) * col_step
+        py = rows * row_step + rng.uniform(-jit, jit, n_pts) * row_step
+        true_xyz = np.column_stack([px, py, terrain(px, py)])
+
+        # observations: photos whose pattern reaches these columns
+        g_lo = max(0, -(-(c0 - sub) // sub))
+        g_hi = min(G - 1, (c1 - 1 + sub) // sub)
+        g = np.arange(g_lo, g_hi + 1)
+        st = (np.arange(S)[:, None] * G + g[None, :]).ravel()
+        o_st = np.repeat(st, len(dr))
+        o_row = np.repeat(2 * sub * (st // G), len(dr)) + np.tile(dr, len(st))
+        o_col = np.repeat(sub * (st % G), len(dc)) + np.tile(dc, len(st))
+        keep = (o_col >= c0) & (o_col < c1)
+        o_st, o_pt = o_st[keep], (o_col[keep] - c0) * n_rows + o_row[keep]
+        order = np.lexsort((o_st, o_pt))
+        o_st, o_pt = o_st[order], o_pt[order]
+        xy = np.empty((len(o_pt), 2))
+        project_observations(o_st, o_pt, true_eo, true_xyz, cam_of_station, f, zero, zero, xy)
+        xy += rng.normal(0, spec.sigma_image, xy.shape)
+        # a pattern point displaced off the photo (tilt, relief) cannot be measured on it
+        inside = (np.abs(xy) < spec.format / 2 - 1.0).all(axis=1)
+        o_st, o_pt, xy = o_st[inside], o_pt[inside], xy[inside]
+
+        # control and check points
+        lo, hi = np.searchsorted(control_index, [first, first + n_pts])
+        is_control = np.zeros(n_pts, bool)
+        is_control[control_index[lo:hi] - first] = True
+        control = true_xyz + np.where(
+            is_control[:, None], rng.normal(0, spec.control_perturbation, (n_pts, 3)), 0.0)
+
+        # approximate coordinates: intersection from the approximate stations
+        n_obs = np.bincount(o_pt, minlength=n_pts)
+        starts = np.zeros(n_pts, np.int64)
+        np.cumsum(n_obs[:-1], out=starts[1:])
+        approx = np.empty((n_pts, 3))
+        ok = np.zeros(n_pts, np.bool_)
+        intersect_points(starts, n_obs, o_st, xy, approx_eo, cam_of_station, f, zero, zero,
+                         approx, ok)
+        fallback = rng.normal(0, spec.station_position_perturbation, (n_pts, 3))
+        approx = np.where(ok[:, None], approx, true_xyz + fallback)
+        approx[is_control] = control[is_control]
+
+        points = np.zeros(n_pts, POINT_DTYPE)
+        points["id"] = np.arange(first, first + n_pts) + 1
+        points["kind"] = np.where(is_control, KIND_CONTROL, KIND_CHECK)
+        points["xyz"] = approx
+        points["control"] = control
+        points["control_sigma"] = np.where(is_control[:, None], csig, 0.0)
+        points["obs_start"] = counts["observations"] + starts
+        points["n_obs"] = n_obs
+        points["station_min"] = -1
+        points["station_max"] = -1
+        writer.append("points", points)
+        truth_pt = np.zeros(n_pts, TRUTH_POINT_DTYPE)
+        truth_pt["id"] = points["id"]
+        truth_pt["xyz"] = true_xyz
+        writer.append("truth/points", truth_pt)
+        obs = np.zeros(len(o_pt), OBSERVATION_DTYPE)
+        obs["point"] = o_pt + first
+        obs["station"] = o_st
+        obs["x"] = xy[:, 0]
+        obs["y"] = xy[:, 1]
+        obs["sigma"] = sigma
+        writer.append("observations", obs)
+        counts["points"] += n_pts
+        counts["observations"] += len(obs)
+        counts["control"] += int(is_control.sum())
+        if progress is not None:
+            progress(c1 - c0)
+    counts["photos"] = n_st
+    return counts

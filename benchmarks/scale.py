@@ -1,0 +1,187 @@
+"""Out of core at scale: 10 000 to 1 000 000 photos on this machine, memory bounded.
+
+Run:  python benchmarks/scale.py [--sizes 10000,20000,100000,200000,1000000] [--dir DIR]
+      [--solution-sizes 10000,100000]
+
+Every block has 20 strips and the 9-point pattern (SAPGO-P geometry), 400 full control
+points, the rest check points. Each phase runs as its own process through the command line, as
+a user would run it: ``sapgo generate``, ``sapgo order --memory 256M`` and
+``sapgo adjust --max-iterations 1``. Per phase: wall time, and the peak resident set size of
+the whole process as the operating system measures it (``ru_maxrss`` from ``wait4``). Disk:
+the project file and the work directory at its fullest (``--keep-scratch``, then removed).
+For the sizes in ``--solution-sizes`` the block is also adjusted to convergence (time to
+solution). The memory growth per photo is the difference of the adjust processes' peak RSS
+between 20 000 and 200 000 photos and between 100 000 and 1 000 000 photos.
+
+Writes ``results/scale.json`` (``rows``: ``photos``, ``peak_rss_mb``, ``wall_s``,
+``band_width`` and the details) and prints the Markdown table for README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import sapgo
+
+STRIPS = 20
+CONTROL = 400
+
+
+def run(cmd):
+    """Run ``cmd``; return (wall seconds, peak RSS MiB of the process) or raise."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    out, err = proc.stdout.read().decode(), proc.stderr.read().decode()
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}): {err}")
+    return wall, usage.ru_maxrss / 1024.0, out
+
+
+def du(path):
+    """Bytes allocated on disk (sparse files count what they use)."""
+    path = Path(path)
+    if path.is_file():
+        return path.stat().st_blocks * 512
+    return sum(p.stat().st_blocks * 512 for p in path.rglob("*") if p.is_file())
+
+
+def one(photos, root, to_solution):
+    sapgo_cmd = [sys.executable, "-m", "sapgo.cli"]
+    g = photos // STRIPS
+    path = Path(root) / f"scale-{photos}.h5"
+    row = {"photos": photos, "strips": STRIPS, "photos_per_strip": g, "pattern": 9}
+    t_gen, rss_gen, out = run(sapgo_cmd + ["generate", "--strips", str(STRIPS),
+                                           "--photos-per-strip", str(g), "--control-points",
+                                           str(CONTROL), str(path)])
+    t_ord, rss_ord, out = run(sapgo_cmd + ["order", "--memory", "256M", str(path)])
+    row["project_bytes"] = du(path)
+    with sapgo.open_project(path) as p:
+        row.update(points=p.n_points, observations=p.n_observations,
+                   band_width=p.band_width)
+    keep = path.with_name(path.name + ".pristine")
+    if to_solution:
+        shutil.copy(path, keep)
+    report = Path(root) / f"scale-{photos}.json"
+    t_adj, rss_adj, _ = run(sapgo_cmd + ["adjust", str(path), "--max-iterations", "1",
+                                         "--no-progress", "--quiet", "--keep-scratch",
+                                         "--json", str(report)])
+    work = path.with_name(path.name + ".work")
+    row["work_bytes"] = du(work)
+    shutil.rmtree(work, ignore_errors=True)
+    rep = json.loads(report.read_text())
+    t = rep["timings_s"]
+    row["phases"] = {
+        "generate": {"wall_s": t_gen, "peak_rss_mb": rss_gen},
+        "order": {"wall_s": t_ord, "peak_rss_mb": rss_ord},
+        "adjust_1_iteration": {"wall_s": t_adj, "peak_rss_mb": rss_adj,
+                               "build_s": t["build"], "solve_s": t["solve"],
+                               "update_s": t["update"], "commit_s": t.get("commit", 0.0)},
+    }
+    row["peak_rss_mb"] = rss_adj
+    row["peak_rss_mb_any_phase"] = max(rss_gen, rss_ord, rss_adj)
+    row["wall_s"] = t_gen + t_ord + t_adj
+    row["sigma0_after_1_iteration"] = rep["sigma0"]
+    if to_solution:
+        shutil.move(keep, path)
+        t_sol, rss_sol, _ = run(sapgo_cmd + ["adjust", str(path), "--no-progress", "--quiet",
+                                             "--json", str(report)])
+        rep = json.loads(report.read_text())
+        c = rep["check_points"]
+        row["solution"] = {"wall_s": t_sol, "peak_rss_mb": rss_sol,
+                           "iterations": rep["iterations"], "converged": rep["converged"],
+                           "sigma0": rep["sigma0"], "check_sxy_m": c["sxy"],
+                           "check_sz_m": c["sz"],
+                           "seconds_per_iteration": rep["timings_per_iteration_s"]}
+    path.unlink()
+    report.unlink()
+    return row
+
+
+def growth(rows, a, b):
+    by = {r["photos"]: r for r in rows}
+    if a in by and b in by:
+        return (by[b]["peak_rss_mb"] - by[a]["peak_rss_mb"]) * 2**20 / (b - a)
+    return None
+
+
+def markdown(result):
+    out = ["| photos | points | observations | band width | generate s | order s | "
+           "adjust (1 it.) s | build s | solve s | update s | peak RSS generate MB | "
+           "peak RSS order MB | peak RSS adjust MB | project GB | work dir GB |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        ph = r["phases"]
+        a = ph["adjust_1_iteration"]
+        out.append(
+            f"| {r['photos']:,} | {r['points']:,} | {r['observations']:,} | {r['band_width']} | "
+            f"{ph['generate']['wall_s']:.1f} | {ph['order']['wall_s']:.1f} | {a['wall_s']:.1f} | "
+            f"{a['build_s']:.1f} | {a['solve_s']:.1f} | {a['update_s']:.1f} | "
+            f"{ph['generate']['peak_rss_mb']:.0f} | {ph['order']['peak_rss_mb']:.0f} | "
+            f"{a['peak_rss_mb']:.0f} | {r['project_bytes'] / 1e9:.2f} | "
+            f"{r['work_bytes'] / 1e9:.2f} |")
+    sol = [r for r in result["rows"] if "solution" in r]
+    if sol:
+        out += ["", "| photos | iterations | time to solution s | s per iteration | sigma0 | "
+                "check sXY m | check sZ m | peak RSS MB |", "|---|---|---|---|---|---|---|---|"]
+        for r in sol:
+            s = s_ = r["solution"]
+            per = sum(s_["seconds_per_iteration"].values())
+            out.append(f"| {r['photos']:,} | {s['iterations']} | {s['wall_s']:.1f} | {per:.2f} | "
+                       f"{s['sigma0']:.3f} | {s['check_sxy_m']:.3f} | {s['check_sz_m']:.3f} | "
+                       f"{s['peak_rss_mb']:.0f} |")
+    g = result["rss_growth_bytes_per_photo"]
+    out.append("")
+    out.append("Peak RSS growth of `sapgo adjust --max-iterations 1`: " + ", ".join(
+        f"{k.replace('_', ' ')}: {v:.0f} B/photo" for k, v in g.items() if v is not None))
+    return "\n".join(out)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="10000,20000,100000,200000,1000000")
+    ap.add_argument("--solution-sizes", default="10000,100000")
+    ap.add_argument("--dir", default=None, help="where the blocks are written (default: a "
+                    "temporary directory under data/generated)")
+    args = ap.parse_args()
+    sizes = [int(s) for s in args.sizes.split(",") if s]
+    full = {int(s) for s in args.solution_sizes.split(",") if s}
+    root = Path(args.dir or Path(__file__).parent.parent / "data" / "generated" / "scale")
+    root.mkdir(parents=True, exist_ok=True)
+    # warm the numba cache so that no phase times compilation
+    warm = root / "warm.h5"
+    sapgo.generate_block(warm, strips=2, photos_per_strip=5, control_points=6, progress=False)
+    sapgo.adjust(warm, sapgo.Options(progress=False))
+    warm.unlink()
+    rows = []
+    for n in sizes:
+        rows.append(one(n, root, n in full))
+        print(json.dumps(rows[-1]), file=sys.stderr)
+    result = {
+        "machine": {"python": sys.version.split()[0], "platform": platform.platform(),
+                    "cpus": os.cpu_count(),
+                    "memory_gb": os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9},
+        "sapgo_version": sapgo.__version__,
+        "rows": rows,
+        "rss_growth_bytes_per_photo": {
+            "20000_to_200000": growth(rows, 20000, 200000),
+            "100000_to_1000000": growth(rows, 100000, 1000000),
+        },
+    }
+    out = Path(__file__).parent / "results" / "scale.json"
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(markdown(result))
+
+
+if __name__ == "__main__":
+    main()
