@@ -3,8 +3,8 @@
 Run:  python benchmarks/scale.py [--sizes 10000,20000,100000,200000,1000000] [--dir DIR]
       [--solution-sizes 10000,100000]
 
-Every block has 20 strips and the 9-point pattern (SAPGO-P geometry), 400 full control
-points, the rest check points. Each phase runs as its own process through the command line, as
+Every block has 20 strips and the 9-point pattern (SAPGO-P geometry), one full control point
+per 25 photos on the strip boundary rows, the rest check points. Each phase runs as its own process through the command line, as
 a user would run it: ``sapgo generate``, ``sapgo order --memory 256M`` and
 ``sapgo adjust --max-iterations 1``. Per phase: wall time, and the peak resident set size of
 the whole process as the operating system measures it (``ru_maxrss`` from ``wait4``). Disk:
@@ -32,7 +32,7 @@ from pathlib import Path
 import sapgo
 
 STRIPS = 20
-CONTROL = 400
+PHOTOS_PER_CONTROL_POINT = 25  # 400 full control points per 10 000 photos
 
 
 def run(cmd):
@@ -63,7 +63,7 @@ def one(photos, root, to_solution):
     row = {"photos": photos, "strips": STRIPS, "photos_per_strip": g, "pattern": 9}
     t_gen, rss_gen, out = run(sapgo_cmd + ["generate", "--strips", str(STRIPS),
                                            "--photos-per-strip", str(g), "--control-points",
-                                           str(CONTROL), str(path)])
+                                           str(photos // PHOTOS_PER_CONTROL_POINT), str(path)])
     t_ord, rss_ord, out = run(sapgo_cmd + ["order", "--memory", "256M", str(path)])
     row["project_bytes"] = du(path)
     with sapgo.open_project(path) as p:

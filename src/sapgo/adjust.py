@@ -183,12 +183,11 @@ class _Block:
     station_ids: np.ndarray
     station_active: np.ndarray
     camera: np.ndarray
-    eo_approx: np.ndarray
     eo: np.ndarray
     cam_f: np.ndarray
     cam_x0: np.ndarray
     cam_y0: np.ndarray
-    default_sigma: np.ndarray  # per station: its camera's sigma_image (mm)
+    cam_sigma: np.ndarray  # per camera: sigma_image (mm), for observations with sigma 0
     band_width: int
     n_points: int = 0
     n_rays: int = 0
@@ -209,18 +208,16 @@ class _Block:
 
 
 def _load_block(p: Project) -> _Block:
-    st = p.read("stations")
     cams = p.cameras()
     blk = _Block(
-        station_ids=st["id"].copy(),
-        station_active=st["status"] == STATUS_ACTIVE,
-        camera=np.ascontiguousarray(st["camera"], dtype=np.int64),
-        eo_approx=np.ascontiguousarray(st["eo"]),
-        eo=np.ascontiguousarray(st["eo"]).copy(),
+        station_ids=p.read_field("stations", "id"),
+        station_active=p.read_field("stations", "status") == STATUS_ACTIVE,
+        camera=np.ascontiguousarray(p.read_field("stations", "camera"), dtype=np.int32),
+        eo=np.ascontiguousarray(p.read_field("stations", "eo"), dtype=np.float64),
         cam_f=np.ascontiguousarray(cams["focal_length"]),
         cam_x0=np.ascontiguousarray(cams["x0"]),
         cam_y0=np.ascontiguousarray(cams["y0"]),
-        default_sigma=np.ascontiguousarray(cams["sigma_image"][st["camera"]]),
+        cam_sigma=np.ascontiguousarray(cams["sigma_image"]),
         band_width=p.band_width,
     )
     names = {1: "full", 2: "horizontal", 3: "vertical"}
@@ -354,7 +351,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0):
 
     with _progress(opts.progress, p.n_points, "build") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
-            c = PointChunk(p, a, b, xyz_ds[a:b], blk.default_sigma)
+            c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma)
             j = 0
             while j < len(c.xyz):
                 j, status, bad = build_points(
@@ -378,17 +375,16 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0):
     Reads the current coordinates from ``work.xyz_current`` and writes the new ones and the
     residuals to the other buffer (``work.xyz_next``, ``work.res_next``).
     """
-    eo_new = blk.eo + delta
     stats = np.zeros(9)
     xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
     with _progress(opts.progress, p.n_points, "update") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
-            c = PointChunk(p, a, b, xyz_in[a:b], blk.default_sigma)
+            c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma)
             xyz_out = np.empty_like(c.xyz)
             res_out = np.zeros((c.o1 - c.o0, 2))
             update_points(
                 c.xyz, c.kind, c.ctrl, c.csig, c.pt_start, c.nobs, c.active, c.obs_station,
-                c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, eo_new, delta, blk.camera,
+                c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
                 blk.cam_f, blk.cam_x0, blk.cam_y0, CTRL_MASK, c.max_rays, xyz_out, res_out,
                 stats,
             )
@@ -402,10 +398,10 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0):
     for a, b in p.chunks("station_priors", opts.chunk_points):
         pr = p.read("station_priors", a, b)
         pr = pr[blk.station_active[pr["station"]]]
-        v = eo_new[pr["station"]] - pr["value"]
+        v = blk.eo[pr["station"]] + delta[pr["station"]] - pr["value"]
         v[:, :3] = _wrap(v[:, :3])
         vpv_prior += float(np.einsum("ni,nij,nj->", v, pr["weight"], v))
-    blk.eo = eo_new
+    blk.eo += delta
     return {
         "vpv": stats[0] + stats[1] + vpv_prior,
         "vpv_image": stats[0],
@@ -739,9 +735,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         _fault("commit-copy")
         with Project(tmp, "r+") as q:
             g = q.new_solution()
-            for a in range(0, len(blk.eo), opts.chunk_points):
-                b = min(len(blk.eo), a + opts.chunk_points)
-                g["station_corr"][a:b] = blk.eo[a:b] - blk.eo_approx[a:b]
+            for a, b in q.chunks("stations", opts.chunk_points):
+                g["station_corr"][a:b] = blk.eo[a:b] - q.read_field("stations", "eo", a, b)
             for a, b in q.chunks("points", opts.chunk_points):
                 g["point_corr"][a:b] = xyz_ds[a:b] - q.read_field("points", "xyz", a, b)
             for a, b in q.chunks("observations", opts.chunk_points):

@@ -212,19 +212,20 @@ def build_points(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_sm
 
 @njit(cache=True)
 def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_active, obs_station,
-                  obs_xy, obs_sigma, obs_active, eo, eo_new, delta, cam_of_station, cam_f,
+                  obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cam_f,
                   cam_x0, cam_y0, ctrl_mask, max_rays, xyz_out, resid_out, stats):
     """Back-solve point corrections and compute residuals for a chunk of points.
 
     ``eps_j = Ndd_j^-1 (cdd_j - sum_s Nbar_s' delta_s)`` with the system linearised at the
     values the normals were built with (``eo``, ``pt_xyz``); the residuals
-    ``v = computed - observed`` are then evaluated at the new values (``eo_new``,
+    ``v = computed - observed`` are then evaluated at the new values (``eo + delta``,
     ``xyz_out``). ``stats`` accumulates: 0 vPv image, 1 vPv control, 2 sum vx^2, 3 sum vy^2,
     4 image rays, 5 max |eps|, 6 control components, 7 bad point (index+1) or 0,
     8 its status code.
     """
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
     eps = np.empty(3)
+    e_new = np.empty(6)
     for j in range(pt_xyz.shape[0]):
         if pt_active[j] != 0:
             xyz_out[j] = pt_xyz[j]
@@ -261,7 +262,9 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_activ
                 continue
             s = obs_station[i]
             cam = cam_of_station[s]
-            x, y = project(eo_new[s], xyz_out[j], cam_f[cam], cam_x0[cam], cam_y0[cam])
+            for u in range(6):
+                e_new[u] = eo[s, u] + delta[s, u]
+            x, y = project(e_new, xyz_out[j], cam_f[cam], cam_x0[cam], cam_y0[cam])
             vx = x - obs_xy[i, 0]
             vy = y - obs_xy[i, 1]
             resid_out[i, 0] = vx
@@ -280,7 +283,7 @@ class PointChunk:
                  "nobs", "smax", "smin", "active", "obs_station", "obs_xy", "obs_sigma",
                  "obs_active", "max_rays")
 
-    def __init__(self, project, start, stop, xyz, default_sigma):
+    def __init__(self, project, start, stop, xyz, camera, cam_sigma):
         pts = project.read("points", start, stop)
         self.start, self.stop = start, stop
         self.o0 = int(pts["obs_start"][0]) if len(pts) else 0
@@ -298,9 +301,9 @@ class PointChunk:
         self.active = c(pts["status"], dtype=np.int64)
         self.obs_station = c(obs["station"])
         self.obs_xy = c(np.column_stack([obs["x"], obs["y"]]))
-        # sigma 0: the standard error of the station's camera (``default_sigma[station]``)
+        # sigma 0: the standard error of the station's camera
         self.obs_sigma = c(np.where(obs["sigma"] > 0, obs["sigma"],
-                                    default_sigma[obs["station"]]))
+                                    cam_sigma[camera[obs["station"]]]))
         self.obs_active = c(obs["status"] == STATUS_ACTIVE)
         self.max_rays = int(max(1, self.nobs.max() if len(self.nobs) else 1))
 
