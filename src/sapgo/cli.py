@@ -54,11 +54,26 @@ def cmd_generate(args):
 def cmd_order(args):
     from .ordering import order_project
 
-    r = order_project(args.project, args.method)
-    _report_exclusions(r.excluded_points, r.excluded_stations)
+    r = order_project(args.project, args.method, memory=args.memory)
+    _report_exclusions(r.excluded_points, r.excluded_stations, r.n_excluded_points,
+                       r.n_excluded_stations)
     cands = ", ".join(f"{k} {v}" for k, v in r.candidates.items())
     print(f"band width before: {r.band_width_before}")
     print(f"band width after:  {r.band_width}  ({r.ordering}; candidates: {cands})")
+    return 0
+
+
+def cmd_import(args):
+    from .ingest import import_text, summary_text
+
+    summary = import_text(
+        args.output, cameras=args.cameras, photos=args.photos,
+        measurements=args.measurements, control=args.control, angles=args.angles,
+        memory=args.memory, append=args.append, force=args.force,
+    )
+    for w in summary["warnings"]:
+        _warn(w)
+    print(summary_text(summary))
     return 0
 
 
@@ -73,11 +88,18 @@ def cmd_adjust(args):
         tol_sigma0=args.tol_sigma0,
         ordering=args.ordering,
         keep_scratch=args.keep_scratch,
+        resume=args.resume,
+        memory=args.memory,
         progress=False if args.no_progress else None,
     )
     with Project(args.project) as p:
         ordered = p.ordered
-    summary = adjust(args.project, opts)
+    try:
+        summary = adjust(args.project, opts)
+    except KeyboardInterrupt:
+        print(f"sapgo: interrupted; the last completed iteration is kept: continue with "
+              f"'sapgo adjust --resume {args.project}'", file=sys.stderr)
+        return 130
     if not ordered:
         _report_exclusions(summary.excluded_points, summary.excluded_stations,
                            summary.n_excluded_points, summary.n_excluded_stations)
@@ -163,7 +185,35 @@ def build_parser():
     o.add_argument("--method", default="best",
                    help="best (default), across_strip, down_strip, reverse_cuthill_mckee, "
                         "across_strip_by_position")
+    o.add_argument("--memory", default=None, metavar="SIZE",
+                   help="memory budget of the external sorts, e.g. 256M or 2G (default 512M)")
     o.set_defaults(func=cmd_order)
+
+    m = sub.add_parser("import", help="import a block from text files (cameras, photos, image "
+                                      "measurements, control)",
+                       description="Import a block from whitespace-separated text files into "
+                                   "a new project (formats: docs/formats.md). Each file option "
+                                   "may be repeated. The measurements are sorted within the "
+                                   "memory budget, so their files may be in any order.")
+    m.add_argument("output", help="project file to create (e.g. block.h5)")
+    m.add_argument("--cameras", action="append", default=[], metavar="FILE",
+                   help="id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2] "
+                        "(mm)")
+    m.add_argument("--photos", action="append", default=[], metavar="FILE",
+                   help="id camera strip omega phi kappa X Y Z (angles: --angles; m)")
+    m.add_argument("--measurements", action="append", default=[], metavar="FILE",
+                   help="photo point x y [sigma] (mm; sigma 0 or missing = the camera's)")
+    m.add_argument("--control", action="append", default=[], metavar="FILE",
+                   help="point X Y Z sX sY sZ [full|horizontal|vertical|check] (m; '-' = "
+                        "unknown)")
+    m.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg",
+                   help="unit of omega, phi, kappa in the photos files (default deg)")
+    m.add_argument("--memory", default=None, metavar="SIZE",
+                   help="memory budget of the external sorts, e.g. 256M or 2G (default 512M)")
+    m.add_argument("--append", action="store_true",
+                   help="add the files to an existing project (as if imported together)")
+    m.add_argument("--force", action="store_true", help="replace an existing project")
+    m.set_defaults(func=cmd_import)
 
     a = sub.add_parser("adjust", help="adjust the block (orders it first if needed)")
     a.add_argument("project")
@@ -177,8 +227,13 @@ def build_parser():
     a.add_argument("--tol-sigma0", type=float, default=1e-3,
                    help="convergence: relative change of sigma0 below this (default 1e-3)")
     a.add_argument("--ordering", default="best", help="ordering when the project is unordered")
+    a.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from its last completed iteration")
+    a.add_argument("--memory", default=None, metavar="SIZE",
+                   help="memory budget of the external sorts when the project is ordered "
+                        "first, e.g. 256M (default 512M)")
     a.add_argument("--keep-scratch", action="store_true",
-                   help="keep NAME.scratch.h5 (band and factor rows)")
+                   help="keep the work directory NAME.h5.work (band and factor rows)")
     a.add_argument("--no-progress", action="store_true", help="no progress bars")
     a.add_argument("--quiet", action="store_true", help="do not print the report")
     a.set_defaults(func=cmd_adjust)

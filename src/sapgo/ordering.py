@@ -120,12 +120,26 @@ def station_edges(obs_start, n_obs, obs_station, obs_active, n_stations, chunk=6
     return keys // n_stations, keys % n_stations
 
 
+@njit(cache=True)
+def _spans(pos, s, t, reach):
+    """Largest |pos[s] - pos[t]| over the edges; ``reach[hi]`` = farthest earlier neighbour."""
+    widest = 0
+    for e in range(s.shape[0]):
+        a = pos[s[e]]
+        b = pos[t[e]]
+        lo, hi = (a, b) if a < b else (b, a)
+        d = hi - lo
+        widest = max(widest, d)
+        reach[hi] = max(reach[hi], d)
+    return widest
+
+
 def band_width_of(pos, edges):
     """Band width (stations, diagonal included) of logical order ``pos`` over ``edges``."""
     s, t = edges
     if len(s) == 0:
         return 1
-    return int(1 + np.abs(pos[s] - pos[t]).max())
+    return int(1 + _spans(np.asarray(pos, np.int64), s, t, np.zeros(len(pos), np.int64)))
 
 
 def profile_of(pos, edges):
@@ -133,11 +147,25 @@ def profile_of(pos, edges):
     s, t = edges
     if len(s) == 0:
         return 0
-    lo = np.minimum(pos[s], pos[t])
-    hi = np.maximum(pos[s], pos[t])
     reach = np.zeros(len(pos), np.int64)
-    np.maximum.at(reach, hi, hi - lo)
+    _spans(np.asarray(pos, np.int64), s, t, reach)
     return int(reach.sum())
+
+
+@njit(cache=True)
+def _adjacency(n, s, t, indptr, indices):
+    """Symmetric CSR adjacency of the edges ``(s, t)`` (``indptr`` holds the degrees + 1)."""
+    for e in range(s.shape[0]):
+        indptr[s[e] + 1] += 1
+        indptr[t[e] + 1] += 1
+    for i in range(n):
+        indptr[i + 1] += indptr[i]
+    fill = indptr[:-1].copy()
+    for e in range(s.shape[0]):
+        indices[fill[s[e]]] = t[e]
+        fill[s[e]] += 1
+        indices[fill[t[e]]] = s[e]
+        fill[t[e]] += 1
 
 
 # -- candidate orders ------------------------------------------------------------------
@@ -228,15 +256,18 @@ def candidate_orders(xy, strip, active, edges):
         "across_strip_by_position": idx[np.lexsort((v, u))],
         "down_strip": idx[np.lexsort((u, strip_key))],
     }
-    # reverse Cuthill-McKee on the active subgraph
+    # reverse Cuthill-McKee on the active subgraph (CSR built directly, int32 indices)
     local = np.full(len(active), -1, np.int64)
     local[idx] = np.arange(len(idx))
     s, t = edges
     keep = active[s] & active[t]
-    s, t = local[s[keep]], local[t[keep]]
+    s, t = local[s[keep]].astype(np.int32), local[t[keep]].astype(np.int32)
     n = len(idx)
-    g = sp.coo_matrix((np.ones(len(s), np.int8), (s, t)), shape=(n, n)).tocsr()
-    g = (g + g.T).tocsr()
+    indptr = np.zeros(n + 1, np.int32)
+    indices = np.empty(2 * len(s), np.int32)
+    _adjacency(n, s, t, indptr, indices)
+    del s, t, keep
+    g = sp.csr_matrix((np.ones(len(indices), np.int8), indices, indptr), shape=(n, n))
     cands["reverse_cuthill_mckee"] = idx[reverse_cuthill_mckee(g, symmetric_mode=True)]
     return cands
 
@@ -397,7 +428,9 @@ def _stream_edges(p, chunk, station_active):
             merged = _unique(np.concatenate([merged] + parts))
             parts, n_parts = [], 0
     keys = _unique(np.concatenate([merged] + parts))
-    return keys // n_st, keys % n_st
+    del merged, parts
+    dt = np.int32 if n_st < 2**31 else np.int64
+    return (keys // n_st).astype(dt), (keys % n_st).astype(dt)
 
 
 # -- the order command -----------------------------------------------------------------

@@ -1,0 +1,629 @@
+"""The plain-text block formats: cameras, photos, image measurements and control.
+
+Whitespace-separated columns, ``#`` starts a comment (a whole line or the rest of a line),
+blank lines are ignored. Units: image coordinates, focal length, principal point, format and
+image sigmas in mm; ground coordinates and their sigmas in m; angles in the unit the user
+chooses (``deg``, ``gon`` or ``rad``), stored in radians. Ids are int64. The formats are
+documented field by field in ``docs/formats.md``::
+
+    cameras       id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2]
+    photos        id camera strip omega phi kappa X Y Z
+    measurements  photo point x y [sigma]
+    control       point X Y Z sX sY sZ [kind]
+
+Parsing is chunk by chunk (:func:`read_chunks` cuts a file into blocks of whole lines,
+:func:`parse_chunk` turns a block into records). The fast path hands the block to
+``numpy.loadtxt``; a block whose lines differ in their optional columns is loaded per column
+count. When that fails too, the block is parsed again line by line, which either produces the
+same records or raises a :class:`~sapgo.errors.DataError` naming the file, the line and the
+column. Value checks
+(finite numbers, signs, kinds) run on the parsed records of a block and also name the line.
+
+Angles. Degrees and gon are read with the platform's extended ``long double`` and converted
+with pi to 64 bits of precision, then rounded once to float64: on x86-64 (80-bit long
+double) :func:`export_text` can always find a decimal angle that reads back to the very same
+float64 radians, so export -> import reproduces a project's records bitwise.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataError, ParameterError
+from ..project import (
+    CHUNK_RECORDS,
+    CONTROL_MASK,
+    KIND_CHECK,
+    KIND_CONTROL,
+    KIND_HORIZONTAL,
+    KIND_PASS,
+    KIND_VERTICAL,
+    Project,
+)
+
+#: Angle units of the photos file (``--angles``).
+ANGLE_UNITS = ("deg", "gon", "rad")
+_PI = np.longdouble("3.14159265358979323846264338327950288419716939937510")
+_ANGLE_FACTOR = {"deg": _PI / 180, "gon": _PI / 200, "rad": np.longdouble(1)}
+
+#: Kind names of the control file and their point kind codes (``sapgo.project``).
+KIND_WORDS = {"full": KIND_CONTROL, "horizontal": KIND_HORIZONTAL,
+              "vertical": KIND_VERTICAL, "check": KIND_CHECK}
+KIND_WORD_OF = {v: k for k, v in KIND_WORDS.items()}
+KIND_WORDS["control"] = KIND_CONTROL  # the project's name of a full control point
+#: Components a control kind cannot do without (X, Y, Z); the others may be '-' or nan.
+NEEDED = CONTROL_MASK.astype(bool).copy()
+NEEDED[KIND_CHECK] = True
+
+# column types
+_ID, _INT, _FLOAT, _ANGLE, _OPT, _KIND = "id", "int", "float", "angle", "opt", "kind"
+
+_INT_RE = re.compile(rb"[+-]?[0-9]+")
+_FLOAT_RE = re.compile(
+    rb"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|inf|infinity|nan)", re.I)
+_DASH = re.compile(rb"(?<!\S)-(?!\S)")
+_INT64 = (-(1 << 63), (1 << 63) - 1)
+#: A line longer than this (bytes) is refused: the file is not a text file of the format.
+MAX_LINE = 1 << 20
+
+
+class TextFormat:
+    """One text format: its columns (name, type), the optional tail and the usage line."""
+
+    def __init__(self, name, columns, min_cols, usage, defaults=None):
+        self.name = name
+        self.columns = columns
+        self.min_cols = min_cols
+        self.max_cols = len(columns)
+        self.usage = usage
+        self.defaults = defaults or {}
+        fields = []
+        for cname, ctype in columns:
+            if ctype == _KIND:
+                fields.append((cname, "i1"))
+            elif ctype in (_ID, _INT):
+                fields.append((cname, "<i8"))
+            else:
+                fields.append((cname, "<f8"))
+        #: dtype of the parsed records: every column, angles in radians, kinds as codes
+        self.dtype = np.dtype(fields)
+
+    def expected(self):
+        if self.min_cols == self.max_cols:
+            n = f"{self.min_cols}"
+        elif self.max_cols == self.min_cols + 1:
+            n = f"{self.min_cols} or {self.max_cols}"
+        else:
+            n = f"{self.min_cols} to {self.max_cols}"
+        return f"expected {n} columns ({self.usage})"
+
+    def load_dtype(self, ncols, angles):
+        """The dtype ``numpy.loadtxt`` reads ``ncols`` columns into."""
+        fields = []
+        for cname, ctype in self.columns[:ncols]:
+            if ctype == _KIND:
+                fields.append((cname, "S32"))
+            elif ctype in (_ID, _INT):
+                fields.append((cname, "<i8"))
+            elif ctype == _ANGLE and angles != "rad":
+                fields.append((cname, np.longdouble))
+            else:
+                fields.append((cname, "<f8"))
+        return np.dtype(fields)
+
+
+CAMERAS = TextFormat(
+    "cameras",
+    [("id", _ID), ("focal_length", _FLOAT), ("x0", _FLOAT), ("y0", _FLOAT),
+     ("format_x", _FLOAT), ("format_y", _FLOAT), ("sigma_image", _FLOAT),
+     ("k1", _FLOAT), ("k2", _FLOAT), ("k3", _FLOAT), ("p1", _FLOAT), ("p2", _FLOAT)],
+    7, "id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2]",
+)
+PHOTOS = TextFormat(
+    "photos",
+    [("id", _ID), ("camera", _ID), ("strip", _INT), ("omega", _ANGLE), ("phi", _ANGLE),
+     ("kappa", _ANGLE), ("X", _FLOAT), ("Y", _FLOAT), ("Z", _FLOAT)],
+    9, "id camera strip omega phi kappa X Y Z",
+)
+MEASUREMENTS = TextFormat(
+    "measurements",
+    [("photo", _ID), ("point", _ID), ("x", _FLOAT), ("y", _FLOAT), ("sigma", _FLOAT)],
+    4, "photo point x y [sigma]",
+)
+CONTROL = TextFormat(
+    "control",
+    [("id", _ID), ("X", _OPT), ("Y", _OPT), ("Z", _OPT), ("sX", _OPT), ("sY", _OPT),
+     ("sZ", _OPT), ("kind", _KIND)],
+    7, "point X Y Z sX sY sZ [kind]", defaults={"kind": b"full"},
+)
+FORMATS = {f.name: f for f in (CAMERAS, PHOTOS, MEASUREMENTS, CONTROL)}
+
+
+def check_angles(angles):
+    if angles not in ANGLE_UNITS:
+        raise ParameterError(f"angle unit {angles!r}: choose one of {', '.join(ANGLE_UNITS)}")
+    return angles
+
+
+def to_radians(values, angles):
+    """Radians (float64) of angles in ``angles`` units (long double input for deg/gon)."""
+    if angles == "rad":
+        return np.asarray(values, np.float64)
+    return (np.asarray(values, np.longdouble) * _ANGLE_FACTOR[angles]).astype(np.float64)
+
+
+def angle_strings(rad, angles):
+    """Decimal strings of float64 radians in ``angles`` units that read back bitwise.
+
+    Returns the strings and the number of values for which no such string was found (only
+    possible where ``long double`` has no more precision than ``double``).
+    """
+    rad = np.ascontiguousarray(rad, np.float64)
+    if angles == "rad":
+        return [repr(v) for v in rad.tolist()], 0
+    factor = _ANGLE_FACTOR[angles]
+    d = rad.astype(np.longdouble) / factor
+    # the shortest float64 decimal of the angle when it reads back exactly (most angles) ...
+    short = [repr(v) for v in d.astype(np.float64).tolist()]
+    good = to_radians(np.array(short).astype(np.longdouble), angles).view(np.int64) == \
+        rad.view(np.int64)
+    # ... else the long double decimal, nudged by a few units in the last place if need be
+    bad = np.flatnonzero(~good)
+    inexact = 0
+    for i in bad[to_radians(d[bad], angles).view(np.int64) != rad[bad].view(np.int64)]:
+        found = False
+        for direction in (np.longdouble(np.inf), np.longdouble(-np.inf)):
+            cand = d[i]
+            for _ in range(16):
+                cand = np.nextafter(cand, direction)
+                if to_radians(np.array([cand]), angles).view(np.int64)[0] == \
+                        rad[i:i + 1].view(np.int64)[0]:
+                    found = True
+                    break
+            if found:
+                d[i] = cand
+                break
+        inexact += not found
+    if len(bad):
+        long = d[bad].astype(str).tolist()
+        for i, text in zip(bad.tolist(), long):
+            short[i] = text
+    return short, inexact
+
+
+# -- reading ---------------------------------------------------------------------------
+
+def read_chunks(path, chunk_bytes):
+    """Yield ``(first_line_number, block)``: blocks of whole lines of about ``chunk_bytes``.
+
+    Line numbers count from 1. A UTF-8 byte-order mark is skipped; a last line without a
+    newline gets one.
+    """
+    chunk_bytes = max(4096, int(chunk_bytes))
+    max_line = max(chunk_bytes, MAX_LINE)
+    try:
+        f = open(path, "rb")
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise DataError(f"{path}: is a directory, not a text file") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    with f:
+        first, rest, start = 1, b"", True
+        while True:
+            block = f.read(chunk_bytes)
+            if start:
+                if block.startswith(b"\xef\xbb\xbf"):
+                    block = block[3:]
+                start = False
+            if not block:
+                if rest:
+                    yield first, rest + b"\n"
+                return
+            data = rest + block if rest else block
+            cut = data.rfind(b"\n")
+            if cut < 0:
+                if len(data) > max_line:
+                    raise DataError(f"{path}:{first}: the line is longer than "
+                                    f"{max_line >> 20} MiB: not a text file of this format?")
+                rest = data
+                continue
+            chunk, rest = data[:cut + 1], data[cut + 1:]
+            yield first, chunk
+            first += chunk.count(b"\n")
+
+
+def _first_data_line(chunk):
+    """The first line of a block that is neither blank nor a comment (without its comment)."""
+    pos = 0
+    while pos < len(chunk):
+        end = chunk.find(b"\n", pos)
+        end = len(chunk) if end < 0 else end
+        text = chunk[pos:end].split(b"#", 1)[0]
+        if text.strip():
+            return text
+        pos = end + 1
+    return b""
+
+
+def _data_lines(chunk, first):
+    """Line numbers of the data lines of a block (neither blank nor a comment)."""
+    lines = chunk.split(b"\n")[:chunk.count(b"\n")]
+    keep = [i for i, ln in enumerate(lines) if (s := ln.lstrip()) and s[:1] != b"#"]
+    return first + np.asarray(keep, dtype=np.int64)
+
+
+def _tok(t):
+    """A token for a message: printable, one line, at most 40 characters."""
+    s = "".join(c if c.isprintable() else "?" for c in t.decode("utf-8", "replace"))
+    return s if len(s) <= 40 else s[:37] + "..."
+
+
+def _where(src, line):
+    return f"{src}:{line}"
+
+
+def _parse_token(fmt, ci, tok, angles, src, line):
+    cname, ctype = fmt.columns[ci]
+    col = f"(column {ci + 1}, {cname})"
+    if ctype in (_ID, _INT):
+        if not _INT_RE.fullmatch(tok):
+            if _FLOAT_RE.fullmatch(tok):
+                raise DataError(f"{_where(src, line)}: '{_tok(tok)}' is not an integer {col}")
+            raise DataError(f"{_where(src, line)}: '{_tok(tok)}' is not a number {col}")
+        v = int(tok)
+        if not _INT64[0] <= v <= _INT64[1]:
+            raise DataError(f"{_where(src, line)}: '{_tok(tok)}' is outside the int64 range "
+                            f"{col}")
+        return v
+    if ctype == _KIND:
+        return tok.lower()[:32]
+    if ctype == _OPT and tok == b"-":
+        return np.nan
+    if not _FLOAT_RE.fullmatch(tok):
+        raise DataError(f"{_where(src, line)}: '{_tok(tok)}' is not a number {col}")
+    if ctype == _ANGLE and angles != "rad":
+        return np.longdouble(tok.decode("ascii"))
+    return float(tok)
+
+
+def _parse_lines(fmt, chunk, first, lines, angles, src, refs=None):
+    """Slow path: parse a block line by line; returns the wide loadtxt-style array.
+
+    On a syntax error the records before the bad line are value-checked first, so that the
+    error reported is always the one on the earliest line.
+    """
+    dtype = fmt.load_dtype(fmt.max_cols, angles)
+    rows = []
+    text_lines = chunk.split(b"\n")
+    for ln in lines.tolist():
+        text = text_lines[ln - first].split(b"#", 1)[0]
+        toks = text.split()
+        try:
+            if not fmt.min_cols <= len(toks) <= fmt.max_cols:
+                raise DataError(f"{_where(src, ln)}: {fmt.expected()}, found {len(toks)}")
+            vals = [_parse_token(fmt, i, t, angles, src, ln) for i, t in enumerate(toks)]
+        except DataError:
+            done = np.array(rows, dtype=dtype) if rows else np.zeros(0, dtype)
+            check_records(fmt, done, _normalize(fmt, done, fmt.max_cols, angles),
+                          lines[:len(rows)], src, refs)
+            raise
+        for cname, _ in fmt.columns[len(vals):]:
+            vals.append(fmt.defaults.get(cname, 0))
+        rows.append(tuple(vals))
+    return np.array(rows, dtype=dtype) if rows else np.zeros(0, dtype)
+
+
+def _normalize(fmt, arr, ncols, angles):
+    """Parsed records (``fmt.dtype``) from a loadtxt-style array of ``ncols`` columns."""
+    out = np.zeros(len(arr), fmt.dtype)
+    for i, (cname, ctype) in enumerate(fmt.columns):
+        if i >= ncols:
+            if ctype == _KIND:
+                out[cname] = KIND_WORDS[fmt.defaults[cname].decode()]
+            continue
+        if ctype == _ANGLE:
+            out[cname] = to_radians(arr[cname], angles)
+        elif ctype == _KIND:
+            codes = np.full(len(arr), -1, np.int8)
+            words = np.char.lower(arr[cname])
+            for word, code in KIND_WORDS.items():
+                codes[words == word.encode()] = code
+            out[cname] = codes
+        else:
+            out[cname] = arr[cname]
+    return out
+
+
+def _loadtxt(fmt, text, ncols, angles):
+    if fmt is CONTROL:
+        text = _DASH.sub(b"nan", text)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return np.loadtxt(io.BytesIO(text), dtype=fmt.load_dtype(ncols, angles), comments="#",
+                          ndmin=1)
+
+
+def _load_grouped(fmt, chunk, first, lines, angles):
+    """A block whose lines differ in their optional columns: loadtxt per column count, the
+    rows put back in line order (the wide loadtxt-style array), or None if that fails."""
+    text_lines = chunk.split(b"\n")
+    data = [text_lines[i] for i in (lines - first).tolist()]
+    counts = np.fromiter((len(ln.split(b"#", 1)[0].split()) for ln in data), np.int64,
+                         len(data))
+    wide = np.zeros(len(data), fmt.load_dtype(fmt.max_cols, angles))
+    for cname, default in fmt.defaults.items():
+        wide[cname] = default
+    for nc in np.unique(counts).tolist():
+        if not fmt.min_cols <= nc <= fmt.max_cols:
+            return None
+        idx = np.flatnonzero(counts == nc)
+        try:
+            arr = _loadtxt(fmt, b"\n".join([data[i] for i in idx.tolist()]) + b"\n", nc,
+                           angles)
+        except ValueError:
+            return None
+        if len(arr) != len(idx):
+            return None
+        for name in arr.dtype.names:
+            wide[name][idx] = arr[name]
+    return wide
+
+
+def parse_chunk(fmt, chunk, first, angles, src, refs=None):
+    """Records (``fmt.dtype``) and line numbers of a block of whole lines.
+
+    ``src`` names the file in messages. ``refs(rec)`` may add checks (``(mask, message(i))``
+    pairs, e.g. that referenced ids exist). Raises :class:`DataError` for the first bad line.
+    """
+    head = _first_data_line(chunk)
+    if not head:
+        return np.zeros(0, fmt.dtype), np.zeros(0, np.int64)
+    n_lines = chunk.count(b"\n")
+    ncols = len(head.split())
+    arr, lines = None, None
+    fast = fmt.min_cols <= ncols <= fmt.max_cols and not (
+        fmt is PHOTOS and angles != "rad" and (b"x" in chunk or b"X" in chunk or b"(" in chunk))
+    if fast:
+        try:
+            arr = _loadtxt(fmt, chunk, ncols, angles)
+        except ValueError:
+            arr = None
+        if arr is not None:
+            if len(arr) == n_lines:  # no line was skipped: no blank or comment line
+                lines = first + np.arange(n_lines, dtype=np.int64)
+            else:
+                lines = _data_lines(chunk, first)
+                if len(arr) != len(lines):
+                    arr = None
+    if arr is None and fast and fmt.min_cols < fmt.max_cols:
+        if lines is None:
+            lines = _data_lines(chunk, first)
+        arr = _load_grouped(fmt, chunk, first, lines, angles)  # optional columns mixed
+        ncols = fmt.max_cols
+    rec = None if arr is None else _normalize(fmt, arr, ncols, angles)
+    if fmt is CONTROL and rec is not None and (rec["kind"] < 0).any():
+        rec = None  # name the unknown kind as written (the fast path read '-' as nan)
+    if rec is None:
+        if lines is None:
+            lines = _data_lines(chunk, first)
+        arr = _parse_lines(fmt, chunk, first, lines, angles, src, refs)
+        rec = _normalize(fmt, arr, fmt.max_cols, angles)
+    check_records(fmt, arr, rec, lines, src, refs)
+    if fmt is CONTROL:
+        _settle_control(rec)
+    return rec, lines
+
+
+# -- value checks ----------------------------------------------------------------------
+
+def _col(fmt, name):
+    return next(i for i, (c, _) in enumerate(fmt.columns) if c == name) + 1
+
+
+def _finite_checks(fmt, rec, names):
+    out = []
+    for name in names:
+        v = rec[name]
+        out.append((~np.isfinite(v), lambda i, n=name, v=v: (
+            f"column {_col(fmt, n)} ({n}) is {_num(v[i])}, expected a finite number")))
+    return out
+
+
+def _num(x):
+    return repr(float(x))
+
+
+def _checks(fmt, arr, rec):
+    """(mask, message(i)) pairs in column order."""
+    if fmt is MEASUREMENTS:
+        c = _finite_checks(fmt, rec, ("x", "y", "sigma"))
+        c.append((rec["sigma"] < 0, lambda i: (
+            f"sigma must not be negative, found {_num(rec['sigma'][i])} (column 5)")))
+        return c
+    if fmt is CAMERAS:
+        names = [n for n, _ in fmt.columns[1:]]
+        c = _finite_checks(fmt, rec, names)
+        c.append((~(rec["focal_length"] > 0), lambda i: (
+            f"focal_length must be positive, found {_num(rec['focal_length'][i])} "
+            f"(column 2)")))
+        for n in ("format_x", "format_y"):
+            c.append((rec[n] < 0, lambda i, n=n: (
+                f"{n} must not be negative, found {_num(rec[n][i])} "
+                f"(column {_col(fmt, n)})")))
+        c.append((~(rec["sigma_image"] > 0), lambda i: (
+            f"sigma_image must be positive, found {_num(rec['sigma_image'][i])} (column 7)")))
+        return c
+    if fmt is PHOTOS:
+        st = rec["strip"]
+        c = [((st < -1) | (st > np.iinfo(np.int32).max), lambda i: (
+            f"strip must be -1 (unknown) or a flight line number >= 0, found {st[i]} "
+            f"(column 3)"))]
+        c += _finite_checks(fmt, rec, ("omega", "phi", "kappa", "X", "Y", "Z"))
+        return c
+    if fmt is CONTROL:
+        kind = rec["kind"]
+        k_ok = np.clip(kind, 0, KIND_CHECK)
+        need, ctrl = NEEDED[k_ok], CONTROL_MASK[k_ok].astype(bool)
+
+        def what(i):
+            k = int(kind[i])
+            return "a check point" if k == KIND_CHECK else f"a {KIND_WORD_OF[k]} control point"
+
+        c = [(kind < 0, lambda i: (
+            f"unknown kind '{_tok(arr['kind'][i])}' (column 8); expected full, horizontal, "
+            f"vertical or check"))]
+        for k, n in enumerate(("X", "Y", "Z")):
+            v = rec[n]
+            c.append((np.isinf(v), lambda i, n=n, v=v, k=k: (
+                f"column {k + 2} ({n}) is {_num(v[i])}, expected a finite number or '-'")))
+            c.append((np.isnan(v) & need[:, k], lambda i, n=n, k=k: (
+                f"{n} is unknown ('-' or nan) but {what(i)} needs it (column {k + 2})")))
+        for k, n in enumerate(("sX", "sY", "sZ")):
+            v = rec[n]
+            c.append((np.isinf(v), lambda i, n=n, v=v, k=k: (
+                f"column {k + 5} ({n}) is {_num(v[i])}, expected a finite number or '-'")))
+            c.append((v < 0, lambda i, n=n, v=v, k=k: (
+                f"{n} must not be negative (0 fixes the coordinate), found {_num(v[i])} "
+                f"(column {k + 5})")))
+            c.append((np.isnan(v) & ctrl[:, k], lambda i, n=n, k=k: (
+                f"{n} is unknown ('-' or nan) but {what(i)} needs it (column {k + 5}; "
+                f"0 fixes the coordinate)")))
+        return c
+    raise ValueError(fmt)
+
+
+def check_records(fmt, arr, rec, lines, src, refs=None):
+    """Raise :class:`DataError` for the earliest line whose values are invalid."""
+    if not len(rec):
+        return
+    best = None
+    for mask, message in _checks(fmt, arr, rec) + (refs(rec) if refs else []):
+        idx = np.flatnonzero(mask)
+        if len(idx) and (best is None or idx[0] < best[0]):
+            best = (int(idx[0]), message)
+    if best is not None:
+        i, message = best
+        raise DataError(f"{_where(src, int(lines[i]))}: {message(i)}")
+
+
+def _settle_control(rec):
+    """Unknown ('-', nan) and uncontrolled sigmas become 0, so that all values are finite."""
+    for k, (n, s) in enumerate((("X", "sX"), ("Y", "sY"), ("Z", "sZ"))):
+        unknown = np.isnan(rec[n])
+        rec[n][unknown] = 0.0
+        rec[s][unknown | np.isnan(rec[s])] = 0.0
+
+
+# -- writing ---------------------------------------------------------------------------
+
+_HEADERS = {
+    "cameras": "# cameras: id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2]"
+               "  (mm; k1..k3 mm^-2, mm^-4, mm^-6, p1 p2 mm^-1)",
+    "photos": "# photos: id camera strip omega phi kappa X Y Z  (angles in {angles}, "
+              "X Y Z in m; strip -1 = unknown)",
+    "measurements": "# measurements: photo point x y sigma  (mm; sigma 0 = the camera's "
+                    "sigma_image)",
+    "control": "# control: point X Y Z sX sY sZ kind  (m; sigma 0 fixes the coordinate; "
+               "'-' = unknown)",
+}
+
+
+def _nonzero_bits(a):
+    return np.ascontiguousarray(a, np.float64).view(np.int64) != 0
+
+
+def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS):
+    """Write a project's input records as ``cameras.txt``, ``photos.txt``,
+    ``measurements.txt`` and ``control.txt`` in ``out_dir``.
+
+    Floats are written as the shortest decimal that reads back to the same float64 (angles in
+    ``angles`` units, see :func:`angle_strings`), so :func:`sapgo.ingest.import_text` of the
+    files reproduces the records bitwise. Records are streamed in chunks of ``chunk``; per
+    station vectors (ids) are held in core. Points of kind pass do not appear in
+    ``control.txt``; observation statuses, station priors, approximate point coordinates and
+    solutions are not exported. Returns a dict with the paths and record counts.
+    """
+    check_angles(angles)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {k: out_dir / f"{k}.txt" for k in ("cameras", "photos", "measurements", "control")}
+    counts = dict.fromkeys(paths, 0)
+    inexact = 0
+    with Project(project_path) as p:
+        cams = p.cameras()
+        with open(paths["cameras"], "w") as f:
+            f.write(_HEADERS["cameras"] + "\n")
+            for c in cams:
+                vals = [c[n] for n in ("focal_length", "x0", "y0", "format_x", "format_y",
+                                       "sigma_image")]
+                dist = [c[n] for n in ("k1", "k2", "k3", "p1", "p2")]
+                if _nonzero_bits(np.array(dist)).any():
+                    vals += dist
+                f.write(" ".join([str(int(c["id"]))] + [repr(float(v)) for v in vals]) + "\n")
+                counts["cameras"] += 1
+        cam_ids = cams["id"]
+        station_ids = p.read_field("stations", "id")
+        with open(paths["photos"], "w") as f:
+            f.write(_HEADERS["photos"].format(angles=angles) + "\n")
+            for a, b in p.chunks("stations", chunk):
+                st = p.read("stations", a, b)
+                eo = st["eo"]
+                ang = []
+                for k in range(3):
+                    s, bad = angle_strings(eo[:, k], angles)
+                    ang.append(s)
+                    inexact += bad
+                lines = [
+                    f"{i} {c} {s} {w} {ph} {ka} {x!r} {y!r} {z!r}"
+                    for i, c, s, w, ph, ka, x, y, z in zip(
+                        st["id"].tolist(), cam_ids[st["camera"]].tolist(), st["strip"].tolist(),
+                        ang[0], ang[1], ang[2], eo[:, 3].tolist(), eo[:, 4].tolist(),
+                        eo[:, 5].tolist())
+                ]
+                f.write("\n".join(lines) + "\n")
+                counts["photos"] += len(lines)
+        with open(paths["measurements"], "w") as fm, open(paths["control"], "w") as fc:
+            fm.write(_HEADERS["measurements"] + "\n")
+            fc.write(_HEADERS["control"] + "\n")
+            for a, b in p.chunks("points", chunk):
+                pts = p.read("points", a, b)
+                o0 = int(pts["obs_start"][0])
+                o1 = int(pts["obs_start"][-1] + pts["n_obs"][-1])
+                obs = p.read("observations", o0, o1)
+                pid = pts["id"]
+                rows = zip(station_ids[obs["station"]].tolist(),
+                           np.repeat(pid, pts["n_obs"]).tolist(), obs["x"].tolist(),
+                           obs["y"].tolist(), obs["sigma"].tolist())
+                text = "\n".join(f"{s} {q} {x!r} {y!r} {g!r}" for s, q, x, y, g in rows)
+                if text:
+                    fm.write(text + "\n")
+                counts["measurements"] += len(obs)
+                ctl = pts[pts["kind"] != KIND_PASS]
+                odd = ctl["id"][~np.isin(ctl["kind"], list(KIND_WORD_OF))]
+                if len(odd):
+                    raise DataError(f"{project_path}: point {odd[0]} has an unknown kind")
+                lines = []
+                for r in ctl:
+                    kind = int(r["kind"])
+                    need = NEEDED[kind]
+                    vals, sigs = [], []
+                    for k in range(3):
+                        v, s = float(r["control"][k]), float(r["control_sigma"][k])
+                        unknown = (not need[k] and np.float64(v).view(np.int64) == 0
+                                   and np.float64(s).view(np.int64) == 0)
+                        vals.append("-" if unknown else repr(v))
+                        sigs.append("-" if unknown else repr(s))
+                    lines.append(" ".join([str(int(r["id"]))] + vals + sigs
+                                          + [KIND_WORD_OF[kind]]))
+                if lines:
+                    fc.write("\n".join(lines) + "\n")
+                counts["control"] += len(lines)
+    return {"paths": {k: str(v) for k, v in paths.items()}, "counts": counts,
+            "angles": angles, "inexact_angles": inexact}

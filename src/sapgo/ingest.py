@@ -1,0 +1,835 @@
+"""Streaming import of a block from plain-text files (``sapgo import``).
+
+``import_text(out, cameras=[...], photos=[...], measurements=[...], control=[...])`` reads the
+four text formats of :mod:`sapgo.formats.text` (documented in ``docs/formats.md``) and writes a
+new, unordered project through :class:`sapgo.project.ProjectWriter` (built as ``OUT.tmp`` and
+renamed over ``OUT`` only when complete, so a failed import leaves ``OUT`` as it was).
+
+Memory. Cameras and photos are held in core (per-photo vectors, some 100 bytes a photo).
+Everything else streams within the memory budget (``memory``, default
+:data:`sapgo.extsort.DEFAULT_MEMORY`): text is read in blocks of lines of 1/32 of the
+budget; control records go through an external sort by id and are merged to a work file;
+image measurements go through an external sort by (point id, photo record); a merge-join of
+the two sorted streams by point id then produces the points in id order with their
+observations, approximate coordinates (ray intersection) and control, written chunk by chunk.
+The work directory ``OUT.import.work`` beside the output is removed afterwards, also on
+failure.
+
+Determinism. The records depend only on the set of input lines, not on their order, the
+order of the files or the memory budget: photos and cameras are sorted by id, points by id,
+observations by (point, photo record); duplicate measurements of a point on one photo are
+merged by summing their coordinates in sorted value order, so shuffled input gives bitwise the
+same project, and importing sub-blocks one after the other with ``append=True`` gives the same
+records as importing them together.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataError, ParameterError
+from .extsort import DEFAULT_MEMORY, ExternalSorter, parse_memory
+from .formats.text import (
+    CAMERAS,
+    CONTROL,
+    MEASUREMENTS,
+    NEEDED,
+    PHOTOS,
+    check_angles,
+    parse_chunk,
+    read_chunks,
+)
+from .geometry import intersect_points
+from .project import (
+    CAMERA_DTYPE,
+    CONTROL_MASK,
+    KIND_CHECK,
+    KIND_NAMES,
+    KIND_PASS,
+    KIND_VERTICAL,
+    OBSERVATION_DTYPE,
+    POINT_DTYPE,
+    PRIOR_DTYPE,
+    STATION_DTYPE,
+    STATUS_ACTIVE,
+    STATUS_REJECTED,
+    Project,
+    ProjectWriter,
+    append_history,
+)
+
+#: Image measurements as they are sorted: point id, station record, values, origin.
+MEAS_DTYPE = np.dtype([("point", "<i8"), ("station", "<i8"), ("x", "<f8"), ("y", "<f8"),
+                       ("sigma", "<f8"), ("loc", "<i8")])
+#: Control records as they are sorted and kept in the work file.
+CTRL_DTYPE = np.dtype([("id", "<i8"), ("kind", "i1"), ("control", "<f8", (3,)),
+                       ("sigma", "<f8", (3,)), ("loc", "<i8")])
+#: ``loc`` = source number << LOC_BITS | line (or record) number.
+LOC_BITS = 40
+#: Examples listed in a warning.
+EXAMPLES = 5
+#: Ids listed in a warning.
+LISTED = 20
+#: Distance along a ray (m) of a point that cannot be intersected when no ground height is
+#: known.
+DEFAULT_RAY_DISTANCE = 1000.0
+#: Fixed piece size of the order-independent sums (records).
+_SUM_PIECE = 65536
+
+
+def _as_list(files):
+    if files is None:
+        return []
+    if isinstance(files, (str, os.PathLike)):
+        return [files]
+    return list(files)
+
+
+def _ids(ids, limit=LISTED):
+    ids = list(ids)
+    s = ", ".join(str(i) for i in ids[:limit])
+    return s + (", ..." if len(ids) > limit else "")
+
+
+class _Sources:
+    """Names of the places records come from, for messages (``file:line``)."""
+
+    def __init__(self):
+        self._names = []
+
+    def add(self, label, dataset=None):
+        label = str(label)
+        if dataset is None and (label, None) in self._names:
+            label += " (given again)"
+        self._names.append((label, dataset))
+        return len(self._names) - 1
+
+    @staticmethod
+    def loc(src, lines):
+        return (np.int64(src) << LOC_BITS) | np.asarray(lines, np.int64)
+
+    def where(self, loc):
+        loc = int(loc)
+        label, dataset = self._names[loc >> LOC_BITS]
+        n = loc & ((1 << LOC_BITS) - 1)
+        return f"{label}:{n}" if dataset is None else f"{label} ({dataset} record {n})"
+
+
+def _member(sorted_ids, ids):
+    """Which of ``ids`` are in the sorted array ``sorted_ids``."""
+    if not len(sorted_ids):
+        return np.zeros(len(ids), bool)
+    k = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
+    return sorted_ids[k] == ids
+
+
+def _bits(a):
+    """Rows of an (n, k) float array as int64 bit patterns (exact comparison)."""
+    return np.ascontiguousarray(a, np.float64).view(np.int64)
+
+
+def _rotations(eo):
+    """Object -> image rotation matrices ``M = R3(kappa) R2(phi) R1(omega)``, (n, 3, 3)."""
+    n = len(eo)
+    cw, sw = np.cos(eo[:, 0]), np.sin(eo[:, 0])
+    cp, sp = np.cos(eo[:, 1]), np.sin(eo[:, 1])
+    ck, sk = np.cos(eo[:, 2]), np.sin(eo[:, 2])
+    z, o = np.zeros(n), np.ones(n)
+    r1 = np.stack([o, z, z, z, cw, sw, z, -sw, cw], axis=1).reshape(n, 3, 3)
+    r2 = np.stack([cp, z, -sp, z, o, z, sp, z, cp], axis=1).reshape(n, 3, 3)
+    r3 = np.stack([ck, sk, z, -sk, ck, z, z, z, o], axis=1).reshape(n, 3, 3)
+    return r3 @ r2 @ r1
+
+
+def ray_points(eo, xy, f, x0, y0, height, distance):
+    """A point on each image ray: where it meets the plane ``Z = height`` in front of the
+    camera, else at ``distance`` metres from the projection centre (all finite)."""
+    m = _rotations(eo)
+    img = np.stack([xy[:, 0] - x0, xy[:, 1] - y0, -f], axis=1)
+    d = np.einsum("nji,nj->ni", m, img)
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (height - eo[:, 5]) / d[:, 2]
+    use = np.isfinite(t) & (t > 0) & (d[:, 2] < -1e-6) & (t <= 1000.0 * distance)
+    t = np.where(use, t, distance)
+    return eo[:, 3:] + t[:, None] * d
+
+
+class _Import:
+    def __init__(self, out, files, angles, memory, work, existing):
+        self.out = out
+        self.files = files
+        self.angles = angles
+        self.memory = memory
+        self.work = work
+        self.existing = existing  # path of the project appended to, or None
+        self.chunk_bytes = max(64 << 10, memory // 32)
+        self.block_records = max(4096, memory // (64 * MEAS_DTYPE.itemsize))
+        self.src = _Sources()
+        self.warnings = []
+        self.lines = 0
+        self.bytes = 0
+        self.s = {}  # summary counters
+
+    # -- helpers -------------------------------------------------------------------------
+    def _warn(self, msg):
+        self.warnings.append(msg)
+
+    def _check_existing(self, dataset, start, bad, message):
+        """Raise for the first True of ``bad`` (records of ``OUT`` being appended to)."""
+        idx = np.flatnonzero(bad)
+        if len(idx):
+            i = int(idx[0])
+            raise DataError(f"{self.existing}: {dataset} record {start + i}: {message(i)}")
+
+    def _read(self, fmt, path, refs=None):
+        """Yield (records, locs) of a text file, chunk by chunk."""
+        src = self.src.add(path)
+        for first, chunk in read_chunks(path, self.chunk_bytes):
+            self.bytes += len(chunk)
+            rec, lines = parse_chunk(fmt, chunk, first, self.angles, str(path), refs)
+            self.lines += len(rec)
+            if len(rec):
+                yield rec, self.src.loc(src, lines)
+
+    def _dedupe(self, what, ids, values, locs, names):
+        """Indices of the records to keep, sorted by id; identical repeats dropped, conflicting
+        ones an error naming both places. ``values`` (n, k) int64 bit patterns."""
+        order = np.lexsort((locs, ids))
+        ids_s, vals_s, locs_s = ids[order], values[order], locs[order]
+        same = ids_s[1:] == ids_s[:-1]
+        twice = np.flatnonzero(same)
+        if len(twice):
+            differ = vals_s[twice + 1] != vals_s[twice]
+            bad = np.flatnonzero(differ.any(axis=1))
+            if len(bad):
+                i = twice[bad[0]]
+                field = names[int(np.flatnonzero(differ[bad[0]])[0])]
+                raise DataError(
+                    f"{what} {ids_s[i]} is given twice with different values ({field}): "
+                    f"{self.src.where(locs_s[i])} and {self.src.where(locs_s[i + 1])}")
+        examples = [f"{what} {ids_s[i]} ({self.src.where(locs_s[i])}, "
+                    f"{self.src.where(locs_s[i + 1])})" for i in twice[:EXAMPLES]]
+        keep = order[np.concatenate([[True], ~same])] if len(order) else order
+        return keep, len(twice), examples
+
+    # -- cameras and photos (in core) ----------------------------------------------------
+    def read_cameras(self, p):
+        recs, locs = [], []
+        if p is not None:
+            src = self.src.add(self.existing, "cameras")
+            cams = p.cameras()
+            recs.append(np.array(cams, CAMERA_DTYPE))
+            locs.append(self.src.loc(src, np.arange(len(cams))))
+        for path in self.files["cameras"]:
+            for rec, loc in self._read(CAMERAS, path):
+                recs.append(rec.astype(CAMERA_DTYPE))
+                locs.append(loc)
+        if not recs:
+            raise DataError("no camera: give a cameras file (--cameras)")
+        cams = np.concatenate(recs)
+        locs = np.concatenate(locs)
+        if not len(cams):
+            raise DataError("no camera in the cameras file(s)")
+        names = CAMERA_DTYPE.names[1:]
+        values = _bits(np.stack([cams[n] for n in names], axis=1))
+        keep, twice, examples = self._dedupe("camera", cams["id"], values, locs, names)
+        if twice:
+            self._warn(f"{twice} camera(s) given more than once with identical values were "
+                       f"loaded once: {', '.join(examples)}")
+        self.s["cameras_loaded_twice"] = twice
+        cams = cams[keep]
+        dist = np.stack([cams[n] for n in ("k1", "k2", "k3", "p1", "p2")], axis=1)
+        with_dist = cams["id"][(dist != 0).any(axis=1)]
+        if len(with_dist):
+            self._warn(f"camera(s) {_ids(with_dist)} have lens distortion coefficients: this "
+                       f"version of sapgo cannot adjust such photos ('sapgo adjust' refuses "
+                       f"them); correct the image coordinates beforehand")
+        self.cameras = cams
+        return cams
+
+    def read_photos(self, p):
+        cam_ids = self.cameras["id"]
+        ids, cam, strip, eo, locs = [], [], [], [], []
+        if p is not None:
+            src = self.src.add(self.existing, "stations")
+            st = p.read("stations")
+            old_cam_ids = p.cameras()["id"]
+            self._check_existing("stations", 0, (st["camera"] < 0)
+                                 | (st["camera"] >= len(old_cam_ids)),
+                                 lambda i: f"camera {st['camera'][i]} does not exist")
+            self._check_existing("stations", 0, ~np.isfinite(st["eo"]).all(axis=1),
+                                 lambda i: f"eo is not finite ({st['eo'][i].tolist()})")
+            ids.append(st["id"])
+            cam.append(np.searchsorted(cam_ids, old_cam_ids[st["camera"]]))
+            strip.append(st["strip"].astype(np.int64))
+            eo.append(st["eo"])
+            locs.append(self.src.loc(src, np.arange(len(st))))
+            self.old_station_ids = st["id"]
+
+        def known_camera(rec):
+            unknown = ~_member(cam_ids, rec["camera"])
+            return [(unknown, lambda i: f"camera {rec['camera'][i]} is not in the cameras "
+                                        f"file(s) (column 2)")]
+
+        for path in self.files["photos"]:
+            for rec, loc in self._read(PHOTOS, path, known_camera):
+                k = np.searchsorted(cam_ids, rec["camera"])
+                ids.append(rec["id"])
+                cam.append(k)
+                strip.append(rec["strip"])
+                eo.append(np.stack([rec[n] for n in ("omega", "phi", "kappa", "X", "Y", "Z")],
+                                   axis=1))
+                locs.append(loc)
+        if not ids or not sum(len(i) for i in ids):
+            raise DataError("no photo: give a photos file with at least one photo (--photos)")
+        ids, cam, strip = np.concatenate(ids), np.concatenate(cam), np.concatenate(strip)
+        eo, locs = np.concatenate(eo), np.concatenate(locs)
+        values = np.concatenate([cam_ids[cam][:, None], strip[:, None], _bits(eo)], axis=1)
+        names = ("camera", "strip", "omega", "phi", "kappa", "X", "Y", "Z")
+        keep, twice, examples = self._dedupe("photo", ids, values, locs, names)
+        if twice:
+            self._warn(f"{twice} photo(s) given more than once with identical values were "
+                       f"loaded once: {', '.join(examples)}")
+        self.s["photos_loaded_twice"] = twice
+        st = np.zeros(len(keep), STATION_DTYPE)
+        st["id"] = ids[keep]
+        st["camera"] = cam[keep]
+        st["strip"] = strip[keep]
+        st["status"] = STATUS_ACTIVE
+        st["eo"] = eo[keep]
+        self.stations = st
+        return st
+
+    # -- control (external sort, merged into a work file) --------------------------------
+    def read_control(self, p):
+        path = self.work / "control.bin"
+        self.control_path = path
+        n_twice, examples = 0, []
+        counts = dict.fromkeys(KIND_NAMES, 0)
+        with ExternalSorter(CTRL_DTYPE, ["id", "loc"], self.memory // 2, self.work,
+                            "control") as sorter:
+            if p is not None:
+                src = self.src.add(self.existing, "points")
+                for a, b in p.chunks("points"):
+                    pts = p.read("points", a, b)
+                    self._check_existing("points", a, (pts["kind"] < 0)
+                                         | (pts["kind"] > KIND_CHECK),
+                                         lambda i: f"(id {pts['id'][i]}) unknown kind "
+                                                   f"{pts['kind'][i]}")
+                    sel = np.flatnonzero(pts["kind"] != KIND_PASS)
+                    r = np.zeros(len(sel), CTRL_DTYPE)
+                    r["id"] = pts["id"][sel]
+                    r["kind"] = pts["kind"][sel]
+                    r["control"] = pts["control"][sel]
+                    r["sigma"] = pts["control_sigma"][sel]
+                    r["loc"] = self.src.loc(src, a + sel)
+                    # components a kind leaves open may be NaN in a project: 0, as in a file
+                    loose = ~NEEDED[r["kind"]] & ~np.isfinite(r["control"])
+                    r["control"][loose] = 0.0
+                    r["sigma"][loose] = 0.0
+                    ctrl = CONTROL_MASK[r["kind"]].astype(bool)
+                    r["sigma"][~ctrl & ~np.isfinite(r["sigma"])] = 0.0
+                    bad = np.zeros(b - a, bool)
+                    bad[sel] = ~(np.isfinite(r["control"]).all(axis=1) & (
+                        ~ctrl | ((r["sigma"] >= 0) & np.isfinite(r["sigma"]))).all(axis=1))
+                    self._check_existing("points", a, bad, lambda i: (
+                        f"(id {pts['id'][i]}) control or control_sigma is not finite or "
+                        f"negative"))
+                    sorter.add(r)
+            for fpath in self.files["control"]:
+                for rec, loc in self._read(CONTROL, fpath):
+                    r = np.zeros(len(rec), CTRL_DTYPE)
+                    r["id"] = rec["id"]
+                    r["kind"] = rec["kind"]
+                    r["control"] = np.stack([rec["X"], rec["Y"], rec["Z"]], axis=1)
+                    r["sigma"] = np.stack([rec["sX"], rec["sY"], rec["sZ"]], axis=1)
+                    r["loc"] = loc
+                    sorter.add(r)
+            last = None
+            with open(path, "wb") as f:
+                for c in sorter.sorted_chunks():
+                    ids = c["id"]
+                    same = np.empty(len(c), bool)
+                    same[0] = last is not None and ids[0] == last["id"][0]
+                    same[1:] = ids[1:] == ids[:-1]
+                    dup = np.flatnonzero(same)
+                    if len(dup):
+                        prev = c[np.maximum(dup - 1, 0)]  # copies
+                        if dup[0] == 0:
+                            prev[0] = last[0]
+                        cur = c[dup]
+                        diff = np.stack([prev["kind"] != cur["kind"],
+                                         (_bits(prev["control"]) != _bits(cur["control"]))
+                                         .any(axis=1),
+                                         (_bits(prev["sigma"]) != _bits(cur["sigma"]))
+                                         .any(axis=1)], axis=1)
+                        bad = np.flatnonzero(diff.any(axis=1))
+                        if len(bad):
+                            j = int(bad[0])
+                            what = ("kind", "coordinates", "sigmas")[
+                                int(np.flatnonzero(diff[j])[0])]
+                            raise DataError(
+                                f"control point {cur['id'][j]} is given twice with different "
+                                f"values ({what}): {self.src.where(prev['loc'][j])} and "
+                                f"{self.src.where(cur['loc'][j])}")
+                        n_twice += len(dup)
+                        for j in range(min(len(dup), EXAMPLES - len(examples))):
+                            examples.append(f"point {cur['id'][j]} "
+                                            f"({self.src.where(prev['loc'][j])}, "
+                                            f"{self.src.where(cur['loc'][j])})")
+                    u = c[~same]
+                    u.tofile(f)
+                    for k, n in zip(*np.unique(u["kind"], return_counts=True)):
+                        counts[int(k)] += int(n)
+                    last = c[-1:].copy()
+        if n_twice:
+            self._warn(f"{n_twice} control point(s) given more than once with identical values "
+                       f"were loaded once: {', '.join(examples)}")
+        self.s["control_loaded_twice"] = n_twice
+        # ground height: mean known Z of the control, summed in id order in fixed pieces
+        total, n = 0.0, 0
+        for piece in self._control_pieces(_SUM_PIECE):
+            z = piece["control"][NEEDED[piece["kind"], 2], 2]
+            total += float(np.sum(z))
+            n += len(z)
+        self.ground = total / n if n else None
+        self.n_control = sum(counts.values())
+
+    def _control_pieces(self, size):
+        with open(self.control_path, "rb") as f:
+            while True:
+                c = np.fromfile(f, CTRL_DTYPE, size)
+                if not len(c):
+                    return
+                yield c
+
+    # -- image measurements (external sort) ----------------------------------------------
+    def read_measurements(self, p, sorter):
+        st_ids = self.stations["id"]
+        if p is not None:
+            src = self.src.add(self.existing, "observations")
+            new_of_old = np.searchsorted(st_ids, self.old_station_ids)
+            rejected, expected = 0, 0
+            n_old, n_obs = len(self.old_station_ids), p.n_observations
+            for a, b in p.chunks("points"):
+                pts = p.read("points", a, b)
+                tiles = expected + np.concatenate([[0], np.cumsum(pts["n_obs"][:-1])])
+                self._check_existing("points", a, (pts["obs_start"] != tiles)
+                                     | (pts["n_obs"] < 0) | (tiles + pts["n_obs"] > n_obs),
+                                     lambda i: "obs_start/n_obs do not follow the "
+                                               "observations grouped by point")
+                o0 = expected
+                o1 = expected = int(tiles[-1] + pts["n_obs"][-1])
+                obs = p.read("observations", o0, o1)
+                self._check_existing("observations", o0, (obs["station"] < 0)
+                                     | (obs["station"] >= n_old),
+                                     lambda i: f"station {obs['station'][i]} does not exist")
+                self._check_existing("observations", o0, ~(np.isfinite(obs["x"])
+                                                           & np.isfinite(obs["y"])
+                                                           & (obs["sigma"] >= 0)
+                                                           & np.isfinite(obs["sigma"])),
+                                     lambda i: "x, y or sigma is not finite or sigma < 0")
+                r = np.zeros(len(obs), MEAS_DTYPE)
+                r["point"] = np.repeat(pts["id"], pts["n_obs"])
+                r["station"] = new_of_old[obs["station"]]
+                r["x"], r["y"], r["sigma"] = obs["x"], obs["y"], obs["sigma"]
+                r["loc"] = self.src.loc(src, np.arange(o0, o1))
+                rejected += int((obs["status"] == STATUS_REJECTED).sum())
+                sorter.add(r)
+            if rejected:
+                self._warn(f"{rejected} rejected observation(s) of {self.existing} are active "
+                           f"again (the text formats have no status)")
+
+        def known_photo(rec):
+            unknown = ~_member(st_ids, rec["photo"])
+            return [(unknown, lambda i: f"photo {rec['photo'][i]} is not in the photos "
+                                        f"file(s) (column 1)")]
+
+        for path in self.files["measurements"]:
+            for rec, loc in self._read(MEASUREMENTS, path, known_photo):
+                k = np.searchsorted(st_ids, rec["photo"])
+                r = np.empty(len(rec), MEAS_DTYPE)
+                r["point"] = rec["point"]
+                r["station"] = k
+                r["x"], r["y"], r["sigma"] = rec["x"], rec["y"], rec["sigma"]
+                r["loc"] = loc
+                sorter.add(r)
+
+    # -- the merge-join ------------------------------------------------------------------
+    def _point_blocks(self, chunks):
+        """Blocks of whole points (every record of a point id in one block) of about
+        ``block_records`` records from the sorted measurement stream."""
+        limit = self.block_records
+        pending, n, threshold = [], 0, limit
+        for c in chunks:
+            pos = 0
+            while pos < len(c):
+                k = min(len(c) - pos, max(threshold - n, 1))
+                pending.append(c[pos:pos + k])
+                n += k
+                pos += k
+                if n >= threshold:
+                    buf = np.concatenate(pending) if len(pending) > 1 else pending[0]
+                    cut = int(np.searchsorted(buf["point"], buf["point"][-1], "left"))
+                    if cut == 0:  # a single point fills the block: keep collecting
+                        pending, threshold = [buf], n + limit
+                        continue
+                    yield buf[:cut]
+                    pending, n, threshold = [buf[cut:]], len(buf) - cut, limit
+        if n:
+            yield np.concatenate(pending) if len(pending) > 1 else pending[0]
+
+    @staticmethod
+    def _join(obs_blocks, ctrl_blocks):
+        """Pairs (observations, control records) covering the same range of point ids."""
+        empty_o, empty_c = np.zeros(0, MEAS_DTYPE), np.zeros(0, CTRL_DTYPE)
+        o, c = next(obs_blocks, None), next(ctrl_blocks, None)
+        while o is not None or c is not None:
+            if o is None:
+                yield empty_o, c
+                c = next(ctrl_blocks, None)
+            elif c is None:
+                yield o, empty_c
+                o = next(obs_blocks, None)
+            elif o["point"][-1] <= c["id"][-1]:
+                k = int(np.searchsorted(c["id"], o["point"][-1], "right"))
+                yield o, c[:k]
+                c = c[k:] if k < len(c) else next(ctrl_blocks, None)
+                o = next(obs_blocks, None)
+            else:
+                k = int(np.searchsorted(o["point"], c["id"][-1], "right"))
+                yield o[:k], c
+                o = o[k:] if k < len(o) else next(obs_blocks, None)
+                c = next(ctrl_blocks, None)
+
+    def _merge_duplicates(self, o):
+        """Observations with every (point, station) pair once: duplicates averaged."""
+        n = len(o)
+        if n == 0:
+            return o
+        new = np.empty(n, bool)
+        new[0] = True
+        new[1:] = (o["point"][1:] != o["point"][:-1]) | (o["station"][1:] != o["station"][:-1])
+        g = np.flatnonzero(new)
+        if len(g) == n:
+            return o
+        sizes = np.diff(np.append(g, n))
+        gid = np.cumsum(new) - 1
+        dup_g = np.flatnonzero(sizes > 1)
+        members = np.flatnonzero(sizes[gid] > 1)
+        sub = o[members]
+        sub = sub[np.lexsort((sub["loc"], sub["sigma"], sub["y"], sub["x"], gid[members]))]
+        starts = np.flatnonzero(np.concatenate([[True], sub["point"][1:] != sub["point"][:-1]])
+                                | np.concatenate([[True], sub["station"][1:]
+                                                  != sub["station"][:-1]]))
+        sz = np.diff(np.append(starts, len(sub)))
+        xs, ys, sig = sub["x"][starts].copy(), sub["y"][starts].copy(), sub["sigma"][starts].copy()
+        for k in range(1, int(sz.max())):  # sequential sums in sorted value order
+            m = sz > k
+            xs[m] += sub["x"][starts[m] + k]
+            ys[m] += sub["y"][starts[m] + k]
+            sig[m] = np.maximum(sig[m], sub["sigma"][starts[m] + k])
+        spread = np.maximum(
+            np.maximum.reduceat(sub["x"], starts) - np.minimum.reduceat(sub["x"], starts),
+            np.maximum.reduceat(sub["y"], starts) - np.minimum.reduceat(sub["y"], starts))
+        out = o[g]  # a copy
+        out["x"][dup_g] = xs / sz
+        out["y"][dup_g] = ys / sz
+        out["sigma"][dup_g] = sig
+        out["loc"][dup_g] = sub["loc"][starts]
+        s = self.s
+        s["duplicate_observations"] += int(len(sub) - len(starts))
+        s["duplicate_max_um"] = max(s["duplicate_max_um"], float(spread.max()) * 1000.0)
+        st_ids = self.stations["id"]
+        for j in range(min(len(starts), EXAMPLES - len(self.dup_examples))):
+            a, k = int(starts[j]), int(sz[j])
+            where = ", ".join(self.src.where(v) for v in sub["loc"][a:a + min(k, 3)])
+            more = ", ..." if k > 3 else ""
+            self.dup_examples.append(f"point {sub['point'][a]} on photo "
+                                     f"{st_ids[sub['station'][a]]} ({where}{more})")
+        return out
+
+    def _assemble(self, o, ctl, point_base):
+        """Point and observation records of one block of point ids."""
+        o = self._merge_duplicates(o)
+        n_o = len(o)
+        if n_o:
+            first = np.concatenate([[True], o["point"][1:] != o["point"][:-1]])
+            o_starts = np.flatnonzero(first)
+            o_ids = o["point"][o_starts]
+            o_counts = np.diff(np.append(o_starts, n_o))
+        else:
+            o_starts = o_ids = o_counts = np.zeros(0, np.int64)
+        ids = np.union1d(o_ids, ctl["id"]) if len(ctl) else o_ids
+        n = len(ids)
+        pts = np.zeros(n, POINT_DTYPE)
+        pts["id"] = ids
+        pts["status"] = STATUS_ACTIVE
+        pts["station_min"] = -1
+        pts["station_max"] = -1
+        at_o = np.searchsorted(ids, o_ids)
+        counts = np.zeros(n, np.int64)
+        counts[at_o] = o_counts
+        pts["n_obs"] = counts
+        starts = np.zeros(n, np.int64)
+        np.cumsum(counts[:-1], out=starts[1:])
+        pts["obs_start"] = starts
+        kind = np.zeros(n, np.int8)
+        if len(ctl):
+            at_c = np.searchsorted(ids, ctl["id"])
+            kind[at_c] = ctl["kind"]
+            pts["control"][at_c] = ctl["control"]
+            pts["control_sigma"][at_c] = ctl["sigma"]
+        pts["kind"] = kind
+        control = pts["control"]
+
+        # approximate coordinates: intersection of the rays from the approximate stations
+        xyz = np.zeros((n, 3))
+        ok = np.zeros(n, np.bool_)
+        station = np.ascontiguousarray(o["station"])
+        xy = np.ascontiguousarray(np.stack([o["x"], o["y"]], axis=1)) if n_o else np.zeros((0, 2))
+        if n_o:
+            intersect_points(starts, counts, station, xy, self.eo, self.cam_of_station,
+                             self.cam_f, self.cam_x0, self.cam_y0, xyz, ok)
+            ok &= np.isfinite(xyz).all(axis=1)
+        # one ray (or parallel rays): a point on the first ray at the ground height (a
+        # vertical control point: at its known height)
+        ray = np.flatnonzero(~ok & (counts > 0))
+        if len(ray):
+            first_obs = starts[ray]
+            s = station[first_obs]
+            c = self.cam_of_station[s]
+            height = np.full(len(ray), np.nan if self.ground is None else self.ground)
+            vert = kind[ray] == KIND_VERTICAL
+            height[vert] = control[ray[vert], 2]
+            xyz[ray] = ray_points(self.eo[s], xy[first_obs], self.cam_f[c], self.cam_x0[c],
+                                  self.cam_y0[c], height, self.ray_distance)
+        none = counts == 0
+        xyz[none] = self.no_ray_xyz
+        # known components replace the approximations (no rays: check points too)
+        known = CONTROL_MASK[kind].astype(bool)
+        known[none] = NEEDED[kind[none]]
+        xyz = np.where(known, control, xyz)
+        bad = ~np.isfinite(xyz).all(axis=1)
+        xyz[bad] = self.no_ray_xyz
+        pts["xyz"] = xyz
+
+        ob = np.zeros(n_o, OBSERVATION_DTYPE)
+        ob["point"] = point_base + np.repeat(np.arange(n), counts)
+        ob["station"] = o["station"]
+        ob["x"] = o["x"]
+        ob["y"] = o["y"]
+        ob["sigma"] = o["sigma"]
+        ob["status"] = STATUS_ACTIVE
+
+        # statistics
+        s = self.s
+        for k in KIND_NAMES:
+            s["kinds"][k] += int((kind == k).sum())
+        lonely = ids[(kind != KIND_PASS) & none]
+        s["control_without_measurements"] += len(lonely)
+        self.lonely_ids.extend(lonely[:LISTED - len(self.lonely_ids)].tolist())
+        s["single_ray_points"] += int((counts == 1).sum())
+        s["unintersected_points"] += int((~ok & (counts > 1)).sum())
+        if n_o:
+            self.obs_per_station += np.bincount(station, minlength=len(self.eo))
+        return pts, ob
+
+    # -- the whole import ----------------------------------------------------------------
+    def run(self):
+        s = self.s
+        s.update(duplicate_observations=0, duplicate_max_um=0.0, control_without_measurements=0,
+                 single_ray_points=0, unintersected_points=0,
+                 kinds=dict.fromkeys(KIND_NAMES, 0))
+        self.dup_examples, self.lonely_ids = [], []
+        attrs = {}
+        priors = np.zeros(0, PRIOR_DTYPE)
+        entry = {"command": "import", "angles": self.angles, "append": bool(self.existing),
+                 "files": {k: [str(f) for f in v] for k, v in self.files.items()}}
+        with contextlib.ExitStack() as stack:
+            p = stack.enter_context(Project(self.existing)) if self.existing else None
+            self.read_cameras(p)
+            self.read_photos(p)
+            st = self.stations
+            self.eo = np.ascontiguousarray(st["eo"])
+            self.cam_of_station = st["camera"].astype(np.int64)
+            self.cam_f = np.ascontiguousarray(self.cameras["focal_length"])
+            self.cam_x0 = np.ascontiguousarray(self.cameras["x0"])
+            self.cam_y0 = np.ascontiguousarray(self.cameras["y0"])
+            self.read_control(p)
+            sorter = ExternalSorter(MEAS_DTYPE, ["point", "station"], self.memory // 2,
+                                    self.work, "observations")
+            stack.enter_context(sorter)
+            self.read_measurements(p, sorter)
+            if p is not None:
+                pr = p.read("station_priors")
+                if len(pr):
+                    new_of_old = np.searchsorted(st["id"], self.old_station_ids)
+                    pr["station"] = new_of_old[pr["station"]]
+                    priors = pr[np.argsort(pr["station"], kind="stable")]
+                dropped = [n for n, has in (("/truth", p.has_truth),
+                                            ("/solution", p.has_solution)) if has]
+                if dropped:
+                    self._warn(f"{self.existing}: {' and '.join(dropped)} no longer match the "
+                               f"records and were dropped")
+                history = p.attr("history", "[]")
+                for k in ("frame", "crs"):
+                    v = p.attr(k)
+                    if v is not None:
+                        attrs[k] = v
+                p.close()  # everything is read: OUT is replaced below
+            else:
+                history = "[]"
+            attrs["history"] = append_history(history, entry)
+            if sorter.count == 0:
+                raise DataError("the block has no image measurement (--measurements)")
+
+            # ground height and fall-backs for points that cannot be intersected
+            z_st = float(np.mean(st["eo"][:, 5]))
+            if self.ground is not None and z_st - self.ground > 0:
+                self.ray_distance = z_st - self.ground
+            else:
+                self.ray_distance = DEFAULT_RAY_DISTANCE
+            ground = self.ground if self.ground is not None else z_st - self.ray_distance
+            self.no_ray_xyz = np.array([float(np.mean(st["eo"][:, 3])),
+                                        float(np.mean(st["eo"][:, 4])), ground])
+            self.obs_per_station = np.zeros(len(st), np.int64)
+
+            with ProjectWriter(self.out, attrs) as w:
+                w.append("cameras", self.cameras)
+                w.append("stations", st)
+                w.append("station_priors", priors)
+                ctrl_blocks = self._control_pieces(max(4096, self.memory // (64 * 72)))
+                for o, ctl in self._join(self._point_blocks(sorter.sorted_chunks()),
+                                         ctrl_blocks):
+                    pts, ob = self._assemble(o, ctl, w.size("points"))
+                    pts["obs_start"] += w.size("observations")
+                    w.append("points", pts)
+                    w.append("observations", ob)
+                n_points, n_obs = w.size("points"), w.size("observations")
+                w.finish()
+
+        # warnings and summary
+        if s["duplicate_observations"]:
+            self._warn(f"{s['duplicate_observations']} duplicate image measurement(s) merged "
+                       f"(the same point measured more than once on one photo; coordinates "
+                       f"averaged, largest difference {s['duplicate_max_um']:.1f} um): "
+                       f"{', '.join(self.dup_examples)}")
+        if s["control_without_measurements"]:
+            n = s["control_without_measurements"]
+            more = ", ..." if n > len(self.lonely_ids) else ""
+            self._warn(f"{n} control or check point(s) have no image measurement (kept with "
+                       f"n_obs 0): ids {_ids(self.lonely_ids)}{more}")
+        empty = st["id"][self.obs_per_station == 0]
+        if len(empty):
+            self._warn(f"{len(empty)} photo(s) have no image measurement: ids {_ids(empty)}")
+        kinds = {KIND_NAMES[k]: v for k, v in s["kinds"].items()}
+        return {
+            "path": str(self.out),
+            "appended": bool(self.existing),
+            "cameras": len(self.cameras),
+            "photos": len(st),
+            "points": n_points,
+            "points_by_kind": kinds,
+            "observations": n_obs,
+            "station_priors": len(priors),
+            "lines": self.lines,
+            "bytes": self.bytes,
+            "duplicate_observations": s["duplicate_observations"],
+            "duplicate_max_um": s["duplicate_max_um"],
+            "duplicate_examples": list(self.dup_examples),
+            "photos_loaded_twice": s["photos_loaded_twice"],
+            "cameras_loaded_twice": s["cameras_loaded_twice"],
+            "control_loaded_twice": s["control_loaded_twice"],
+            "control_without_measurements": s["control_without_measurements"],
+            "photos_without_measurements": int(len(empty)),
+            "single_ray_points": s["single_ray_points"],
+            "unintersected_points": s["unintersected_points"],
+            "warnings": list(self.warnings),
+        }
+
+
+def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles="deg",
+                memory=None, append=False, force=False):
+    """Import a block from text files into the project ``out``; returns a summary dict.
+
+    ``cameras``, ``photos``, ``measurements`` and ``control`` are paths or lists of paths
+    (several files of a kind are read as one). ``angles``: the unit of the photos' omega,
+    phi, kappa (``"deg"``, ``"gon"`` or ``"rad"``). ``memory``: the budget of the sorting
+    phases (bytes or ``"512M"``; default :data:`sapgo.extsort.DEFAULT_MEMORY`).
+
+    If ``out`` exists, ``force=True`` replaces it and ``append=True`` adds the files to it:
+    its records are read back and combined with the files as if all had been imported
+    together (its cameras, photos and control count as loaded before: identical repeats are
+    fine, different values are an error). Its station priors are kept; ``/truth`` and
+    ``/solution`` are dropped with a warning.
+
+    Errors (:class:`~sapgo.errors.DataError`, :class:`~sapgo.errors.ParameterError`) are one
+    line naming the file and line. The summary dict counts cameras, photos, points (by kind),
+    observations, merged duplicates, photos/cameras/control loaded twice and control points
+    without measurements, and lists the ``warnings``.
+    """
+    t0 = time.perf_counter()
+    check_angles(angles)
+    memory = DEFAULT_MEMORY if memory is None else parse_memory(memory)
+    out = Path(out)
+    files = {"cameras": _as_list(cameras), "photos": _as_list(photos),
+             "measurements": _as_list(measurements), "control": _as_list(control)}
+    if append and force:
+        raise ParameterError("--append and --force exclude each other: --append adds the files "
+                             "to the project, --force replaces it")
+    if out.is_dir():
+        raise ParameterError(f"{out}: is a directory")
+    exists = out.exists()
+    if exists and not (append or force):
+        raise ParameterError(f"{out} exists: use --append to add the files to it or --force "
+                             f"to replace it")
+    if not (append and exists):
+        for kind in ("cameras", "photos", "measurements"):
+            if not files[kind]:
+                raise ParameterError(f"no {kind} file given (--{kind})")
+    elif not any(files.values()):
+        raise ParameterError("nothing to append: give --cameras, --photos, --measurements "
+                             "or --control files")
+    for kind, paths in files.items():
+        for f in paths:
+            f = Path(f)
+            if not f.exists():
+                raise ParameterError(f"{f}: no such file (--{kind})")
+            if f.is_dir():
+                raise ParameterError(f"{f}: is a directory, not a {kind} file (--{kind})")
+    work = out.with_name(out.name + ".import.work")
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    try:
+        summary = _Import(out, files, angles, memory, work,
+                          out if (append and exists) else None).run()
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    summary["seconds"] = time.perf_counter() - t0
+    summary["lines_per_second"] = summary["lines"] / max(summary["seconds"], 1e-9)
+    return summary
+
+
+def summary_text(summary):
+    """The one-paragraph summary ``sapgo import`` prints."""
+    s = summary
+    kinds = ", ".join(f"{n} {k}" for k, n in s["points_by_kind"].items() if n)
+    verb = "appended to" if s["appended"] else "imported"
+    extra = []
+    if s["duplicate_observations"]:
+        extra.append(f"{s['duplicate_observations']} duplicate measurement(s) merged")
+    if s["station_priors"]:
+        extra.append(f"{s['station_priors']} station prior(s) kept")
+    tail = ("; " + "; ".join(extra)) if extra else ""
+    return (f"{verb} {s['path']}: {s['cameras']} camera(s), {s['photos']} photo(s), "
+            f"{s['points']} point(s) ({kinds or 'none'}), {s['observations']} image "
+            f"observation(s){tail}; {s['lines']} line(s) read in {s['seconds']:.1f} s "
+            f"({s['lines_per_second']:,.0f} lines/s)")

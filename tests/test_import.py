@@ -1,0 +1,575 @@
+"""``sapgo import``: text files in, the same records out, in any order and within the budget."""
+
+import hashlib
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+import sapgo
+from conftest import read_records, rewrite
+from sapgo.cli import main
+from sapgo.errors import DataError, ParameterError
+from sapgo.formats.text import export_text
+from sapgo.ingest import import_text
+from sapgo.project import KIND_PASS, Project
+
+DATASETS = ("cameras", "stations", "station_priors", "points", "observations")
+
+
+# -- helpers ---------------------------------------------------------------------------
+
+def digest(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def run_cli(capsys, *args):
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def dataset_bytes(path):
+    with Project(path) as p:
+        return {k: p.read(k).tobytes() for k in DATASETS}
+
+
+def assert_same_records(a, b):
+    da, db = dataset_bytes(a), dataset_bytes(b)
+    for k in DATASETS:
+        assert da[k] == db[k], f"/{k} differs"
+
+
+def data_lines(path):
+    """The data lines of a text file (comments and blank lines dropped)."""
+    return [ln for ln in path.read_text().splitlines() if ln.strip() and ln[0] != "#"]
+
+
+def write_lines(path, lines, header="# written by the test\n"):
+    path.write_text(header + "".join(ln + "\n" for ln in lines))
+    return path
+
+
+def files_of(d):
+    return dict(cameras=d / "cameras.txt", photos=d / "photos.txt",
+                measurements=d / "measurements.txt", control=d / "control.txt")
+
+
+def cli_args(files):
+    args = []
+    for k, v in files.items():
+        for f in v if isinstance(v, list) else [v]:
+            args += [f"--{k}", f]
+    return args
+
+
+@pytest.fixture
+def exported(small_block, tmp_path):
+    """The small generated block and its text export (degrees)."""
+    d = tmp_path / "txt"
+    export_text(small_block, d)
+    return small_block, d
+
+
+def by_key(arr, keys):
+    return arr[np.lexsort(tuple(arr[k] for k in reversed(keys)))]
+
+
+def input_records_by_id(path):
+    """A project's input records keyed by the user's ids, independent of record order."""
+    rec = read_records(path)
+    cams, st, pt, ob = rec["cameras"], rec["stations"], rec["points"], rec["observations"]
+    stations = np.zeros(len(st), [("id", "<i8"), ("camera", "<i8"), ("strip", "<i8"),
+                                  ("eo", "<f8", (6,))])
+    stations["id"], stations["camera"] = st["id"], cams["id"][st["camera"]]
+    stations["strip"], stations["eo"] = st["strip"], st["eo"]
+    used = (pt["kind"] != KIND_PASS) | (pt["n_obs"] > 0)
+    points = pt[used][["id", "kind", "control", "control_sigma"]]
+    points = np.array(points, np.dtype([("id", "<i8"), ("kind", "i1"), ("control", "<f8", (3,)),
+                                        ("control_sigma", "<f8", (3,))]))
+    points["control"][points["kind"] == KIND_PASS] = 0.0
+    points["control_sigma"][points["kind"] == KIND_PASS] = 0.0
+    obs = np.zeros(len(ob), [("photo", "<i8"), ("point", "<i8"), ("x", "<f8"), ("y", "<f8"),
+                             ("sigma", "<f8")])
+    obs["photo"], obs["point"] = st["id"][ob["station"]], pt["id"][ob["point"]]
+    obs["x"], obs["y"], obs["sigma"] = ob["x"], ob["y"], ob["sigma"]
+    return {"cameras": np.sort(cams, order="id").tobytes(),
+            "stations": by_key(stations, ["id"]).tobytes(),
+            "points": by_key(points, ["id"]).tobytes(),
+            "observations": by_key(obs, ["photo", "point", "x", "y"]).tobytes()}
+
+
+def adjusted_by_id(path):
+    with Project(path) as p:
+        st, pt = p.read("stations"), p.read("points")
+        eo = st["eo"] + p.solution("station_corr")
+        xyz = pt["xyz"] + p.solution("point_corr")
+    return (dict(zip(st["id"].tolist(), eo)),
+            dict(zip(pt["id"][pt["status"] == 0].tolist(), xyz[pt["status"] == 0])))
+
+
+# -- round trip ------------------------------------------------------------------------
+
+def test_export_import_reproduces_the_generated_block_and_its_adjustment(exported, tmp_path):
+    gen, d = exported
+    out = tmp_path / "imported.h5"
+    s = import_text(out, **files_of(d))
+    assert input_records_by_id(out) == input_records_by_id(gen)
+    rec = read_records(gen)
+    assert s["photos"] == len(rec["stations"]) and s["observations"] == len(rec["observations"])
+    assert s["points_by_kind"]["control"] == int((rec["points"]["kind"] == 1).sum())
+    assert s["warnings"] == []
+    with Project(out) as p:
+        assert not p.ordered and p.n_priors == 0 and not p.has_truth
+        assert p.history()[-1]["command"] == "import"
+        pt = p.read("points")
+        assert (np.diff(pt["id"]) > 0).all() and (pt["station_min"] == -1).all()
+        assert np.isfinite(pt["xyz"]).all()
+        st = p.read("stations")
+        assert (np.diff(st["id"]) > 0).all()
+        ob = p.read("observations")
+        key = ob["point"] * len(st) + ob["station"]
+        assert (np.diff(key) > 0).all()  # grouped by point, by station within a point
+
+    # both adjust to the same result (the text formats carry no station priors)
+    if len(rec["station_priors"]):
+        rec["station_priors"] = rec["station_priors"][:0]
+        rewrite(gen, rec)
+    opts = sapgo.Options(progress=False)
+    assert sapgo.adjust(gen, opts).converged and sapgo.adjust(out, opts).converged
+    (eo_g, xyz_g), (eo_i, xyz_i) = adjusted_by_id(gen), adjusted_by_id(out)
+    assert eo_g.keys() == eo_i.keys() and xyz_g.keys() == xyz_i.keys()
+    for k in eo_g:
+        assert np.abs(eo_g[k][3:] - eo_i[k][3:]).max() < 1e-6
+        assert np.abs(eo_g[k][:3] - eo_i[k][:3]).max() < 1e-9
+    assert max(np.abs(xyz_g[k] - xyz_i[k]).max() for k in xyz_g) < 1e-6
+
+
+@pytest.mark.parametrize("angles", ["gon", "rad"])
+def test_every_angle_unit_reads_back_bitwise(exported, tmp_path, angles):
+    gen, d = exported
+    export_text(gen, tmp_path / angles, angles=angles)
+    import_text(tmp_path / "deg.h5", **files_of(d))
+    import_text(tmp_path / f"{angles}.h5", angles=angles, **files_of(tmp_path / angles))
+    assert_same_records(tmp_path / "deg.h5", tmp_path / f"{angles}.h5")
+
+
+def test_shuffled_measurement_files_give_bitwise_the_same_project(exported, tmp_path):
+    _, d = exported
+    files = files_of(d)
+    strip_of = {ln.split()[0]: int(ln.split()[2]) for ln in data_lines(files["photos"])}
+    lines = data_lines(files["measurements"])
+    in_strip_order = sorted(lines, key=lambda ln: (strip_of[ln.split()[0]], int(ln.split()[0])))
+    write_lines(tmp_path / "strips.txt", in_strip_order)
+    import_text(tmp_path / "a.h5", **dict(files, measurements=tmp_path / "strips.txt"))
+
+    rng = np.random.default_rng(7)
+    by_photo = {}
+    for ln in lines:
+        by_photo.setdefault(ln.split()[0], []).append(ln)
+    shuffled = []
+    for photo in rng.permutation(sorted(by_photo)):
+        group = by_photo[photo]
+        shuffled += [f"# photo {photo}", ""] + [group[i] for i in rng.permutation(len(group))]
+    shuffled = [ln + "   # a remark" if i % 7 == 0 and ln else ln for i, ln in enumerate(shuffled)]
+    half = len(shuffled) // 2
+    parts = [write_lines(tmp_path / "m2.txt", shuffled[half:]),
+             write_lines(tmp_path / "m1.txt", shuffled[:half])]
+    import_text(tmp_path / "b.h5", memory="4M", **dict(files, measurements=parts))
+    assert_same_records(tmp_path / "a.h5", tmp_path / "b.h5")
+
+
+# -- duplicates ------------------------------------------------------------------------
+
+def test_duplicate_measurements_are_merged_into_their_mean(exported, tmp_path, capsys):
+    gen, d = exported
+    files = files_of(d)
+    lines = data_lines(files["measurements"])
+    extra = []
+    for i, ln in enumerate(lines[:10]):  # the same points measured again, 2 um off in x
+        photo, point, x, y, sig = ln.split()
+        extra.append(f"{photo} {point} {float(x) + (0.002 if i % 2 else -0.002)!r} {y} {sig}")
+    write_lines(tmp_path / "again.txt", extra)
+    out = tmp_path / "dup.h5"
+    code, stdout, err = run_cli(capsys, "import", out, *cli_args(files), "--measurements",
+                                tmp_path / "again.txt")
+    assert code == 0
+    warning = [ln for ln in err.splitlines() if "duplicate" in ln]
+    assert len(warning) == 1 and warning[0].startswith("sapgo: warning: 10 duplicate")
+    assert "largest difference 2.0 um" in warning[0] and "again.txt:2" in warning[0]
+    assert "10 duplicate measurement(s) merged" in stdout
+    rec = read_records(out)
+    assert len(rec["observations"]) == len(lines)
+    want = {}
+    for a, b in zip(lines[:10], extra):
+        a, b = a.split(), b.split()
+        want[(int(a[0]), int(a[1]))] = (float(a[2]) + float(b[2])) / 2
+    st_id, pt_id = rec["stations"]["id"], rec["points"]["id"]
+    for o in rec["observations"]:
+        key = (int(st_id[o["station"]]), int(pt_id[o["point"]]))
+        if key in want:
+            assert o["x"] == want[key]
+    # the merge does not depend on the order of the duplicates
+    rev = tmp_path / "reversed.txt"
+    write_lines(rev, list(reversed(extra + lines)))
+    import_text(tmp_path / "rev.h5", **dict(files, measurements=rev))
+    assert_same_records(out, tmp_path / "rev.h5")
+
+
+def test_the_same_file_twice_is_loaded_once(exported, tmp_path):
+    _, d = exported
+    files = files_of(d)
+    import_text(tmp_path / "once.h5", **files)
+    twice = {k: [v, v] for k, v in files.items()}
+    s = import_text(tmp_path / "twice.h5", **twice)
+    assert_same_records(tmp_path / "once.h5", tmp_path / "twice.h5")
+    n_photos = len(data_lines(files["photos"]))
+    assert s["photos_loaded_twice"] == n_photos and s["cameras_loaded_twice"] == 1
+    assert s["duplicate_observations"] == len(data_lines(files["measurements"]))
+    assert s["duplicate_max_um"] == 0.0
+    assert s["control_loaded_twice"] == len(data_lines(files["control"]))
+    assert any(f"{n_photos} photo(s) given more than once" in w for w in s["warnings"])
+
+
+def test_a_photo_given_twice_with_different_values_is_an_error(exported, tmp_path, capsys):
+    _, d = exported
+    files = files_of(d)
+    photo = data_lines(files["photos"])[3].split()
+    photo[6] = repr(float(photo[6]) + 0.5)  # X
+    write_lines(tmp_path / "more.txt", ["", " ".join(photo)])
+    code, _, err = run_cli(capsys, "import", tmp_path / "x.h5", *cli_args(files), "--photos",
+                           tmp_path / "more.txt")
+    assert_one_line_error(code, err, f"photo {photo[0]} is given twice with different values",
+                          "(X)", "photos.txt:5", "more.txt:3")
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_a_control_point_given_twice_with_different_values_is_an_error(exported, tmp_path):
+    _, d = exported
+    files = files_of(d)
+    ctl = data_lines(files["control"])[2].split()
+    ctl[3] = repr(float(ctl[3]) + 0.01)
+    write_lines(tmp_path / "c2.txt", [" ".join(ctl)])
+    with pytest.raises(DataError, match=rf"control point {ctl[0]} is given twice with "
+                                        rf"different values \(coordinates\): .*control.txt:4 and "
+                                        rf".*c2.txt:2"):
+        import_text(tmp_path / "x.h5", **dict(files, control=[files["control"],
+                                                              tmp_path / "c2.txt"]))
+
+
+def test_control_kinds_unknown_components_and_lonely_points(exported, tmp_path):
+    gen, d = exported
+    files = files_of(d)
+    rec = read_records(gen)
+    ids = rec["points"]["id"][rec["points"]["n_obs"] > 0]
+    lines = [f"{ids[0]} 1000.5 2000.25 - 0.05 0.05 - horizontal",
+             f"{ids[1]} nan - 350.0 - - 0.1 VERTICAL",
+             f"{ids[2]} 1 2 3 0 0 0 check",
+             "99999 10 20 30 0.1 0.1 0.1",  # no measurement: kept with n_obs 0, reported
+             ]
+    write_lines(tmp_path / "c.txt", lines)
+    out = tmp_path / "k.h5"
+    s = import_text(out, **dict(files, control=tmp_path / "c.txt"))
+    assert s["control_without_measurements"] == 1
+    assert any("have no image measurement (kept with n_obs 0): ids 99999" in w
+               for w in s["warnings"])
+    assert s["points_by_kind"] == {"pass": len(ids) - 3, "control": 1, "horizontal": 1,
+                                   "vertical": 1, "check": 1}
+    pt = read_records(out)["points"]
+    get = {int(i): r for i, r in zip(pt["id"], pt)}
+    h, v, c, lone = get[ids[0]], get[ids[1]], get[ids[2]], get[99999]
+    assert h["kind"] == 2 and list(h["control"]) == [1000.5, 2000.25, 0.0]
+    assert list(h["control_sigma"]) == [0.05, 0.05, 0.0] and list(h["xyz"][:2]) == [1000.5, 2000.25]
+    assert v["kind"] == 3 and v["control"][2] == 350.0 and v["xyz"][2] == 350.0
+    assert c["kind"] == 4 and list(c["control"]) == [1, 2, 3] and list(c["xyz"]) != [1, 2, 3]
+    assert lone["n_obs"] == 0 and list(lone["xyz"]) == [10, 20, 30]
+    assert np.isfinite(pt["xyz"]).all()
+    # '-' comes back as '-' and the records read back bitwise
+    export_text(out, tmp_path / "again")
+    text = (tmp_path / "again" / "control.txt").read_text()
+    assert f"{ids[0]} 1000.5 2000.25 - 0.05 0.05 - horizontal" in text
+    assert f"{ids[1]} - - 350.0 - - 0.1 vertical" in text
+    import_text(tmp_path / "k2.h5", **files_of(tmp_path / "again"))
+    assert_same_records(out, tmp_path / "k2.h5")
+
+
+def test_points_that_cannot_be_intersected_get_finite_coordinates(exported, tmp_path):
+    _, d = exported
+    files = files_of(d)
+    photo = data_lines(files["photos"])[0].split()[0]
+    lines = data_lines(files["measurements"]) + [
+        f"{photo} 777001 1.0 2.0",       # a single ray
+        f"{photo} 777002 -3.0 4.0 0.004",
+    ]
+    write_lines(tmp_path / "m.txt", lines)
+    out = tmp_path / "one.h5"
+    s = import_text(out, **dict(files, measurements=tmp_path / "m.txt"))
+    assert s["single_ray_points"] >= 2
+    rec = read_records(out)
+    pt = rec["points"]
+    assert np.isfinite(pt["xyz"]).all()
+    j = int(np.flatnonzero(pt["id"] == 777001)[0])
+    known_z = np.isin(pt["kind"], (1, 3, 4))  # full, vertical and check points
+    ground = pt["control"][known_z, 2].mean()
+    assert abs(pt["xyz"][j, 2] - ground) < 1e-6  # on its ray at the mean ground height
+    assert rec["observations"]["sigma"][pt["obs_start"][j]] == 0.0
+    assert sapgo.adjust(out, sapgo.Options(progress=False)).converged
+
+
+def test_many_control_points_given_twice_stream_through_a_small_budget(exported, tmp_path):
+    _, d = exported
+    files = files_of(d)
+    many = [f"{900000 + i} {i * 0.5!r} {i * 0.25!r} 400.0 0 0 0 check" for i in range(30000)]
+    rng = np.random.default_rng(3)
+    twice = [many[i] for i in rng.permutation(len(many))]
+    write_lines(tmp_path / "a.txt", many)
+    write_lines(tmp_path / "b.txt", twice)
+    s = import_text(tmp_path / "x.h5", memory="4M",
+                    **dict(files, control=[files["control"], tmp_path / "a.txt",
+                                           tmp_path / "b.txt"]))
+    assert s["control_loaded_twice"] == len(many)
+    assert s["control_without_measurements"] == len(many)
+    assert s["points_by_kind"]["check"] >= len(many)
+    with Project(tmp_path / "x.h5") as p:
+        pt = p.read("points")
+    lonely = pt[pt["id"] >= 900000]
+    assert len(lonely) == len(many) and (lonely["n_obs"] == 0).all()
+    assert np.array_equal(lonely["xyz"], lonely["control"])
+    twice[-1] = twice[-1].replace(" 400.0 ", " 400.5 ")
+    write_lines(tmp_path / "b.txt", twice)
+    with pytest.raises(DataError, match=r"given twice with different values \(coordinates\): "
+                                        r".*a\.txt:\d+ and .*b\.txt:30001"):
+        import_text(tmp_path / "y.h5", memory="4M",
+                    **dict(files, control=[tmp_path / "a.txt", tmp_path / "b.txt"]))
+
+
+def test_mixed_columns_and_the_earliest_error(exported, tmp_path):
+    _, d = exported
+    files = files_of(d)
+    lines = data_lines(files["measurements"])
+    mixed = [" ".join(ln.split()[:4]) if i % 3 == 0 else ln for i, ln in enumerate(lines)]
+    write_lines(tmp_path / "mixed.txt", mixed)
+    s = import_text(tmp_path / "mixed.h5", **dict(files, measurements=tmp_path / "mixed.txt"))
+    with Project(tmp_path / "mixed.h5") as p:
+        sigma = p.read_field("observations", "sigma")
+    assert s["observations"] == len(lines) and (sigma == 0).sum() == len(lines[::3])
+    bad = list(lines)
+    bad[5] = bad[5].replace(bad[5].split()[4], "-1.0")    # line 7: negative sigma
+    bad[3] = "424242 " + " ".join(bad[3].split()[1:])     # line 5: unknown photo
+    bad[9] = bad[9] + " 17"                               # line 11: 6 columns
+    write_lines(tmp_path / "bad.txt", bad)
+    with pytest.raises(DataError, match=r"bad\.txt:5: photo 424242 is not in the photos"):
+        import_text(tmp_path / "bad.h5", **dict(files, measurements=tmp_path / "bad.txt"))
+
+
+# -- stacking sub-blocks ---------------------------------------------------------------
+
+def test_sub_blocks_stacked_with_append_equal_the_whole_block(exported, tmp_path, capsys):
+    _, d = exported
+    files = files_of(d)
+    photos = data_lines(files["photos"])
+    strip_of = {ln.split()[0]: int(ln.split()[2]) for ln in photos}
+    strips = sorted(set(strip_of.values()))
+    first = {p for p, s in strip_of.items() if s == strips[0]}
+    meas = data_lines(files["measurements"])
+    m1 = [ln for ln in meas if ln.split()[0] in first]
+    m2 = [ln for ln in meas if ln.split()[0] not in first]
+    seen1 = {ln.split()[1] for ln in m1}
+    seen2 = {ln.split()[1] for ln in m2}
+    control = data_lines(files["control"])
+    c1 = [ln for ln in control if ln.split()[0] in seen1]  # shared points in both parts
+    c2 = [ln for ln in control if ln.split()[0] in seen2 or ln.split()[0] not in seen1]
+    assert len(c1) and len(c2) and len(m1) and len(m2)
+    part = {}
+    for k, (ph, m, c) in {1: ([p for p in photos if p.split()[0] in first], m1, c1),
+                          2: ([p for p in photos if p.split()[0] not in first], m2, c2)}.items():
+        part[k] = dict(photos=write_lines(tmp_path / f"p{k}.txt", ph),
+                       measurements=write_lines(tmp_path / f"m{k}.txt", m),
+                       control=write_lines(tmp_path / f"c{k}.txt", c))
+    whole = tmp_path / "whole.h5"
+    import_text(whole, **files)
+    stacked = tmp_path / "stacked.h5"
+    import_text(stacked, cameras=files["cameras"], **part[1])
+    code, stdout, err = run_cli(capsys, "import", stacked, "--append", *cli_args(part[2]))
+    assert code == 0 and "appended to" in stdout
+    assert "control point(s) given more than once with identical values" in err
+    assert_same_records(whole, stacked)
+    with Project(stacked) as p:
+        assert [h["command"] for h in p.history()] == ["import", "import"]
+    assert not (tmp_path / "stacked.h5.import.work").exists()
+
+
+def test_append_to_a_generated_block_drops_truth_and_keeps_priors(exported, tmp_path):
+    from sapgo.project import PRIOR_DTYPE
+
+    gen, d = exported
+    rec = read_records(gen)
+    prior = np.zeros(1, PRIOR_DTYPE)
+    prior["station"] = 2
+    prior["value"] = rec["stations"]["eo"][2]
+    prior["weight"] = np.eye(6)
+    rec["station_priors"] = prior
+    rewrite(gen, rec)
+    photo_id = int(rec["stations"]["id"][2])
+    s = import_text(gen, control=files_of(d)["control"], append=True)
+    assert any("/truth" in w and "dropped" in w for w in s["warnings"])
+    assert s["control_loaded_twice"] == len(data_lines(files_of(d)["control"]))
+    with Project(gen) as p:
+        assert not p.has_truth
+        pr, st = p.read("station_priors"), p.read("stations")
+        assert len(pr) == 1 and st["id"][pr["station"][0]] == photo_id
+    assert input_records_by_id(gen) == input_records_by_id(
+        import_text(tmp_path / "x.h5", **files_of(d))["path"])
+
+
+def test_an_existing_output_needs_append_or_force(exported, tmp_path, capsys):
+    _, d = exported
+    files = files_of(d)
+    out = tmp_path / "o.h5"
+    import_text(out, **files)
+    before = digest(out)
+    code, _, err = run_cli(capsys, "import", out, *cli_args(files))
+    assert_one_line_error(code, err, "o.h5 exists", "--append", "--force")
+    assert digest(out) == before
+    assert run_cli(capsys, "import", out, "--force", *cli_args(files))[0] == 0
+    assert_same_records(out, out)
+    with pytest.raises(ParameterError, match="exclude each other"):
+        import_text(out, append=True, force=True, **files)
+
+
+# -- malformed input -------------------------------------------------------------------
+
+def assert_one_line_error(code, err, *words):
+    assert code == 2
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("sapgo: error: "), err
+    assert "Traceback" not in err
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+def corrupt(path, index, column, value):
+    """Replace a column of the ``index``-th data line; returns its line number."""
+    lines = path.read_text().splitlines()
+    seen = -1
+    for n, ln in enumerate(lines):
+        if ln.strip() and ln[0] != "#":
+            seen += 1
+            if seen == index:
+                cols = ln.split()
+                if column is None:
+                    cols = cols[:value]
+                else:
+                    cols[column] = value
+                lines[n] = " ".join(cols)
+                path.write_text("\n".join(lines) + "\n")
+                return n + 1
+    raise IndexError(index)
+
+
+MALFORMED = [
+    # file, data line, column (None: cut to `value` columns), value, words in the message
+    ("measurements", 30, 2, "1.2.3", ["'1.2.3' is not a number (column 3, x)"]),
+    ("measurements", 31, None, 3,
+     ["expected 4 or 5 columns (photo point x y [sigma]), found 3"]),
+    ("measurements", 32, 1, "1.5", ["'1.5' is not an integer (column 2, point)"]),
+    ("measurements", 33, 0, "424242", ["photo 424242 is not in the photos file(s)"]),
+    ("measurements", 34, 4, "-0.006", ["sigma must not be negative"]),
+    ("measurements", 35, 3, "nan", ["column 4 (y) is nan, expected a finite number"]),
+    ("photos", 5, 1, "77", ["camera 77 is not in the cameras file(s)"]),
+    ("photos", 6, 0, "x7", ["'x7' is not a number (column 1, id)"]),
+    ("control", 3, 7, "fulll", ["unknown kind 'fulll' (column 8)"]),
+    ("control", 4, 5, "-1", ["sY must not be negative"]),
+    ("control", 5, 3, "-", ["Z is unknown ('-' or nan) but a"]),
+    ("cameras", 0, 1, "0", ["focal_length must be positive, found 0.0 (column 2)"]),
+    ("cameras", 0, None, 6, ["expected 7 to 12 columns"]),
+]
+
+
+@pytest.mark.parametrize("name,index,column,value,words", MALFORMED,
+                         ids=[f"{m[0]}-{m[4][0][:24]}" for m in MALFORMED])
+def test_malformed_input_is_one_line_naming_file_and_line(exported, tmp_path, capsys, name,
+                                                          index, column, value, words):
+    gen, d = exported
+    files = files_of(d)
+    if name == "control":  # the generator's check points: make them full control points
+        lines = [" ".join(ln.split()[:-1] + ["full"]) for ln in data_lines(files["control"])]
+        write_lines(files["control"], lines)
+    out = tmp_path / "existing.h5"
+    import_text(out, **files)
+    before = digest(out)
+    line = corrupt(files[name], index, column, value)
+    code, _, err = run_cli(capsys, "import", out, "--append", *cli_args(files))
+    assert_one_line_error(code, err, f"{name}.txt:{line}: ", *words)
+    assert digest(out) == before
+    assert not (tmp_path / "existing.h5.tmp").exists()
+    assert not (tmp_path / "existing.h5.import.work").exists()
+
+
+def test_a_missing_file_is_named(exported, tmp_path, capsys):
+    _, d = exported
+    files = dict(files_of(d), control=tmp_path / "nope.txt")
+    code, _, err = run_cli(capsys, "import", tmp_path / "x.h5", *cli_args(files))
+    assert_one_line_error(code, err, "nope.txt: no such file")
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_bad_options(exported, tmp_path):
+    _, d = exported
+    with pytest.raises(ParameterError, match="angle unit"):
+        import_text(tmp_path / "x.h5", angles="grad", **files_of(d))
+    with pytest.raises(ParameterError, match="memory budget"):
+        import_text(tmp_path / "x.h5", memory="lots", **files_of(d))
+    with pytest.raises(ParameterError, match="no measurements file"):
+        import_text(tmp_path / "x.h5", cameras=d / "cameras.txt", photos=d / "photos.txt")
+
+
+# -- memory budget ---------------------------------------------------------------------
+
+RUN_MEASURED = textwrap.dedent("""
+    import resource, subprocess, sys
+    r = subprocess.run([sys.executable, "-m", "sapgo.cli", "import"] + sys.argv[1:],
+                       capture_output=True, text=True)
+    sys.stderr.write(r.stderr)
+    print(r.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+""")
+
+
+def peak_rss_kb(out, files, memory):
+    r = subprocess.run([sys.executable, "-c", RUN_MEASURED, str(out), "--memory", memory,
+                        *map(str, cli_args(files))], capture_output=True, text=True, check=True)
+    code, rss = r.stdout.split()
+    assert code == "0", r.stderr
+    return int(rss)
+
+
+def test_memory_stays_within_the_budget(block_cache, tmp_path):
+    budget_mb, slack_mb = 8, 16
+    gen = block_cache("import-memory", strips=4, photos_per_strip=25, pattern=25,
+                      control_points=32)
+    d = tmp_path / "txt"
+    export_text(gen, d)
+    files = files_of(d)
+    base = data_lines(files["measurements"])
+    copies = 600_000 // len(base) + 1  # the block repeated with other point ids
+    rows = [ln.split(" ", 2) for ln in base]
+    with open(tmp_path / "big.txt", "w") as f:
+        for k in range(copies):
+            off = k * 10_000_000
+            f.write("".join(f"{a} {int(b) + off} {rest}\n" for a, b, rest in rows))
+    n_lines = copies * len(base)
+    record_mb = n_lines * 48 / 2**20
+    assert record_mb > 3 * budget_mb  # the sort records are several times the budget
+    big = dict(files, measurements=tmp_path / "big.txt")
+
+    peak_rss_kb(tmp_path / "warm.h5", files, "8M")  # numba caches, page cache
+    tiny = peak_rss_kb(tmp_path / "tiny.h5", files, "8M")
+    large = peak_rss_kb(tmp_path / "large.h5", big, f"{budget_mb}M")
+    growth_mb = (large - tiny) / 1024
+    assert growth_mb < budget_mb + slack_mb, (growth_mb, tiny / 1024, large / 1024)
+
+    s = import_text(tmp_path / "ref.h5", memory="1G", **big)
+    assert s["observations"] == n_lines
+    assert_same_records(tmp_path / "large.h5", tmp_path / "ref.h5")
