@@ -47,10 +47,25 @@ def _mm3(a, b):
 
 
 @njit(cache=True)
+def _rot9(omega, phi, kappa):
+    """The nine elements of ``M = R3(kappa) R2(phi) R1(omega)``, row by row (no allocation)."""
+    cw, sw = np.cos(omega), np.sin(omega)
+    cp, sp = np.cos(phi), np.sin(phi)
+    ck, sk = np.cos(kappa), np.sin(kappa)
+    return (ck * cp, ck * sp * sw + sk * cw, -ck * sp * cw + sk * sw,
+            -sk * cp, -sk * sp * sw + ck * cw, sk * sp * cw + ck * sw,
+            sp, -cp * sw, cp * cw)
+
+
+@njit(cache=True)
 def rotation_matrix(omega, phi, kappa):
     """``M = R3(kappa) R2(phi) R1(omega)``, object to image."""
-    r1, r2, r3, _, _, _ = _elementary(omega, phi, kappa)
-    return _mm3(r3, _mm3(r2, r1))
+    r = _rot9(omega, phi, kappa)
+    m = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            m[i, j] = r[3 * i + j]
+    return m
 
 
 @njit(cache=True)
@@ -68,13 +83,13 @@ def rotation_and_derivatives(omega, phi, kappa):
 @njit(cache=True)
 def project(eo, xyz, f, x0, y0):
     """Image coordinates (mm) of object point ``xyz`` seen from station ``eo``."""
-    m = rotation_matrix(eo[0], eo[1], eo[2])
+    m = _rot9(eo[0], eo[1], eo[2])
     dx = xyz[0] - eo[3]
     dy = xyz[1] - eo[4]
     dz = xyz[2] - eo[5]
-    u = m[0, 0] * dx + m[0, 1] * dy + m[0, 2] * dz
-    v = m[1, 0] * dx + m[1, 1] * dy + m[1, 2] * dz
-    w = m[2, 0] * dx + m[2, 1] * dy + m[2, 2] * dz
+    u = m[0] * dx + m[1] * dy + m[2] * dz
+    v = m[3] * dx + m[4] * dy + m[5] * dz
+    w = m[6] * dx + m[7] * dy + m[8] * dz
     if w == 0.0:
         return np.nan, np.nan
     return x0 - f * u / w, y0 - f * v / w
@@ -129,59 +144,92 @@ def linearize(eo, xyz, f, x0, y0, a, b):
 
 
 @njit(cache=True)
+def _add_ray(eo, x, y, f, x0, y0, a, r):
+    """Add the ray from station ``eo`` through image point (x, y) to the normal system."""
+    m = _rot9(eo[0], eo[1], eo[2])
+    i0, i1, i2 = x - x0, y - y0, -f
+    d0 = m[0] * i0 + m[3] * i1 + m[6] * i2
+    d1 = m[1] * i0 + m[4] * i1 + m[7] * i2
+    d2 = m[2] * i0 + m[5] * i1 + m[8] * i2
+    norm = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    d = (d0 / norm, d1 / norm, d2 / norm)
+    for k in range(3):
+        for j in range(3):
+            p = (1.0 if k == j else 0.0) - d[k] * d[j]
+            a[k, j] += p
+            r[k] += p * eo[3 + j]
+
+
+@njit(cache=True)
+def _solve_sym3(a, r, out):
+    """Solve the 3x3 ray system by Cholesky; False when (nearly) singular (parallel rays).
+
+    A pivot below 1e-10 of the largest diagonal element counts as singular.
+    """
+    scale = max(a[0, 0], max(a[1, 1], a[2, 2]))
+    tol = 1e-10 * scale
+    l00 = a[0, 0]
+    if l00 <= tol:
+        return False
+    l00 = np.sqrt(l00)
+    l10 = a[1, 0] / l00
+    l20 = a[2, 0] / l00
+    l11 = a[1, 1] - l10 * l10
+    if l11 <= tol:
+        return False
+    l11 = np.sqrt(l11)
+    l21 = (a[2, 1] - l20 * l10) / l11
+    l22 = a[2, 2] - l20 * l20 - l21 * l21
+    if l22 <= tol:
+        return False
+    l22 = np.sqrt(l22)
+    z0 = r[0] / l00
+    z1 = (r[1] - l10 * z0) / l11
+    z2 = (r[2] - l20 * z0 - l21 * z1) / l22
+    out[2] = z2 / l22
+    out[1] = (z1 - l21 * out[2]) / l11
+    out[0] = (z0 - l10 * out[1] - l20 * out[2]) / l00
+    return True
+
+
+@njit(cache=True)
 def intersect(eo_rays, xy_rays, f_rays, x0_rays, y0_rays):
     """Least-squares intersection of image rays: the point nearest to all of them.
 
     Each ray ``i`` is the line from station ``eo_rays[i]`` through image point ``xy_rays[i]``
     of a camera with focal length ``f_rays[i]`` and principal point ``(x0, y0)``. Returns the
-    point and a flag that is False when the rays are (nearly) parallel.
+    point and a flag that is False when the rays are (nearly) parallel or fewer than two.
     """
     n = eo_rays.shape[0]
     a = np.zeros((3, 3))
     r = np.zeros(3)
+    out = np.zeros(3)
     for i in range(n):
-        m = rotation_matrix(eo_rays[i, 0], eo_rays[i, 1], eo_rays[i, 2])
-        img = np.array([xy_rays[i, 0] - x0_rays[i], xy_rays[i, 1] - y0_rays[i], -f_rays[i]])
-        d = np.zeros(3)
-        for k in range(3):
-            for j in range(3):
-                d[k] += m[j, k] * img[j]
-        d /= np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2)
-        for k in range(3):
-            for j in range(3):
-                p = (1.0 if k == j else 0.0) - d[k] * d[j]
-                a[k, j] += p
-                r[k] += p * eo_rays[i, 3 + j]
-    # a is symmetric positive semi-definite; singular when all rays are parallel
-    evals = np.linalg.eigvalsh(a)
-    if n < 2 or evals[0] < 1e-10 * evals[2]:
+        _add_ray(eo_rays[i], xy_rays[i, 0], xy_rays[i, 1], f_rays[i], x0_rays[i], y0_rays[i],
+                 a, r)
+    if n < 2 or not _solve_sym3(a, r, out):
         return np.zeros(3), False
-    return np.linalg.solve(a, r), True
+    return out, True
 
 
 @njit(cache=True)
 def intersect_points(obs_start, n_obs, obs_station, obs_xy, eo, cam_of_station, cam_f,
                      cam_x0, cam_y0, out, ok):
     """Intersect every point from its rays (chunk kernel: indices relative to the chunk)."""
+    a = np.empty((3, 3))
+    r = np.empty(3)
+    p = np.empty(3)
     for j in range(obs_start.shape[0]):
-        s0 = obs_start[j]
-        k = n_obs[j]
-        e = np.empty((k, 6))
-        xy = np.empty((k, 2))
-        ff = np.empty(k)
-        xx = np.empty(k)
-        yy = np.empty(k)
-        for i in range(k):
-            st = obs_station[s0 + i]
+        a[:, :] = 0.0
+        r[:] = 0.0
+        for i in range(obs_start[j], obs_start[j] + n_obs[j]):
+            st = obs_station[i]
             c = cam_of_station[st]
-            e[i] = eo[st]
-            xy[i] = obs_xy[s0 + i]
-            ff[i] = cam_f[c]
-            xx[i] = cam_x0[c]
-            yy[i] = cam_y0[c]
-        p, good = intersect(e, xy, ff, xx, yy)
-        out[j] = p
+            _add_ray(eo[st], obs_xy[i, 0], obs_xy[i, 1], cam_f[c], cam_x0[c], cam_y0[c], a, r)
+        good = n_obs[j] >= 2 and _solve_sym3(a, r, p)
         ok[j] = good
+        for k in range(3):
+            out[j, k] = p[k] if good else 0.0
 
 
 @njit(cache=True)
