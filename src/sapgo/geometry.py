@@ -103,21 +103,25 @@ def linearize(eo, xyz, f, x0, y0, a, b):
     d(x, y)/d(X, Y, Z); returns the computed ``x, y`` and ``w`` (the depth along the optical
     axis, negative for a point in front of the camera).
     """
-    m, dm_w, dm_p, dm_k = rotation_and_derivatives(eo[0], eo[1], eo[2])
-    d = np.empty(3)
-    d[0] = xyz[0] - eo[3]
-    d[1] = xyz[1] - eo[4]
-    d[2] = xyz[2] - eo[5]
-    q = np.zeros(3)
-    qw = np.zeros(3)
-    qp = np.zeros(3)
-    qk = np.zeros(3)
-    for i in range(3):
-        for k in range(3):
-            q[i] += m[i, k] * d[k]
-            qw[i] += dm_w[i, k] * d[k]
-            qp[i] += dm_p[i, k] * d[k]
-            qk[i] += dm_k[i, k] * d[k]
+    # q = M d with M = R3 R2 R1, and its derivatives without forming matrices:
+    # dR1/dw = Kx R1, dR2/dp = Ky R2, dR3/dk = Kz R3 with constant skew matrices K, so
+    # dq/dw = R3 R2 Kx (R1 d), dq/dp = R3 Ky (R2 R1 d), dq/dk = Kz q.
+    cw, sw = np.cos(eo[0]), np.sin(eo[0])
+    cp, sp = np.cos(eo[1]), np.sin(eo[1])
+    ck, sk = np.cos(eo[2]), np.sin(eo[2])
+    d0, d1, d2 = xyz[0] - eo[3], xyz[1] - eo[4], xyz[2] - eo[5]
+    p10, p11, p12 = d0, cw * d1 + sw * d2, -sw * d1 + cw * d2  # R1 d
+    p20, p21, p22 = cp * p10 - sp * p12, p11, sp * p10 + cp * p12  # R2 R1 d
+    q = (ck * p20 + sk * p21, -sk * p20 + ck * p21, p22)
+    # Kx (R1 d) = (0, p12, -p11) -> R2 -> R3
+    t0, t1, t2 = sp * p11, p12, cp * -p11
+    qw = (ck * t0 + sk * t1, -sk * t0 + ck * t1, t2)
+    # Ky (R2 R1 d) = (-p22, 0, p20) -> R3
+    qp = (ck * -p22, sk * p22, p20)
+    qk = (q[1], -q[0], 0.0)
+    m = (ck * cp, ck * sp * sw + sk * cw, -ck * sp * cw + sk * sw,
+         -sk * cp, -sk * sp * sw + ck * cw, sk * sp * cw + ck * sw,
+         sp, -cp * sw, cp * cw)
     u, v, w = q[0], q[1], q[2]
     if w >= 0.0:  # behind the camera or in its principal plane: no projection
         return np.nan, np.nan, w
@@ -134,8 +138,8 @@ def linearize(eo, xyz, f, x0, y0, a, b):
     a[1, 2] = gy1 * qk[1] + gy2 * qk[2]
     # object point: d q / d X = M[:, k]; station position is the negative
     for k in range(3):
-        bx = gx0 * m[0, k] + gx2 * m[2, k]
-        by = gy1 * m[1, k] + gy2 * m[2, k]
+        bx = gx0 * m[k] + gx2 * m[6 + k]
+        by = gy1 * m[3 + k] + gy2 * m[6 + k]
         b[0, k] = bx
         b[1, k] = by
         a[0, 3 + k] = -bx
