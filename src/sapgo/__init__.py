@@ -2,9 +2,11 @@
 
 Python entry points (each command of the ``sapgo`` tool calls one of these)::
 
-    from sapgo import generate_block, order_project, adjust, Options, open_project
+    from sapgo import generate_block, import_text, order_project, adjust, Options, open_project
 
     generate_block("p3.h5", preset="sapgo-p-3")
+    import_text("block.h5", cameras=["cameras.txt"], photos=["photos.txt"],
+                measurements=["image.txt"], control=["control.txt"])
     summary = adjust("p3.h5", Options(max_iterations=6))
     print(summary.full_report())
 """
@@ -22,6 +24,8 @@ from .project import Project, open_project  # noqa: E402
 from .ordering import order_project  # noqa: E402
 from .generate import generate_block, PRESETS  # noqa: E402
 from .adjust import Options, Summary, adjust  # noqa: E402
+from .ingest import import_text  # noqa: E402
+from .formats import export_text  # noqa: E402
 
 __all__ = [
     "__version__",
@@ -35,7 +39,9 @@ __all__ = [
     "SingularNormalsError",
     "Summary",
     "adjust",
+    "export_text",
     "generate_block",
+    "import_text",
     "open_project",
     "order_project",
 ]
