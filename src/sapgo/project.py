@@ -7,8 +7,10 @@ record ``i`` is the ``i``-th station of the bandwidth-minimising order, points a
 reads the files front to back in chunks.
 
 Inputs (``/cameras``, ``/stations``, ``/station_priors``, ``/points``, ``/observations``) are
-never written by an adjustment; results go to ``/solution``. The band rows of the reduced normal
-equations live in a scratch file beside the project (see :mod:`sapgo.adjust`).
+never written by an adjustment; results go to ``/solution``. No command writes a project in
+place: new files are built by :class:`ProjectWriter` as ``PATH.tmp`` and renamed over ``PATH``,
+and ``adjust`` writes its results into a copy. The band rows of the reduced normal equations
+live in the run's work directory beside the project (see :mod:`sapgo.adjust`).
 
 The schema, field by field, is documented in ``docs/project-schema.md``.
 """
