@@ -98,3 +98,54 @@ def test_singular_matrix_is_caught_by_the_relative_pivot_test():
     with pytest.raises(PivotError) as e:
         solve_in_core(dense_to_band(a_sing, bw), np.zeros((n, 6)))
     assert e.value.row in (0, 1)
+
+
+# -- the drop-in for scipy.linalg.cholesky_banded ---------------------------------------
+
+def scalar_banded(n, u, seed):
+    """A random SPD matrix of scalar band ``u`` and its upper and lower LAPACK storage."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(n, n))
+    i, j = np.indices((n, n))
+    a = np.where(np.abs(i - j) <= u, a + a.T, 0.0) + (2 * u + 3) * 4 * np.eye(n)
+    up, lo = np.zeros((u + 1, n)), np.zeros((u + 1, n))
+    for c in range(n):
+        for r in range(max(0, c - u), c + 1):
+            up[u + r - c, c] = a[r, c]
+        for r in range(c, min(n, c + u + 1)):
+            lo[r - c, c] = a[r, c]
+    return a, up, lo
+
+
+@pytest.mark.parametrize("n, u", [(1, 0), (7, 3), (40, 0), (61, 17), (150, 71), (96, 95)])
+def test_cholesky_banded_is_a_drop_in_for_scipy(n, u):
+    from sapgo.bandsolve import cho_solve_banded, cholesky_banded
+
+    a, up, lo = scalar_banded(n, u, seed=n + u)
+    rng = np.random.default_rng(1)
+    for lower, ab in ((False, up), (True, lo)):
+        ref = scipy.linalg.cholesky_banded(ab, lower=lower)
+        c = cholesky_banded(ab, lower=lower)
+        assert c.shape == ref.shape
+        np.testing.assert_allclose(c, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+        for b in (rng.normal(size=n), rng.normal(size=(n, 3))):
+            x = cho_solve_banded((c, lower), b)
+            assert x.shape == b.shape
+            np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-10, atol=1e-12)
+    ab = up.copy()
+    out = cholesky_banded(ab, overwrite_ab=True)
+    assert out is ab and np.allclose(ab, scipy.linalg.cholesky_banded(up))
+
+
+def test_cholesky_banded_names_the_leading_minor_like_scipy():
+    from sapgo.bandsolve import cholesky_banded
+
+    _, up, _ = scalar_banded(30, 4, seed=3)
+    up[4, 17] = -1.0  # diagonal element 17: the 18th leading minor is not positive definite
+    with pytest.raises(np.linalg.LinAlgError) as ref:
+        scipy.linalg.cholesky_banded(up)
+    with pytest.raises(np.linalg.LinAlgError, match="18-th leading minor") as ours:
+        cholesky_banded(up)
+    assert str(ref.value).split()[0] == str(ours.value).split()[0]
+    with pytest.raises(ValueError):
+        cholesky_banded(np.full((2, 3), np.nan))

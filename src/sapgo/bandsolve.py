@@ -237,3 +237,145 @@ def dense_to_band(a, band_width):
                 break
             band[i, :, 6 * k:6 * k + 6] = a[6 * i:6 * i + 6, 6 * j:6 * j + 6]
     return band
+
+
+# -- drop-in replacements for scipy.linalg.cholesky_banded / cho_solve_banded -----------
+
+def _block_indices(n_blocks, bw):
+    """Scalar (row, col) of every element of the band rows ``(n_blocks, 6, 6 bw)``."""
+    i = np.arange(n_blocks)[:, None, None]
+    r = np.arange(6)[None, :, None]
+    kc = np.arange(6 * bw)[None, None, :]
+    p = 6 * i + r
+    q = 6 * i + kc
+    return np.broadcast_to(p, (n_blocks, 6, 6 * bw)), np.broadcast_to(q, (n_blocks, 6, 6 * bw))
+
+
+def _to_blocks(ab, lower, triangle):
+    """Band rows of a LAPACK banded array ``ab`` (u + 1, n) of either form.
+
+    ``triangle``: only the elements on and above the diagonal (a triangular factor ``U``;
+    a lower-form ``L`` is read as ``U = L'``); otherwise the symmetric matrix. The scalar
+    order is padded to a multiple of 6 with an identity. Returns ``(band, n, u)``.
+    """
+    ab = np.asarray(ab)
+    if ab.ndim != 2:
+        raise ValueError(f"expected a 2-D banded array (u + 1, n), got shape {ab.shape}")
+    n, u = ab.shape[1], ab.shape[0] - 1
+    nb = max(1, -(-n // 6))
+    p, q = _block_indices(nb, (u + 5) // 6 + 1)
+    lo, hi = np.minimum(p, q), np.maximum(p, q)
+    ok = (hi - lo <= u) & (hi < n)
+    if triangle:
+        ok &= q >= p
+    band = np.zeros(p.shape)
+    if lower:  # ab[i - j, j] = a[i, j] for i >= j: element (hi, lo)
+        band[ok] = ab[(hi - lo)[ok], lo[ok]]
+    else:  # ab[u + i - j, j] = a[i, j] for i <= j
+        band[ok] = ab[(u + lo - hi)[ok], hi[ok]]
+    pad = np.arange(n, 6 * nb)
+    band[pad // 6, pad % 6, pad % 6] = 1.0
+    return band, n, u
+
+
+def scipy_to_band(ab, lower=False):
+    """Band rows (6x6 station blocks) of a symmetric matrix in LAPACK banded storage.
+
+    ``ab`` is laid out as for :func:`scipy.linalg.cholesky_banded`: upper form
+    ``ab[u + i - j, j] == a[i, j]`` (i <= j) or lower form ``ab[i - j, j] == a[i, j]``
+    (i >= j). The scalar order ``n`` is padded to a multiple of 6 with an identity.
+    Returns ``(band, n, u)``.
+    """
+    return _to_blocks(ab, lower, triangle=False)
+
+
+def band_to_scipy(factor, n, u, lower=False):
+    """LAPACK banded storage of the triangular factor held in band rows (see above).
+
+    Upper: ``c[u + i - j, j] = U[i, j]`` with ``a = U' U``; lower: ``c[i - j, j] = L[i, j]``
+    with ``L = U'``.
+    """
+    nb, _, width = factor.shape
+    p, q = _block_indices(nb, width // 6)
+    ok = (q >= p) & (q - p <= u) & (q < n)
+    c = np.zeros((u + 1, n))
+    if lower:
+        c[(q - p)[ok], p[ok]] = factor[ok]
+    else:
+        c[(u + p - q)[ok], q[ok]] = factor[ok]
+    return c
+
+
+def cholesky_banded(ab, overwrite_ab=False, lower=False, check_finite=True):
+    """Cholesky factor of a symmetric positive definite banded matrix, as SciPy's.
+
+    Same storage, arguments and result as :func:`scipy.linalg.cholesky_banded`; computed
+    with the block kernels of the out-of-core solver (6x6 station blocks, so the scalar band
+    is rounded up to whole blocks internally). Raises :class:`numpy.linalg.LinAlgError`
+    naming the leading minor that is not positive definite.
+    """
+    ab = np.asarray_chkfinite(ab) if check_finite else np.asarray(ab)
+    band, n, u = scipy_to_band(ab, lower)
+    nb = band.shape[0]
+    rhs = np.zeros((nb, 6))
+    orig = np.abs(np.diagonal(band, axis1=1, axis2=2)).copy()
+    r, i = factor_rows(band, rhs, orig, 0, nb, nb, 0.0)
+    if r >= 0:
+        raise np.linalg.LinAlgError(
+            f"{6 * r + i + 1}-th leading minor not positive definite")
+    c = band_to_scipy(band, n, u, lower)
+    if overwrite_ab and ab.dtype == np.float64 and ab.flags.writeable:
+        ab[...] = c
+        return ab
+    return c
+
+
+def cho_solve_banded(cb_and_lower, b, overwrite_b=False, check_finite=True):
+    """Solve ``a x = b`` with the factor from :func:`cholesky_banded`, as SciPy's.
+
+    ``b`` may be a vector (n,) or a matrix (n, k).
+    """
+    cb, lower = cb_and_lower
+    cb = np.asarray_chkfinite(cb) if check_finite else np.asarray(cb)
+    b = np.asarray_chkfinite(b) if check_finite else np.asarray(b)
+    factor, n, u = _to_blocks(cb, lower, triangle=True)
+    if b.shape[0] != n:
+        raise ValueError(f"shapes of cb {cb.shape} and b {b.shape} are not compatible")
+    nb = factor.shape[0]
+    cols = b.reshape(n, -1).astype(np.float64)
+    out = np.empty_like(cols)
+    for j in range(cols.shape[1]):
+        y = np.zeros(6 * nb)
+        y[:n] = cols[:, j]
+        y = y.reshape(nb, 6)
+        _forward_substitute(factor, y)
+        x = np.zeros((nb, 6))
+        back_substitute(factor, y, np.zeros((0, 6)), 0, x)
+        out[:, j] = x.ravel()[:n]
+    out = out.reshape(b.shape)
+    if overwrite_b and b.dtype == np.float64 and b.flags.writeable:
+        b[...] = out
+        return b
+    return out
+
+
+@njit(cache=True)
+def _forward_substitute(factor, y):
+    """``y <- U'^-1 y`` for factor rows ``U`` (the solve that factor_rows does on the fly)."""
+    nb, _, width = factor.shape
+    bw = width // 6
+    for r in range(nb):
+        for i in range(6):
+            t = y[r, i]
+            for k in range(i):
+                t -= factor[r, k, i] * y[r, k]
+            y[r, i] = t / factor[r, i, i]
+        for k in range(1, bw):
+            rr = r + k
+            if rr >= nb:
+                break
+            for a in range(6):
+                t = 0.0
+                for m in range(6):
+                    t += factor[r, m, 6 * k + a] * y[r, m]
+                y[rr, a] -= t
