@@ -63,11 +63,7 @@ def factor_rows(band, rhs, orig_diag, r_lo, r_hi, n_valid, pivot_tol):
                 for k in range(i):
                     t -= band[r, k, i] * band[r, k, c]
                 band[r, i, c] = t / band[r, i, i]
-        for i in range(6):
-            t = rhs[r, i]
-            for k in range(i):
-                t -= band[r, k, i] * rhs[r, k]
-            rhs[r, i] = t / band[r, i, i]
+        _forward_row(band, rhs, r, n_valid)
         # --- update the following rows: M[i+k, i+l] -= U[i,i+k]' U[i,i+l]
         for k in range(1, bw):
             rr = r + k
@@ -80,11 +76,28 @@ def factor_rows(band, rhs, orig_diag, r_lo, r_hi, n_valid, pivot_tol):
                     for m in range(6):
                         t += band[r, m, c0 + a] * band[r, m, c]
                     band[rr, a, c - c0] -= t
-                t = 0.0
-                for m in range(6):
-                    t += band[r, m, c0 + a] * rhs[r, m]
-                rhs[rr, a] -= t
     return -1, -1
+
+
+@njit(cache=True)
+def _forward_row(factor, y, r, n_valid):
+    """Forward substitution of row ``r``: ``y[r] <- U[r,r]'^-1 y[r]``, then
+    ``y[r+k] -= U[r,r+k]' y[r]`` for the following rows below ``n_valid``."""
+    width = factor.shape[2]
+    for i in range(6):
+        t = y[r, i]
+        for k in range(i):
+            t -= factor[r, k, i] * y[r, k]
+        y[r, i] = t / factor[r, i, i]
+    for k in range(1, width // 6):
+        rr = r + k
+        if rr >= n_valid:
+            break
+        for a in range(6):
+            t = 0.0
+            for m in range(6):
+                t += factor[r, m, 6 * k + a] * y[r, m]
+            y[rr, a] -= t
 
 
 @njit(cache=True)
@@ -362,20 +375,6 @@ def cho_solve_banded(cb_and_lower, b, overwrite_b=False, check_finite=True):
 @njit(cache=True)
 def _forward_substitute(factor, y):
     """``y <- U'^-1 y`` for factor rows ``U`` (the solve that factor_rows does on the fly)."""
-    nb, _, width = factor.shape
-    bw = width // 6
+    nb = factor.shape[0]
     for r in range(nb):
-        for i in range(6):
-            t = y[r, i]
-            for k in range(i):
-                t -= factor[r, k, i] * y[r, k]
-            y[r, i] = t / factor[r, i, i]
-        for k in range(1, bw):
-            rr = r + k
-            if rr >= nb:
-                break
-            for a in range(6):
-                t = 0.0
-                for m in range(6):
-                    t += factor[r, m, 6 * k + a] * y[r, m]
-                y[rr, a] -= t
+        _forward_row(factor, y, r, nb)
