@@ -4,11 +4,12 @@ Run:  python benchmarks/scale.py [--sizes 10000,20000,100000,200000,1000000] [--
       [--solution-sizes 10000,100000]
 
 Every block has 20 strips and the 9-point pattern (SAPGO-P geometry), one full control point
-per 25 photos on the strip boundary rows, the rest check points. Each phase runs as its own process through the command line, as
-a user would run it: ``sapgo generate``, ``sapgo order --memory 256M`` and
-``sapgo adjust --max-iterations 1``. Per phase: wall time, and the peak resident set size of
-the whole process as the operating system measures it (``ru_maxrss`` from ``wait4``). Disk:
-the project file and the work directory at its fullest (``--keep-scratch``, then removed).
+per 25 photos on the strip boundary rows, the rest check points. Each phase runs as its own
+process through the command line, as a user would run it: ``sapgo generate``, ``sapgo order
+--memory 256M`` and ``sapgo adjust --max-iterations 1``. Per phase: wall time, and the peak
+resident set size of the whole process as the operating system measures it (``ru_maxrss``
+from ``wait4``). Disk: the project file and the work directory at its fullest (``--keep-
+scratch``, then removed).
 For the sizes in ``--solution-sizes`` the block is also adjusted to convergence (time to
 solution). The memory growth per photo is the difference of the adjust processes' peak RSS
 between 20 000 and 200 000 photos and between 100 000 and 1 000 000 photos.
@@ -35,17 +36,39 @@ STRIPS = 20
 PHOTOS_PER_CONTROL_POINT = 25  # 400 full control points per 10 000 photos
 
 
+#: Starts the measured process from a bare interpreter: on Linux a child's ``ru_maxrss``
+#: starts from the RSS of the process it was forked from, so forking from this script (numpy,
+#: h5py, sapgo loaded) would floor every figure at this script's own size.
+LAUNCH = (
+    "import os, sys\n"
+    "pid = os.fork()\n"
+    "if pid == 0:\n"
+    "    os.execvp(sys.argv[1], sys.argv[1:])\n"
+    "_, status, usage = os.wait4(pid, 0)\n"
+    "sys.stderr.write(f'\\nLAUNCH {os.waitstatus_to_exitcode(status)} {usage.ru_maxrss}\\n')\n"
+    "sys.exit(os.waitstatus_to_exitcode(status))\n"
+)
+
+
 def run(cmd):
-    """Run ``cmd``; return (wall seconds, peak RSS MiB of the process) or raise."""
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    out, err = proc.stdout.read().decode(), proc.stderr.read().decode()
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}): {err}")
-    return wall, usage.ru_maxrss / 1024.0, out
+    """Run ``cmd``; return (wall seconds, peak RSS MiB of the process, stdout) or raise.
+
+    Output goes to temporary files, not pipes, so a talkative process cannot block.
+    """
+    import tempfile
+
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        t0 = time.perf_counter()
+        code = subprocess.call([sys.executable, "-S", "-c", LAUNCH, *cmd], stdout=out,
+                               stderr=err)
+        wall = time.perf_counter() - t0
+        out.seek(0)
+        err.seek(0)
+        text, errors = out.read().decode(), err.read().decode()
+    if code != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({code}): {errors}")
+    maxrss_kb = int(errors.rsplit("LAUNCH ", 1)[1].split()[1])
+    return wall, maxrss_kb / 1024.0, text
 
 
 def du(path):

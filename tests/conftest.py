@@ -1,3 +1,4 @@
+import hashlib
 import shutil
 import sys
 from pathlib import Path
@@ -64,3 +65,27 @@ def rewrite(path, rec):
     rec["points"]["n_obs"] = counts
     write_project(path, rec["cameras"], rec["stations"], rec["points"], obs,
                   rec["station_priors"], rec["truth"])
+
+
+def digest(path):
+    """SHA-256 of a file: a project left as it was has the same digest."""
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def run_cli(capsys, *args):
+    """Run the command line in process; returns (exit code, stdout, stderr)."""
+    from sapgo.cli import main
+
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code, err, *words):
+    """Exit code 2 and one line ``sapgo: error: ...`` holding every word, no traceback."""
+    assert code == 2
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("sapgo: error: "), err
+    assert "Traceback" not in err
+    for w in words:
+        assert w in lines[0], lines[0]

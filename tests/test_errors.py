@@ -1,34 +1,19 @@
 """Bad input: one clear line, a non-zero exit code, and the project left as it was."""
 
-import hashlib
 
 import h5py
 import numpy as np
 import pytest
 
 import sapgo
-from conftest import read_records, rewrite
-from sapgo.cli import main
+from conftest import assert_one_line_error, digest, read_records, rewrite, run_cli
 from sapgo.errors import DataError, DatumDefectError, ProjectFormatError
 
 
-def digest(path):
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def run_cli(capsys, *args):
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
-def assert_one_line_error(code, err, *words):
-    assert code == 2
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("sapgo: error: ")
-    assert "Traceback" not in err
-    for w in words:
-        assert w in lines[0]
 
 
 def test_a_text_file_is_not_a_project(tmp_path, capsys):

@@ -1,6 +1,5 @@
 """``sapgo import``: text files in, the same records out, in any order and within the budget."""
 
-import hashlib
 import subprocess
 import sys
 import textwrap
@@ -9,8 +8,7 @@ import numpy as np
 import pytest
 
 import sapgo
-from conftest import read_records, rewrite
-from sapgo.cli import main
+from conftest import assert_one_line_error, digest, read_records, rewrite, run_cli
 from sapgo.errors import DataError, ParameterError
 from sapgo.formats.text import export_text
 from sapgo.ingest import import_text
@@ -21,14 +19,8 @@ DATASETS = ("cameras", "stations", "station_priors", "points", "observations")
 
 # -- helpers ---------------------------------------------------------------------------
 
-def digest(path):
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def run_cli(capsys, *args):
-    code = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def dataset_bytes(path):
@@ -441,13 +433,6 @@ def test_an_existing_output_needs_append_or_force(exported, tmp_path, capsys):
 
 # -- malformed input -------------------------------------------------------------------
 
-def assert_one_line_error(code, err, *words):
-    assert code == 2
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("sapgo: error: "), err
-    assert "Traceback" not in err
-    for w in words:
-        assert w in lines[0], lines[0]
 
 
 def corrupt(path, index, column, value):

@@ -5,7 +5,6 @@ chosen point (the ``SAPGO_FAULT`` hook makes the process kill itself there, so e
 hit deterministically) or from outside at whatever moment it has reached.
 """
 
-import hashlib
 import json
 import os
 import shutil
@@ -18,7 +17,7 @@ import numpy as np
 import pytest
 
 import sapgo
-from conftest import read_records
+from conftest import digest, read_records
 from sapgo.adjust import work_path
 from sapgo.project import Project
 
@@ -26,8 +25,6 @@ RUN = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=Fals
        "chunk_points=40, chunk_rows=4, max_iterations=int(sys.argv[2])))")
 
 
-def digest(path):
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def solution(path):
@@ -155,3 +152,27 @@ def test_killed_from_outside_mid_run_and_resumed_from_the_command_line(block_cac
     a, b = solution(path)[0], solution(ref)[0]
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_a_damaged_work_directory_starts_afresh(reference, tmp_path, capsys):
+    ordered, (ref_sol, _) = reference
+    path = tmp_path / "p1.h5"
+    shutil.copy(ordered, path)
+    killed_run(path, "update:2")
+    with open(work_path(path) / "xyz.1.bin", "r+b") as f:  # a work file cut short
+        f.truncate(100)
+    s = sapgo.adjust(path, sapgo.Options(progress=False, chunk_points=40, chunk_rows=4,
+                                         resume=True))
+    assert "cannot be resumed" in capsys.readouterr().err
+    assert s.resumed_from_iteration is None and s.iterations == 3
+    np.testing.assert_array_equal(solution(path)[0]["point_corr"], ref_sol["point_corr"])
+
+
+def test_a_bad_memory_budget_is_refused_before_anything_runs(reference, tmp_path):
+    ordered, _ = reference
+    path = tmp_path / "p1.h5"
+    shutil.copy(ordered, path)
+    before = digest(path)
+    with pytest.raises(sapgo.SapgoError, match="such as 512M"):
+        sapgo.adjust(path, sapgo.Options(progress=False, memory="lots"))
+    assert digest(path) == before and not work_path(path).exists()

@@ -47,9 +47,9 @@ from .normals import (
     update_points,
 )
 from .ordering import order_project
+from .extsort import parse_memory
 from .rawfile import RawArray
 from .project import (
-    CHUNK_RECORDS,
     CONTROL_MASK,
     EO_NAMES,
     STATUS_ACTIVE,
@@ -102,6 +102,8 @@ class Options:
             raise SapgoError("chunk sizes must be positive")
         if not 0 <= self.pivot_tolerance < 1:
             raise SapgoError("pivot_tolerance must be in [0, 1)")
+        if self.memory is not None:
+            parse_memory(self.memory)  # a bad size is refused before anything runs
         return self
 
 
@@ -627,7 +629,16 @@ def adjust(path, options: Options | None = None) -> Summary:
             sys.stderr.write(f"sapgo: warning: no interrupted run of {path} to resume; "
                              f"starting from the beginning\n")
         converged = False
-        work = Work(wpath, p, blk.band_width, create=checkpoint is None)
+        work = None
+        if checkpoint is not None:
+            try:
+                work = Work(wpath, p, blk.band_width, create=False)
+            except (OSError, ValueError) as exc:  # work files missing or cut short
+                sys.stderr.write(f"sapgo: warning: the interrupted run of {path} cannot be "
+                                 f"resumed ({exc}); starting from the beginning\n")
+                checkpoint = None
+        if work is None:
+            work = Work(wpath, p, blk.band_width, create=True)
         try:
             if checkpoint is None:
                 run = {"run": uuid.uuid4().hex, "identity": ident}

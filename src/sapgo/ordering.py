@@ -321,27 +321,24 @@ def _chunk_activity(starts, counts, obs_station, obs_status, single_ok, station_
         for i in range(a, b):
             use = obs_status[i] != STATUS_REJECTED and station_active[obs_station[i]]
             obs_active[i] = use
-            if use:
-                dup = False
-                for q in range(a, i):
-                    if obs_active[q] and obs_station[q] == obs_station[i]:
-                        dup = True
-                        break
-                if not dup:
-                    k += 1
+            if use and _first_ray(obs_station, obs_active, a, i):
+                k += 1
         ok = k >= MIN_RAYS_PASS or (single_ok[j] and k >= 1)
         point_active[j] = ok
         for i in range(a, b):
             if not ok:
                 obs_active[i] = False
-            elif obs_active[i]:
-                dup = False
-                for q in range(a, i):
-                    if obs_active[q] and obs_station[q] == obs_station[i]:
-                        dup = True
-                        break
-                if not dup:
-                    station_points[obs_station[i]] += 1
+            elif obs_active[i] and _first_ray(obs_station, obs_active, a, i):
+                station_points[obs_station[i]] += 1
+
+
+@njit(cache=True)
+def _first_ray(obs_station, obs_active, a, i):
+    """True when no active ray ``a .. i-1`` of the point comes from ray ``i``'s station."""
+    for q in range(a, i):
+        if obs_active[q] and obs_station[q] == obs_station[i]:
+            return False
+    return True
 
 
 @njit(cache=True)
@@ -390,20 +387,6 @@ class _Chunk:
                         self.point_active, self.obs_active, sp_counts)
 
 
-def _station_activity(p, chunk):
-    """Active stations after the exclusion rules, by passes over the points until stable."""
-    n_st = p.n_stations
-    active = np.ones(n_st, np.bool_)
-    while True:
-        per_station = np.zeros(n_st, np.int64)
-        for a, b in p.chunks("points", chunk):
-            _Chunk(p, a, b, active, per_station, fields=("station", "status"))
-        new = active & (per_station >= MIN_POINTS_PER_STATION)
-        if (new == active).all():
-            return active
-        active = new
-
-
 def _unique(x):
     """Sorted unique values (a sort and a mask: faster than np.unique's hash for int64)."""
     x = np.sort(x)
@@ -415,22 +398,34 @@ def _unique(x):
     return x[keep]
 
 
-def _stream_edges(p, chunk, station_active):
-    """Unique station-graph edges over the active rays, accumulated chunk by chunk."""
+def _station_activity(p, chunk):
+    """Active stations and the station-graph edges after the exclusion rules.
+
+    Passes over the point chunks until the active stations stop changing (usually one pass:
+    nothing is excluded). Every pass also gathers the unique edges over its active rays, so
+    the last pass, the one that changes nothing, delivers the graph as well. Returns
+    ``(active, (s, t))`` with ``s < t`` (int32 when the stations allow).
+    """
     n_st = p.n_stations
-    parts, n_parts, merged = [], 0, np.zeros(0, np.int64)
-    for a, b in p.chunks("points", chunk):
-        c = _Chunk(p, a, b, station_active, fields=("station", "status"))
-        k = _unique(_point_pairs(c.starts, c.counts, c.station, c.obs_active, n_st))
-        parts.append(k)
-        n_parts += len(k)
-        if n_parts > max(len(merged), 1 << 20):
-            merged = _unique(np.concatenate([merged] + parts))
-            parts, n_parts = [], 0
-    keys = _unique(np.concatenate([merged] + parts))
-    del merged, parts
-    dt = np.int32 if n_st < 2**31 else np.int64
-    return (keys // n_st).astype(dt), (keys % n_st).astype(dt)
+    active = np.ones(n_st, np.bool_)
+    while True:
+        per_station = np.zeros(n_st, np.int64)
+        parts, n_parts, merged = [], 0, np.zeros(0, np.int64)
+        for a, b in p.chunks("points", chunk):
+            c = _Chunk(p, a, b, active, per_station, fields=("station", "status"))
+            k = _unique(_point_pairs(c.starts, c.counts, c.station, c.obs_active, n_st))
+            parts.append(k)
+            n_parts += len(k)
+            if n_parts > max(len(merged), 1 << 20):
+                merged = _unique(np.concatenate([merged] + parts))
+                parts, n_parts = [], 0
+        new = active & (per_station >= MIN_POINTS_PER_STATION)
+        if (new == active).all():
+            keys = _unique(np.concatenate([merged] + parts))
+            del merged, parts
+            dt = np.int32 if n_st < 2**31 else np.int64
+            return active, ((keys // n_st).astype(dt), (keys % n_st).astype(dt))
+        active = new
 
 
 # -- the order command -----------------------------------------------------------------
@@ -466,8 +461,7 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS):
 def _order(p, work, method, memory, chunk):
     stations = p.read("stations")
     n_st, n_pt = p.n_stations, p.n_points
-    st_active = _station_activity(p, chunk)
-    edges = _stream_edges(p, chunk, st_active)
+    st_active, edges = _station_activity(p, chunk)
 
     identity = np.arange(n_st)
     b_before = band_width_of(identity, edges)
