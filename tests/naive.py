@@ -57,10 +57,10 @@ def reduced_normals_dense(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma,
         row = np.zeros((2, nu))
         row[:, 6 * s:6 * s + 6] = a
         row[:, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b
-        l = obs_xy[i] - project(eo[s], xyz[j], f)
+        misclosure = obs_xy[i] - project(eo[s], xyz[j], f)
         w = 1.0 / obs_sigma[i] ** 2
         n += w * row.T @ row
-        c += w * row.T @ l
+        c += w * row.T @ misclosure
     if ctrl_mask is not None:
         for j in range(npnt):
             for k in range(3):

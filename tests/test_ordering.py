@@ -57,8 +57,9 @@ def test_records_are_rewritten_in_logical_order(p1_block):
     st, pt, ob = after["stations"], after["points"], after["observations"]
     # same content, new order
     assert sorted(st["id"]) == sorted(before["stations"]["id"])
-    key = lambda r, s, p: {(int(p["id"][o["point"]]), int(s["id"][o["station"]]),
-                            float(o["x"]), float(o["y"])) for o in r}
+    def key(r, s, p):
+        return {(int(p["id"][o["point"]]), int(s["id"][o["station"]]), float(o["x"]),
+                 float(o["y"])) for o in r}
     assert key(ob, st, pt) == key(before["observations"], before["stations"],
                                   before["points"])
     # points sorted by (min, max) logical station; observations grouped by point, by station
@@ -142,6 +143,7 @@ def test_rejected_observations_stay_rejected(small_block):
     assert s.sigma0 < 1.5
     after = read_records(small_block)
     ob = after["observations"]
-    hit = (after["points"]["id"][ob["point"]] == pid) & (after["stations"]["id"][ob["station"]] == sid)
+    hit = ((after["points"]["id"][ob["point"]] == pid)
+           & (after["stations"]["id"][ob["station"]] == sid))
     assert ob["status"][hit][0] == STATUS_REJECTED
     assert s.n_observations == len(ob) - 1

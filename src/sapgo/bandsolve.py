@@ -1,138 +1,270 @@
 """Recursive-partitioning block-banded Cholesky, in and out of core (DESIGN section 5).
 
-Storage: the reduced matrix ``M`` (n stations, 6x6 blocks, band width ``b`` stations) is kept
-as band rows ``band[i] = [M[i,i], M[i,i+1], ..., M[i,i+b-1]]`` (6 x 6b each; blocks past the
-last station are zero). Element ``band[i, r, 6k + c] == M[6i + r, 6(i+k) + c]``.
+Storage on disk: the reduced matrix ``M`` (n stations, 6x6 blocks, band width ``b`` stations)
+is kept as band rows ``band[i] = [M[i,i], M[i,i+1], ..., M[i,i+b-1]]`` (6 x 6b each; blocks
+past the last station are zero): ``band[i, r, 6k + c] == M[6i + r, 6(i+k) + c]``. The solver
+overwrites them with the rows of the factor ``U`` (``M = U' U``, same band) and the right-hand
+side with ``y = U'^-1 d``, then back-substitutes.
 
-Factorisation ``M = U' U`` with ``U`` upper block-banded of the same band (Elphingstone & Wong
-1973; seeds/002 "Solution of reduced normal equations"), station by station:
+In core the solver works on the lower factor ``L = U'`` in *skewed band storage*: scalar column
+``h`` of ``L`` occupies ``LD`` consecutive doubles ``L[h, h], L[h+1, h], ...`` -- LAPACK's lower
+band storage, transposed in memory. Row ``r`` of station ``i``'s band row is exactly that column
+(``band[i, r, r + d] == L[6i + r + d, 6i + r]``), so loading and storing are contiguous copies.
+The point of the layout: element ``(g, h)`` sits at ``h (LD - 1) + g``, so every submatrix that
+lies inside the band is an ordinary Fortran matrix with leading dimension ``LD - 1`` and can be
+handed to BLAS-3 as it is (the trick of LAPACK's dpbtrf). Columns live in a **ring** of ``R``
+columns (column ``h`` at ``(h mod R) LD``); an update that crosses the end of the ring is split
+there, and nothing is ever shifted.
 
-    U[i,i]     = chol(M[i,i])                       (upper, 6x6)
-    U[i,i+k]   = U[i,i]'^-1 M[i,i+k]                k = 1 .. b-1
-    M[i+k,i+l] -= U[i,i+k]' U[i,i+l]                1 <= k <= l <= b-1
-    y[i]       = U[i,i]'^-1 d[i];   d[i+k] -= U[i,i+k]' y[i]
+The factorisation goes panel by panel (``P`` scalar columns, a multiple of 6; Elphingstone &
+Wong's recursive partitioning with a panel of stations as the partition):
 
-Row ``i`` only changes rows ``i+1 .. i+b-1``, so a window of ``b + chunk`` rows in core is
-enough: rows are read in station order, factored, and written back (factor row over band row);
-back substitution ``delta[i] = U[i,i]^-1 (y[i] - sum_k U[i,i+k] delta[i+k])`` then reads the
-factor rows in reverse. A pivot that is not positive (relative to the row's original diagonal)
-stops the factorisation and names the station.
+    L11 = chol(A11)                      dpotrf, then the pivot test below
+    L21 = A21 L11'^-1                    dtrtri + dtrmm (faster than dtrsm at these sizes)
+    A22 -= L21 L21'                      dsyrk on the diagonal part, dgemm below it
+    y1 = L11^-1 d1;  d2 -= L21 y1        dtrsv, dgemv
+
+with a look-ahead of one panel on two (or more) threads: thread 0 applies panel k's update to
+the columns of panel k+1 and factors panel k+1 at once, while the other threads update the
+rest of the trailing block; the split is balanced by operation counts. The BLAS libraries are
+held to one thread meanwhile (:func:`sapgo.blas.blas_limits`). Out of core, a reader/writer
+thread loads the band rows of the next segment into the ring and stores the factor rows of the
+previous one while the kernel computes; a segment is ``chunk_rows`` stations. In core:
+the ring (``~(3 chunk_rows + 2 b) x 6`` columns of ``6b + P`` doubles) and one segment of band
+rows on each side.
+
+A pivot ``L[h,h]^2`` at or below ``pivot_tol`` times the original diagonal element (or a failed
+dpotrf) stops the factorisation and names the station and parameter.
+
+:func:`cholesky_banded` and :func:`cho_solve_banded` are drop-ins for SciPy's functions of the
+same names (same storage, arguments and results), running the same kernel on LAPACK's storage.
 """
 
 from __future__ import annotations
 
+import threading
+
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
+
+from .blas import FNS, L, N, R, T, blas_limits, gemm, gemv, potrf, syrk, trmm, trsv, trtri
 
 #: A pivot at or below this fraction of the original diagonal element counts as zero.
 PIVOT_TOLERANCE = 1e-12
 
+#: Weight of the panel factorisation's operations (dpotrf, dtrtri, dtrmm) against the
+#: dsyrk/dgemm of the trailing update when the threads' shares are balanced: they run at
+#: about half the rate.
+_PANEL_WEIGHT = 2.0
 
-@njit(cache=True)
-def factor_rows(band, rhs, orig_diag, r_lo, r_hi, n_valid, pivot_tol):
-    """Factor window rows ``r_lo .. r_hi-1`` in place and push their updates forward.
 
-    Rows ``r_hi .. n_valid-1`` of the window receive the updates (they must hold the rows
-    that follow). ``rhs`` is forward-substituted along. Returns ``(-1, -1)`` or the window row
-    and parameter (0-5) of the first non-positive pivot.
+def panel_width(u):
+    """Scalar panel width for a scalar half band ``u`` (measured best on 2 cores)."""
+    return 24 if u < 200 else 36 if u < 450 else 48
+
+
+# -- kernels ------------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True)
+def _update_cols(fns, a, ring, ld1, k0, pb, c0, c1, m):
+    """Trailing columns ``[k0+pb+c0, k0+pb+c1)`` minus ``L21 L21'`` (lower part), where
+    ``L21`` is the ``m`` rows below panel ``k0`` (``pb`` columns); split at the ring's end."""
+    ld = ld1 - 1
+    src = (k0 % ring) * ld1 + pb
+    c_lo = k0 + pb
+    j = c0
+    while j < c1:
+        h = c_lo + j
+        e = min(c1, j + ring - h % ring)
+        base = (h % ring) * ld1
+        syrk(fns.dsyrk, L, N, e - j, pb, -1.0, a[src + j:], ld, 1.0, a[base:], ld)
+        if m > e:
+            gemm(fns.dgemm, N, T, m - e, e - j, pb, -1.0, a[src + e:], ld, a[src + j:], ld,
+                 1.0, a[base + e - j:], ld)
+        j = e
+
+
+@njit(cache=True, nogil=True)
+def _factor_panel(fns, a, orig, ring, ld1, k0, pb, m, tol, tmp):
+    """Factor panel ``k0`` (``pb`` columns, ``m`` rows below); 0 or 1 + the failing column."""
+    ld = ld1 - 1
+    base = (k0 % ring) * ld1
+    x = a[base:]
+    info = potrf(fns.dpotrf, L, pb, x, ld)
+    good = pb if info == 0 else info - 1
+    for j in range(good):
+        d = x[j * ld1]
+        if not (d * d > tol * orig[(k0 + j) % ring]):
+            return j + 1
+    if info != 0:
+        return info
+    if m > 0:
+        for j in range(pb):
+            for i in range(j, pb):
+                tmp[j * pb + i] = x[j * ld + i]
+        trtri(fns.dtrtri, L, N, pb, tmp, pb)
+        trmm(fns.dtrmm, R, L, T, N, m, pb, 1.0, tmp, pb, a[base + pb:], ld)
+    return 0
+
+
+@njit(cache=True, nogil=True)
+def _forward(fns, a, y, ring, ld1, k0, pb, m):
+    """``y1 <- L11^-1 y1`` for panel ``k0``, then ``y2 -= L21 y1`` (split at the ring's end)."""
+    ld = ld1 - 1
+    base = (k0 % ring) * ld1
+    yk = y[k0 % ring:]
+    trsv(fns.dtrsv, L, N, N, pb, a[base:], ld, yk)
+    if m > 0:
+        h = (k0 + pb) % ring
+        m1 = min(m, ring - h)
+        gemv(fns.dgemv, N, m1, pb, -1.0, a[base + pb:], ld, yk, 1.0, y[h:])
+        if m > m1:
+            gemv(fns.dgemv, N, m - m1, pb, -1.0, a[base + pb + m1:], ld, yk, 1.0, y)
+
+
+@njit(cache=True, nogil=True)
+def _cut(m, near, pb, pn, m2, nthreads):
+    """Thread 0's columns ``[0, c)`` (at least the next panel's) so that its update plus the
+    next panel's factorisation is a ``1/nthreads`` share of the step's work."""
+    if nthreads == 1:
+        return m
+    panel = _PANEL_WEIGHT * (pn ** 3 / 3.0 + m2 * pn * pn / 2.0)
+    total = pb * m * (m + 1) / 2.0 + panel
+    share = total / nthreads
+    c = near
+    work = pb * (near * m - near * (near - 1) / 2.0) + panel
+    while c < m and work + pb * (m - c) <= share:
+        work += pb * (m - c)
+        c += 1
+    return c
+
+
+@njit(cache=True, nogil=True)
+def _area_cut(c, m, frac):
+    """Column ``x`` in ``[c, m]`` such that columns ``[c, x)`` carry ``frac`` of the update of
+    ``[c, m)`` (column ``j`` costs ``m - j``)."""
+    if frac >= 1.0:
+        return m
+    goal = frac * (m - c) * (m - c + 1) / 2.0
+    x = c
+    acc = 0.0
+    while x < m and acc + (m - x) <= goal:
+        acc += m - x
+        x += 1
+    return x
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, tol, nthreads):
+    """Factor the panels starting at ``k_start, k_start + p, ... < k_stop`` (scalar columns)
+    with forward substitution; panel ``k_start`` is already factored unless ``first``, and the
+    panel at ``k_stop`` is factored on return (look-ahead). Returns -1 or the failing column.
     """
-    width = band.shape[2]
-    bw = width // 6
-    for r in range(r_lo, r_hi):
-        # --- U[i,i]: upper Cholesky of the 6x6 diagonal block (upper triangle is used)
-        for i in range(6):
-            s = band[r, i, i]
-            for k in range(i):
-                s -= band[r, k, i] * band[r, k, i]
-            if not (s > pivot_tol * orig_diag[r, i]) or not (s > 0.0):
-                return r, i
-            d = np.sqrt(s)
-            band[r, i, i] = d
-            for j in range(i + 1, 6):
-                t = band[r, i, j]
-                for k in range(i):
-                    t -= band[r, k, i] * band[r, k, j]
-                band[r, i, j] = t / d
-        for i in range(1, 6):
-            for j in range(i):
-                band[r, i, j] = 0.0
-        # --- U[i,i+k] = U[i,i]'^-1 M[i,i+k]  (forward substitution, column by column)
-        for c in range(6, width):
-            for i in range(6):
-                t = band[r, i, c]
-                for k in range(i):
-                    t -= band[r, k, i] * band[r, k, c]
-                band[r, i, c] = t / band[r, i, i]
-        _forward_row(band, rhs, r, n_valid)
-        # --- update the following rows: M[i+k, i+l] -= U[i,i+k]' U[i,i+l]
-        for k in range(1, bw):
-            rr = r + k
-            if rr >= n_valid:
-                break
-            c0 = 6 * k
-            for a in range(6):
-                for c in range(c0, width):
-                    t = 0.0
-                    for m in range(6):
-                        t += band[r, m, c0 + a] * band[r, m, c]
-                    band[rr, a, c - c0] -= t
-    return -1, -1
-
-
-@njit(cache=True)
-def _forward_row(factor, y, r, n_valid):
-    """Forward substitution of row ``r``: ``y[r] <- U[r,r]'^-1 y[r]``, then
-    ``y[r+k] -= U[r,r+k]' y[r]`` for the following rows below ``n_valid``."""
-    width = factor.shape[2]
-    for i in range(6):
-        t = y[r, i]
-        for k in range(i):
-            t -= factor[r, k, i] * y[r, k]
-        y[r, i] = t / factor[r, i, i]
-    for k in range(1, width // 6):
-        rr = r + k
-        if rr >= n_valid:
-            break
-        for a in range(6):
-            t = 0.0
-            for m in range(6):
-                t += factor[r, m, 6 * k + a] * y[r, m]
-            y[rr, a] -= t
-
-
-@njit(cache=True)
-def back_substitute(factor, y, delta_next, n_next, out):
-    """Back substitution for rows ``len(factor)-1 .. 0`` of a block of factor rows.
-
-    ``delta_next`` holds the solution of the ``n_next`` rows that follow the block (already
-    solved); ``out`` receives the block's solution.
-    """
-    n = factor.shape[0]
-    width = factor.shape[2]
-    bw = width // 6
-    for r in range(n - 1, -1, -1):
-        t = np.empty(6)
-        for i in range(6):
-            t[i] = y[r, i]
-        for k in range(1, bw):
-            rr = r + k
-            if rr < n:
-                x = out[rr]
-            elif rr - n < n_next:
-                x = delta_next[rr - n]
+    tmp = np.empty((max(1, nthreads), p * p))
+    fail = np.full(1, -1, np.int64)
+    if first:
+        pb = min(p, n - k_start)
+        f = _factor_panel(fns, a, orig, ring, ld1, k_start, pb, min(u, n - k_start - pb), tol,
+                          tmp[0])
+        if f:
+            return k_start + f - 1
+    for k0 in range(k_start, k_stop, p):
+        pb = min(p, n - k0)
+        c_lo = k0 + pb
+        m = min(u, n - c_lo)
+        _forward(fns, a, y, ring, ld1, k0, pb, m)
+        if c_lo >= n:
+            continue
+        pn = min(p, n - c_lo)
+        if m <= 0:  # the next panel lies outside this one's band (u < p)
+            f = _factor_panel(fns, a, orig, ring, ld1, c_lo, pn, min(u, n - c_lo - pn), tol,
+                              tmp[0])
+            if f:
+                return c_lo + f - 1
+            continue
+        near = min(pn, m)
+        m2 = min(u, n - c_lo - pn)
+        c = _cut(m, near, pb, pn, m2, nthreads)
+        for t in prange(nthreads):
+            if t == 0:
+                _update_cols(fns, a, ring, ld1, k0, pb, 0, c, m)
+                f = _factor_panel(fns, a, orig, ring, ld1, c_lo, pn, m2, tol, tmp[0])
+                if f:
+                    fail[0] = c_lo + f - 1
             else:
-                break
-            for i in range(6):
-                s = 0.0
-                for c in range(6):
-                    s += factor[r, i, 6 * k + c] * x[c]
-                t[i] -= s
-        for i in range(5, -1, -1):
-            s = t[i]
-            for c in range(i + 1, 6):
-                s -= factor[r, i, c] * out[r, c]
-            out[r, i] = s / factor[r, i, i]
+                lo = _area_cut(c, m, (t - 1) / (nthreads - 1))
+                hi = _area_cut(c, m, t / (nthreads - 1))
+                if hi > lo:
+                    _update_cols(fns, a, ring, ld1, k0, pb, lo, hi, m)
+        if fail[0] >= 0:
+            return fail[0]
+    return -1
 
+
+@njit(cache=True, nogil=True)
+def _load_rows(band, rhs, i0, a, y, orig, ring, ld1):
+    """Band rows of stations ``i0 ..`` into the ring as columns of ``L`` (zero padded)."""
+    width = band.shape[2]
+    for ii in range(band.shape[0]):
+        for r in range(6):
+            h = 6 * (i0 + ii) + r
+            base = (h % ring) * ld1
+            for d in range(ld1):
+                a[base + d] = band[ii, r, r + d] if r + d < width else 0.0
+            y[h % ring] = rhs[ii, r]
+            orig[h % ring] = abs(band[ii, r, r])
+
+
+@njit(cache=True, nogil=True)
+def _store_rows(a, y, ring, ld1, i0, band, rhs):
+    """Factor rows (and forward-substituted right-hand side) of stations ``i0 ..`` from the
+    ring; the lower triangle of each diagonal block is zero."""
+    width = band.shape[2]
+    for ii in range(band.shape[0]):
+        for r in range(6):
+            h = 6 * (i0 + ii) + r
+            base = (h % ring) * ld1
+            for c in range(r):
+                band[ii, r, c] = 0.0
+            for c in range(r, width):
+                band[ii, r, c] = a[base + c - r]
+            rhs[ii, r] = y[h % ring]
+
+
+@njit(cache=True, nogil=True)
+def _back_rows(band, y, x, i0, n):
+    """Back substitution ``x <- L'^-1 y`` for the scalar rows of the stations ``i0 ..`` of the
+    factor band rows ``band`` (in reverse); ``x`` holds the solution of the rows after them."""
+    width = band.shape[2]
+    for ii in range(band.shape[0] - 1, -1, -1):
+        for r in range(5, -1, -1):
+            h = 6 * (i0 + ii) + r
+            s = y[ii, r]
+            top = min(width - r, n - h)
+            for d in range(1, top):
+                s -= band[ii, r, r + d] * x[h + d]
+            x[h] = s / band[ii, r, r]
+
+
+@njit(cache=True, nogil=True)
+def _solve_skewed(a, ld1, n, u, b):
+    """``b <- (L L')^-1 b`` for one column ``b``, ``L`` in skewed storage without a ring."""
+    for h in range(n):
+        base = h * ld1
+        v = b[h] / a[base]
+        b[h] = v
+        for d in range(1, min(u + 1, n - h)):
+            b[h + d] -= a[base + d] * v
+    for h in range(n - 1, -1, -1):
+        base = h * ld1
+        s = b[h]
+        for d in range(1, min(u + 1, n - h)):
+            s -= a[base + d] * b[h + d]
+        b[h] = s / a[base]
+
+
+# -- drivers ------------------------------------------------------------------------------
 
 class PivotError(Exception):
     """Raised by the drivers with the station (row) and parameter of a failed pivot."""
@@ -143,80 +275,149 @@ class PivotError(Exception):
         self.parameter = parameter
 
 
-def solve_out_of_core(band_ds, rhs_ds, band_width, chunk_rows=256, pivot_tol=PIVOT_TOLERANCE,
-                      progress=None):
-    """Factor the band rows of dataset ``band_ds`` in place and solve for ``rhs_ds``.
+def _up(x, k):
+    return -(-x // k) * k
 
-    ``band_ds`` (n x 6 x 6b) and ``rhs_ds`` (n x 6) are HDF5 datasets (or arrays). The factor
-    rows overwrite the band rows and the forward-substituted right-hand side overwrites
-    ``rhs_ds``; returns the solution ``delta`` (n x 6). In core: ``b + chunk_rows`` rows.
+
+class _Background:
+    """One job at a time on a helper thread; ``wait()`` returns its result or re-raises."""
+
+    def __init__(self):
+        self._thread = None
+        self._box = None
+
+    def start(self, fn, *args):
+        box = self._box = {}
+
+        def run():
+            try:
+                box["result"] = fn(*args)
+            except BaseException as exc:  # re-raised in the caller's thread
+                box["error"] = exc
+
+        self._thread = threading.Thread(target=run, daemon=True)
+        self._thread.start()
+
+    def wait(self):
+        if self._thread is None:
+            return None
+        self._thread.join()
+        self._thread = None
+        if "error" in self._box:
+            raise self._box["error"]
+        return self._box.get("result")
+
+
+def solve_out_of_core(band_ds, rhs_ds, band_width, chunk_rows=256, pivot_tol=PIVOT_TOLERANCE,
+                      progress=None, panel=None, threads=None):
+    """Factor the band rows of ``band_ds`` in place and solve for ``rhs_ds``.
+
+    ``band_ds`` (n x 6 x 6b) and ``rhs_ds`` (n x 6) are direct-access files, HDF5 datasets or
+    arrays. The factor rows overwrite the band rows and the forward-substituted right-hand side
+    overwrites ``rhs_ds``; returns the solution ``delta`` (n x 6). In core: the ring of about
+    ``3 chunk_rows + 2 b`` stations' columns and two segments of rows in transit.
+    ``panel`` (scalar columns, a multiple of 6) and ``threads`` override the defaults.
     """
-    n = band_ds.shape[0]
-    bw = band_width
-    width = 6 * bw
+    n_st = band_ds.shape[0]
+    width = 6 * band_width
     if band_ds.shape[1:] != (6, width):
         raise ValueError(f"band rows have shape {band_ds.shape[1:]}, expected (6, {width})")
-    cap = min(n, bw + max(1, chunk_rows))
-    band = np.zeros((cap, 6, width))
-    rhs = np.zeros((cap, 6))
-    orig = np.zeros((cap, 6))
-    base = 0
-    loaded = min(n, cap)
-    band[:loaded] = band_ds[0:loaded]
-    rhs[:loaded] = rhs_ds[0:loaded]
-    orig[:loaded] = np.abs(np.diagonal(band[:loaded], axis1=1, axis2=2))
-    while base < n:
-        hi = n if loaded == n else loaded - bw + 1
-        r, i = factor_rows(band, rhs, orig, 0, hi - base, loaded - base, pivot_tol)
-        if r >= 0:
-            raise PivotError(base + r, i)
-        m = hi - base
-        band_ds[base:hi] = band[:m]
-        rhs_ds[base:hi] = rhs[:m]
-        if progress is not None:
-            progress(m)
-        keep = loaded - hi
-        band[:keep] = band[m:m + keep]
-        rhs[:keep] = rhs[m:m + keep]
-        orig[:keep] = orig[m:m + keep]
-        base = hi
-        new_loaded = min(n, base + cap)
-        if new_loaded > loaded:
-            k0, k1 = keep, keep + new_loaded - loaded
-            band[k0:k1] = band_ds[loaded:new_loaded]
-            rhs[k0:k1] = rhs_ds[loaded:new_loaded]
-            orig[k0:k1] = np.abs(np.diagonal(band[k0:k1], axis1=1, axis2=2))
-            loaded = new_loaded
-    # back substitution, factor rows read in reverse blocks
-    delta = np.zeros((n, 6))
-    step = max(1, chunk_rows)
-    stop = n
+    n = 6 * n_st
+    if n == 0:
+        return np.zeros((0, 6))
+    u = width - 1
+    p = panel or panel_width(u)
+    if p % 6:
+        raise ValueError(f"panel width {p} is not a multiple of 6")
+    nthreads = threads or numba.get_num_threads()
+    seg = _up(6 * max(1, chunk_rows), p)                 # scalar columns per segment
+    ld1 = u + p + 1
+    ring = min(_up(3 * seg + u + 2 * p + 6, p), _up(n, p))
+    a = np.zeros(ring * ld1)
+    y = np.zeros(ring)
+    orig = np.zeros(ring)
+    state = {"loaded": 0, "stored": 0}
+
+    def load(stop_st):
+        i0 = state["loaded"]
+        if stop_st > i0:
+            _load_rows(np.ascontiguousarray(band_ds[i0:stop_st], dtype=np.float64),
+                       np.ascontiguousarray(rhs_ds[i0:stop_st], dtype=np.float64),
+                       i0, a, y, orig, ring, ld1)
+            state["loaded"] = stop_st
+
+    def store(stop_st):
+        i0 = state["stored"]
+        if stop_st > i0:
+            band = np.empty((stop_st - i0, 6, width))
+            rhs = np.empty((stop_st - i0, 6))
+            _store_rows(a, y, ring, ld1, i0, band, rhs)
+            band_ds[i0:stop_st] = band
+            rhs_ds[i0:stop_st] = rhs
+            state["stored"] = stop_st
+
+    def reach(col):                                        # stations covering columns < col
+        return min(n_st, -(-min(n, col) // 6))
+
+    def io(store_st, load_st):
+        store(store_st)
+        load(load_st)
+
+    bg = _Background()
+    load(reach(seg + u + p))
+    k = 0
+    with blas_limits(1):
+        while k < n:
+            stop = min(n, k + seg)
+            load(reach(stop + u + p))                      # (already there but for tiny rings)
+            bg.start(io, k // 6, reach(stop + seg + u + p))
+            try:
+                fail = _factor_range(FNS, a, y, orig, ring, ld1, n, u, p, k, stop, k == 0,
+                                     pivot_tol, nthreads)
+            finally:
+                bg.wait()
+            if fail >= 0:
+                raise PivotError(fail // 6, fail % 6)
+            if progress is not None:
+                progress((stop - k) // 6)
+            k = stop
+    store(n_st)
+    return _back_substitute(band_ds, rhs_ds, n_st, max(1, chunk_rows))
+
+
+def _back_substitute(band_ds, rhs_ds, n_st, step):
+    """``delta = U^-1 y`` reading the factor rows in reverse segments, the next one read while
+    the current one is solved."""
+    n = 6 * n_st
+    x = np.zeros(n)
+
+    def read(lo, hi):
+        return (np.ascontiguousarray(band_ds[lo:hi], dtype=np.float64),
+                np.ascontiguousarray(rhs_ds[lo:hi], dtype=np.float64))
+
+    bg = _Background()
+    stop = n_st
+    start = max(0, stop - step)
+    chunk = read(start, stop)
     while stop > 0:
-        start = max(0, stop - step)
-        factor = np.ascontiguousarray(band_ds[start:stop])
-        y = np.ascontiguousarray(rhs_ds[start:stop])
-        nxt = np.ascontiguousarray(delta[stop:min(n, stop + bw)])
-        out = np.zeros((stop - start, 6))
-        back_substitute(factor, y, nxt, len(nxt), out)
-        delta[start:stop] = out
-        stop = start
-    return delta
+        nxt = max(0, start - step)
+        if start > 0:
+            bg.start(read, nxt, start)
+        _back_rows(chunk[0], chunk[1], x, start, n)
+        chunk = bg.wait() if start > 0 else None
+        stop, start = start, nxt
+    return x.reshape(n_st, 6)
 
 
-def solve_in_core(band, rhs, pivot_tol=PIVOT_TOLERANCE):
+def solve_in_core(band, rhs, pivot_tol=PIVOT_TOLERANCE, panel=None, threads=None):
     """Factor band rows ``band`` (n x 6 x 6b) and solve; returns ``(factor, delta)``.
 
-    The same kernels as the out-of-core path with the whole band in one window.
+    The same kernels and driver as the out-of-core path, with the whole band in one segment.
     """
     band = np.array(band, dtype=np.float64, order="C")
-    y = np.array(rhs, dtype=np.float64, order="C")
-    n = band.shape[0]
-    orig = np.abs(np.diagonal(band, axis1=1, axis2=2)).copy()
-    r, i = factor_rows(band, y, orig, 0, n, n, pivot_tol)
-    if r >= 0:
-        raise PivotError(r, i)
-    delta = np.zeros((n, 6))
-    back_substitute(band, y, np.zeros((0, 6)), 0, delta)
+    y = np.array(rhs, dtype=np.float64, order="C").reshape(-1, 6)
+    delta = solve_out_of_core(band, y, band.shape[2] // 6, max(1, band.shape[0]), pivot_tol,
+                              panel=panel, threads=threads)
     return band, delta
 
 
@@ -254,89 +455,62 @@ def dense_to_band(a, band_width):
 
 # -- drop-in replacements for scipy.linalg.cholesky_banded / cho_solve_banded -----------
 
-def _block_indices(n_blocks, bw):
-    """Scalar (row, col) of every element of the band rows ``(n_blocks, 6, 6 bw)``."""
-    i = np.arange(n_blocks)[:, None, None]
-    r = np.arange(6)[None, :, None]
-    kc = np.arange(6 * bw)[None, None, :]
-    p = 6 * i + r
-    q = 6 * i + kc
-    return np.broadcast_to(p, (n_blocks, 6, 6 * bw)), np.broadcast_to(q, (n_blocks, 6, 6 * bw))
+def _skewed(ab, lower, p):
+    """Skewed storage of a LAPACK banded array ``ab`` (u + 1, n), upper or lower form."""
+    u, n = ab.shape[0] - 1, ab.shape[1]
+    ld1 = u + p + 1
+    ring = _up(max(n, 1), p)
+    a = np.zeros(ring * ld1)
+    v = a[:n * ld1].reshape(n, ld1)
+    if lower:  # ab[d, h] = A[h + d, h]
+        v[:, :u + 1] = ab.T
+    else:  # ab[u + i - j, j] = A[i, j], i <= j: A[h + d, h] = A[h, h + d] = ab[u - d, h + d]
+        for d in range(min(u + 1, n)):
+            v[:n - d, d] = ab[u - d, d:]
+    return a, u, n, ld1, ring
 
 
-def _to_blocks(ab, lower, triangle):
-    """Band rows of a LAPACK banded array ``ab`` (u + 1, n) of either form.
+def _unskew(a, ab, lower, u, n, ld1):
+    """``ab`` with its referenced entries replaced by the factor in ``a`` (others as given)."""
+    c = np.array(ab, dtype=np.float64)
+    v = a[:n * ld1].reshape(n, ld1)
+    for d in range(min(u + 1, n)):
+        if lower:
+            c[d, :n - d] = v[:n - d, d]
+        else:
+            c[u - d, d:] = v[:n - d, d]
+    return c
 
-    ``triangle``: only the elements on and above the diagonal (a triangular factor ``U``;
-    a lower-form ``L`` is read as ``U = L'``); otherwise the symmetric matrix. The scalar
-    order is padded to a multiple of 6 with an identity. Returns ``(band, n, u)``.
-    """
-    ab = np.asarray(ab)
+
+def _banded_input(ab, check_finite):
+    ab = np.asarray_chkfinite(ab) if check_finite else np.asarray(ab)
     if ab.ndim != 2:
         raise ValueError(f"expected a 2-D banded array (u + 1, n), got shape {ab.shape}")
-    n, u = ab.shape[1], ab.shape[0] - 1
-    nb = max(1, -(-n // 6))
-    p, q = _block_indices(nb, (u + 5) // 6 + 1)
-    lo, hi = np.minimum(p, q), np.maximum(p, q)
-    ok = (hi - lo <= u) & (hi < n)
-    if triangle:
-        ok &= q >= p
-    band = np.zeros(p.shape)
-    if lower:  # ab[i - j, j] = a[i, j] for i >= j: element (hi, lo)
-        band[ok] = ab[(hi - lo)[ok], lo[ok]]
-    else:  # ab[u + i - j, j] = a[i, j] for i <= j
-        band[ok] = ab[(u + lo - hi)[ok], hi[ok]]
-    pad = np.arange(n, 6 * nb)
-    band[pad // 6, pad % 6, pad % 6] = 1.0
-    return band, n, u
-
-
-def scipy_to_band(ab, lower=False):
-    """Band rows (6x6 station blocks) of a symmetric matrix in LAPACK banded storage.
-
-    ``ab`` is laid out as for :func:`scipy.linalg.cholesky_banded`: upper form
-    ``ab[u + i - j, j] == a[i, j]`` (i <= j) or lower form ``ab[i - j, j] == a[i, j]``
-    (i >= j). The scalar order ``n`` is padded to a multiple of 6 with an identity.
-    Returns ``(band, n, u)``.
-    """
-    return _to_blocks(ab, lower, triangle=False)
-
-
-def band_to_scipy(factor, n, u, lower=False):
-    """LAPACK banded storage of the triangular factor held in band rows (see above).
-
-    Upper: ``c[u + i - j, j] = U[i, j]`` with ``a = U' U``; lower: ``c[i - j, j] = L[i, j]``
-    with ``L = U'``.
-    """
-    nb, _, width = factor.shape
-    p, q = _block_indices(nb, width // 6)
-    ok = (q >= p) & (q - p <= u) & (q < n)
-    c = np.zeros((u + 1, n))
-    if lower:
-        c[(q - p)[ok], p[ok]] = factor[ok]
-    else:
-        c[(u + p - q)[ok], q[ok]] = factor[ok]
-    return c
+    return ab
 
 
 def cholesky_banded(ab, overwrite_ab=False, lower=False, check_finite=True):
     """Cholesky factor of a symmetric positive definite banded matrix, as SciPy's.
 
-    Same storage, arguments and result as :func:`scipy.linalg.cholesky_banded`; computed
-    with the block kernels of the out-of-core solver (6x6 station blocks, so the scalar band
-    is rounded up to whole blocks internally). Raises :class:`numpy.linalg.LinAlgError`
-    naming the leading minor that is not positive definite.
+    Same storage, arguments and result as :func:`scipy.linalg.cholesky_banded` (upper form
+    ``ab[u + i - j, j] == a[i, j]`` for i <= j, lower form ``ab[i - j, j] == a[i, j]`` for
+    i >= j); computed by the panel kernel of the out-of-core solver on LAPACK's own band
+    storage. Raises :class:`numpy.linalg.LinAlgError` naming the leading minor that is not
+    positive definite.
     """
-    ab = np.asarray_chkfinite(ab) if check_finite else np.asarray(ab)
-    band, n, u = scipy_to_band(ab, lower)
-    nb = band.shape[0]
-    rhs = np.zeros((nb, 6))
-    orig = np.abs(np.diagonal(band, axis1=1, axis2=2)).copy()
-    r, i = factor_rows(band, rhs, orig, 0, nb, nb, 0.0)
-    if r >= 0:
-        raise np.linalg.LinAlgError(
-            f"{6 * r + i + 1}-th leading minor not positive definite")
-    c = band_to_scipy(band, n, u, lower)
+    ab = _banded_input(ab, check_finite)
+    u, n = ab.shape[0] - 1, ab.shape[1]
+    p = panel_width(u)
+    a, u, n, ld1, ring = _skewed(ab, lower, p)
+    orig = np.zeros(ring)
+    orig[:n] = np.abs(a[:n * ld1:ld1])
+    y = np.zeros(ring)
+    with blas_limits(1):
+        fail = _factor_range(FNS, a, y, orig, ring, ld1, n, u, p, 0, n, True, 0.0,
+                             numba.get_num_threads()) if n else -1
+    if fail >= 0:
+        raise np.linalg.LinAlgError(f"{fail + 1}-th leading minor not positive definite")
+    c = _unskew(a, ab, lower, u, n, ld1)
     if overwrite_ab and ab.dtype == np.float64 and ab.flags.writeable:
         ab[...] = c
         return ab
@@ -349,32 +523,20 @@ def cho_solve_banded(cb_and_lower, b, overwrite_b=False, check_finite=True):
     ``b`` may be a vector (n,) or a matrix (n, k).
     """
     cb, lower = cb_and_lower
-    cb = np.asarray_chkfinite(cb) if check_finite else np.asarray(cb)
+    cb = _banded_input(cb, check_finite)
     b = np.asarray_chkfinite(b) if check_finite else np.asarray(b)
-    factor, n, u = _to_blocks(cb, lower, triangle=True)
+    u, n = cb.shape[0] - 1, cb.shape[1]
     if b.shape[0] != n:
         raise ValueError(f"shapes of cb {cb.shape} and b {b.shape} are not compatible")
-    nb = factor.shape[0]
-    cols = b.reshape(n, -1).astype(np.float64)
+    a, u, n, ld1, _ = _skewed(cb, lower, 6)
+    cols = np.array(b, dtype=np.float64).reshape(n, -1)
     out = np.empty_like(cols)
     for j in range(cols.shape[1]):
-        y = np.zeros(6 * nb)
-        y[:n] = cols[:, j]
-        y = y.reshape(nb, 6)
-        _forward_substitute(factor, y)
-        x = np.zeros((nb, 6))
-        back_substitute(factor, y, np.zeros((0, 6)), 0, x)
-        out[:, j] = x.ravel()[:n]
+        col = np.ascontiguousarray(cols[:, j])
+        _solve_skewed(a, ld1, n, u, col)
+        out[:, j] = col
     out = out.reshape(b.shape)
     if overwrite_b and b.dtype == np.float64 and b.flags.writeable:
         b[...] = out
         return b
     return out
-
-
-@njit(cache=True)
-def _forward_substitute(factor, y):
-    """``y <- U'^-1 y`` for factor rows ``U`` (the solve that factor_rows does on the fly)."""
-    nb = factor.shape[0]
-    for r in range(nb):
-        _forward_row(factor, y, r, nb)

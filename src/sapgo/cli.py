@@ -176,7 +176,8 @@ def build_parser():
     g.add_argument("--station-position-perturbation", type=float, help="m (default 5)")
     g.add_argument("--station-angle-perturbation", type=float, help="arc seconds (default 20)")
     g.add_argument("--control-perturbation", type=float, help="m (default 0.001)")
-    g.add_argument("--terrain-relief", type=float, help="standard deviation of terrain heights, m (default 100)")
+    g.add_argument("--terrain-relief", type=float,
+                   help="standard deviation of terrain heights, m (default 100)")
     g.add_argument("--seed", type=int, help="random seed (default 1)")
     g.set_defaults(func=cmd_generate)
 

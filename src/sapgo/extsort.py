@@ -58,7 +58,8 @@ def count_le(keys, bound):
     lo, hi = 0, len(keys[0])
     for k, b in zip(keys, bound):
         seg = k[lo:hi]
-        lo, hi = lo + int(np.searchsorted(seg, b, "left")), lo + int(np.searchsorted(seg, b, "right"))
+        lo, hi = (lo + int(np.searchsorted(seg, b, "left")),
+                  lo + int(np.searchsorted(seg, b, "right")))
         if lo == hi:
             return lo
     return hi

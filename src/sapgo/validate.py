@@ -175,6 +175,8 @@ def check_values(project: Project, ordered_layout=True):
             raise DataError(f"observations record {a + i}: unknown status {obs['status'][i]}")
     if project.has_truth:
         for a, b in project.chunks("truth/points"):
-            _check_finite("truth/points", a, None, "xyz", project.read_field("truth/points", "xyz", a, b))
+            _check_finite("truth/points", a, None, "xyz",
+                          project.read_field("truth/points", "xyz", a, b))
         for a, b in project.chunks("truth/stations"):
-            _check_finite("truth/stations", a, None, "eo", project.read_field("truth/stations", "eo", a, b))
+            _check_finite("truth/stations", a, None, "eo",
+                          project.read_field("truth/stations", "eo", a, b))

@@ -71,7 +71,8 @@ class BlockSpec:
         if not 0.5 <= self.forelap < 0.9:
             raise ParameterError("forelap must be in [0.5, 0.9) so that points appear on 3 photos")
         if not 0.1 <= self.sidelap < 0.6:
-            raise ParameterError("sidelap must be in [0.1, 0.6) so that the pattern fits the format")
+            raise ParameterError(
+                "sidelap must be in [0.1, 0.6) so that the pattern fits the format")
         if self.focal_length <= 0 or self.scale <= 0 or self.format <= 0:
             raise ParameterError("focal length, scale and format must be positive")
         if self.sigma_image < 0 or self.station_position_perturbation < 0 or \
