@@ -456,30 +456,45 @@ def dense_to_band(a, band_width):
 # -- drop-in replacements for scipy.linalg.cholesky_banded / cho_solve_banded -----------
 
 def _skewed(ab, lower, p):
-    """Skewed storage of a LAPACK banded array ``ab`` (u + 1, n), upper or lower form."""
+    """Skewed storage for a LAPACK banded array ``ab`` (u + 1, n), upper or lower form.
+
+    Returns ``(a, view, u, n, ld1)``: ``a`` is the kernel's storage (column ``h`` of ``L`` at
+    ``a[h ld1:]``) and ``view`` an (u + 1, n) strided view of it laid out like ``ab``, which
+    received ``ab`` in one copy and shows the factor afterwards. Entries of ``ab`` that the
+    factorisation does not reference keep their values.
+    """
     u, n = ab.shape[0] - 1, ab.shape[1]
     ld1 = u + p + 1
     ring = _up(max(n, 1), p)
-    a = np.zeros(ring * ld1)
-    v = a[:n * ld1].reshape(n, ld1)
-    if lower:  # ab[d, h] = A[h + d, h]
-        v[:, :u + 1] = ab.T
-    else:  # ab[u + i - j, j] = A[i, j], i <= j: A[h + d, h] = A[h, h + d] = ab[u - d, h + d]
-        for d in range(min(u + 1, n)):
-            v[:n - d, d] = ab[u - d, d:]
-    return a, u, n, ld1, ring
+    pad = 0 if lower else u * ld1        # the upper form's unreferenced corner lies before
+    buf = np.zeros(pad + ring * ld1)
+    item = buf.itemsize
+    if lower:  # ab[d, h] = L[h + d, h] at a[h ld1 + d]
+        view = np.lib.stride_tricks.as_strided(buf, (u + 1, n), (item, ld1 * item))
+    else:  # ab[i, j] = U[j - u + i, j] = L[j, j - u + i] at a[(j - u + i) ld1 + u - i]
+        view = np.lib.stride_tricks.as_strided(buf[pad - u * ld1 + u:], (u + 1, n),
+                                               ((ld1 - 1) * item, ld1 * item))
+    if ab.dtype == np.float64:
+        _skew_copy(ab, buf[pad:], ld1, lower)
+    else:
+        view[...] = ab
+    return buf[pad:], view, u, n, ld1
 
 
-def _unskew(a, ab, lower, u, n, ld1):
-    """``ab`` with its referenced entries replaced by the factor in ``a`` (others as given)."""
-    c = np.array(ab, dtype=np.float64)
-    v = a[:n * ld1].reshape(n, ld1)
-    for d in range(min(u + 1, n)):
-        if lower:
-            c[d, :n - d] = v[:n - d, d]
-        else:
-            c[u - d, d:] = v[:n - d, d]
-    return c
+@njit(cache=True, nogil=True)
+def _skew_copy(ab, a, ld1, lower):
+    """``a[h ld1 + d] = L[h + d, h]`` from LAPACK storage, 64 columns at a time (both reads and
+    writes stay in cache; a plain strided assignment is a cache-hostile transposition)."""
+    u, n = ab.shape[0] - 1, ab.shape[1]
+    for h0 in range(0, n, 64):
+        h1 = min(n, h0 + 64)
+        for d in range(u + 1):
+            if lower:
+                for h in range(h0, h1):
+                    a[h * ld1 + d] = ab[d, h]
+            else:
+                for h in range(h0, min(h1, n - d)):
+                    a[h * ld1 + d] = ab[u - d, h + d]
 
 
 def _banded_input(ab, check_finite):
@@ -499,9 +514,9 @@ def cholesky_banded(ab, overwrite_ab=False, lower=False, check_finite=True):
     positive definite.
     """
     ab = _banded_input(ab, check_finite)
-    u, n = ab.shape[0] - 1, ab.shape[1]
-    p = panel_width(u)
-    a, u, n, ld1, ring = _skewed(ab, lower, p)
+    p = panel_width(ab.shape[0] - 1)
+    a, c, u, n, ld1 = _skewed(ab, lower, p)
+    ring = _up(max(n, 1), p)
     orig = np.zeros(ring)
     orig[:n] = np.abs(a[:n * ld1:ld1])
     y = np.zeros(ring)
@@ -510,7 +525,6 @@ def cholesky_banded(ab, overwrite_ab=False, lower=False, check_finite=True):
                              numba.get_num_threads()) if n else -1
     if fail >= 0:
         raise np.linalg.LinAlgError(f"{fail + 1}-th leading minor not positive definite")
-    c = _unskew(a, ab, lower, u, n, ld1)
     if overwrite_ab and ab.dtype == np.float64 and ab.flags.writeable:
         ab[...] = c
         return ab
@@ -528,7 +542,7 @@ def cho_solve_banded(cb_and_lower, b, overwrite_b=False, check_finite=True):
     u, n = cb.shape[0] - 1, cb.shape[1]
     if b.shape[0] != n:
         raise ValueError(f"shapes of cb {cb.shape} and b {b.shape} are not compatible")
-    a, u, n, ld1, _ = _skewed(cb, lower, 6)
+    a, _, u, n, ld1 = _skewed(cb, lower, 6)
     cols = np.array(b, dtype=np.float64).reshape(n, -1)
     out = np.empty_like(cols)
     for j in range(cols.shape[1]):

@@ -41,11 +41,19 @@ FNS = Routines(*(_pointer(name) for name in _NARGS))
 N, T, L, U, R = ord("N"), ord("T"), ord("L"), ord("U"), ord("R")
 
 
-def blas_limits(threads=1):
-    """Context manager limiting the BLAS libraries' own threads (the kernels bring theirs)."""
-    from threadpoolctl import threadpool_limits
+_CONTROLLER = []
 
-    return threadpool_limits(threads, "blas")
+
+def blas_limits(threads=1):
+    """Context manager limiting the BLAS libraries' own threads (the kernels bring theirs).
+
+    The libraries are looked up once per process (that look-up costs about a millisecond).
+    """
+    if not _CONTROLLER:
+        from threadpoolctl import ThreadpoolController
+
+        _CONTROLLER.append(ThreadpoolController())
+    return _CONTROLLER[0].limit(limits=threads, user_api="blas")
 
 
 @njit(cache=True, nogil=True)

@@ -1,0 +1,377 @@
+"""The band solver against what a user would otherwise pick, on the same reduced matrices.
+
+Run:  python benchmarks/solver.py [--quick] [--photos 6000]
+      (writes results/solver.json, results/solver_bandwidth.png, results/solver_gflops.png
+       and prints the tables pasted into benchmarks/README.md)
+
+The matrices are real reduced normal equations: blocks of a fixed number of photos are
+generated with 3 to 49 strips (band width 8 to 100 stations after ordering across the strips),
+and their band rows are built by sapgo's own ``build`` pass. On each matrix, in one run:
+
+- **sapgo in core**: ``sapgo.bandsolve.cholesky_banded`` on LAPACK's lower band storage (the
+  drop-in; includes its copies in and out), checked against LAPACK's factor to 1e-8 relative;
+- **sapgo out of core**: ``solve_out_of_core`` on the band rows in direct-access files (factor,
+  forward and back substitution, ``chunk_rows=256``), against ``solve_in_core`` (the same
+  driver with the whole band in one segment): the cost of being out of core;
+- **LAPACK dpbtrf**: ``scipy.linalg.cholesky_banded``, best of OpenBLAS with 1 and 2 threads;
+- **sparse Cholesky**: CHOLMOD (scikit-sparse) if it is installed, else SciPy's SuperLU with
+  natural ordering and no pivoting (the band order is already the good one), best of both
+  permutations tried;
+- **dense ceiling**: the time the operation count would take at the machine's measured
+  dense matrix-multiply rate (DGEMM 2000 x 2000, 2 threads).
+
+Operation count ``n (6b)^2`` (n scalar unknowns, b band width in stations), as the issue
+defines it; GFLOP/s = count / seconds. Every time is the best of ``REPEAT`` runs. Then solve
+time against photo count at fixed band width (20 strips) with the fitted exponent, and the
+fitted exponent against band width.
+"""
+
+import argparse
+import json
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy
+import scipy.linalg
+import scipy.sparse
+import scipy.sparse.linalg
+from threadpoolctl import threadpool_limits
+
+import sapgo
+from sapgo.adjust import Options, Work, _load_block, build
+from sapgo.bandsolve import (
+    band_to_dense,
+    cholesky_banded,
+    solve_in_core,
+    solve_out_of_core,
+)
+from sapgo.ordering import order_project
+from sapgo.project import Project
+from sapgo.rawfile import RawArray
+
+HERE = Path(__file__).parent
+REPEAT = 3
+STRIPS = [3, 5, 7, 12, 16, 24, 32, 40, 49]
+
+
+def best(fn, repeat=REPEAT):
+    times, out = [], None
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return min(times), out
+
+
+def reduced_matrix(tmp, strips, photos):
+    """Band rows and right-hand side of a generated block's reduced normals (first iteration)."""
+    path = Path(tmp) / f"s{strips}.h5"
+    g = max(4, photos // strips)
+    sapgo.generate_block(path, strips=strips, photos_per_strip=g,
+                         control_points=max(6, strips * g // 25), progress=False)
+    order_project(path)
+    with Project(path) as p:
+        blk = _load_block(p)
+        w = Work(Path(tmp) / f"s{strips}.work", p, blk.band_width, create=True)
+        try:
+            w.initialise(p, 100000)
+            build(p, w, blk, Options(progress=False))
+            band, rhs = w.band[:], w.rhs[:]
+        finally:
+            w.close()
+    shutil.rmtree(Path(tmp) / f"s{strips}.work")
+    path.unlink()
+    return band, rhs, blk.band_width
+
+
+def lower_storage(band):
+    """LAPACK lower band storage ``ab[i - j, j] = a[i, j]`` of band rows."""
+    n_st, _, width = band.shape
+    n, u = 6 * n_st, width - 1
+    ab = np.zeros((u + 1, n))
+    for r in range(6):
+        for d in range(width - r):
+            ab[d, r::6] = band[:, r, r + d]
+    # entries past the end of the matrix are not referenced; keep them zero
+    for d in range(u + 1):
+        ab[d, n - d:] = 0.0
+    return ab
+
+
+def gemm_rate():
+    a = np.random.default_rng(0).random((2000, 2000))
+    b = a.T.copy()
+    t, _ = best(lambda: a @ b, 5)
+    return 2 * 2000 ** 3 / t / 1e9
+
+
+def sparse_solver():
+    try:
+        from sksparse.cholmod import cholesky  # noqa: F401
+        return "CHOLMOD (scikit-sparse)"
+    except ImportError:
+        return "SuperLU (scipy)"
+
+
+def sparse_time(band, rhs):
+    """Best time of a sparse Cholesky (or LU) factorisation and solve of the same matrix."""
+    a = scipy.sparse.csc_matrix(band_to_dense(band)) if band.shape[0] <= 1500 else \
+        _sparse_from_band(band)
+    b = rhs.ravel()
+    try:
+        from sksparse.cholmod import cholesky
+
+        results = []
+        for mode in ("supernodal", "simplicial"):
+            for order in ("natural", "amd"):
+                t, x = best(lambda: cholesky(a, mode=mode, ordering_method=order)(b), 2)
+                results.append((t, f"{mode}, {order}", x))
+        return min(results, key=lambda r: r[0])
+    except ImportError:
+        results = []
+        for perm in ("NATURAL", "MMD_AT_PLUS_A"):
+            def run():
+                lu = scipy.sparse.linalg.splu(a, permc_spec=perm, diag_pivot_thresh=0.0,
+                                              options={"SymmetricMode": True})
+                return lu.solve(b)
+            t, x = best(run, 2)
+            results.append((t, perm, x))
+        return min(results, key=lambda r: r[0])
+
+
+def _sparse_from_band(band):
+    n_st, _, width = band.shape
+    n = 6 * n_st
+    rows, cols, vals = [], [], []
+    for r in range(6):
+        for c in range(r, width):
+            v = band[:, r, c]
+            i = 6 * np.arange(n_st) + r
+            j = 6 * np.arange(n_st) + c
+            ok = (j < n) & (v != 0)
+            rows.append(i[ok])
+            cols.append(j[ok])
+            vals.append(v[ok])
+    i, j, v = (np.concatenate(x) for x in (rows, cols, vals))
+    up = scipy.sparse.coo_matrix((v, (i, j)), shape=(n, n))
+    low = scipy.sparse.coo_matrix((v[i != j], (j[i != j], i[i != j])), shape=(n, n))
+    return (up + low).tocsc()
+
+
+def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
+    n_st = band.shape[0]
+    n = 6 * n_st
+    count = n * (6 * bw) ** 2
+    ab = lower_storage(band)
+    # LAPACK: best of 1 and 2 OpenBLAS threads
+    lap = {}
+    for threads in (1, 2):
+        with threadpool_limits(threads, "blas"):
+            t, ref = best(lambda: scipy.linalg.cholesky_banded(ab, lower=True))
+        lap[threads] = t
+    t_lapack = min(lap.values())
+    t_ours, c = best(lambda: cholesky_banded(ab, lower=True))
+    diff = float(np.abs(c - ref).max() / np.abs(ref).max())
+    # full solves: in core (one segment) and out of core (files, 256-station segments)
+    t_in, (_, x_in) = best(lambda: solve_in_core(band, rhs))
+    d = Path(tmp) / "ooc"
+    d.mkdir(exist_ok=True)
+
+    def ooc():
+        bf = RawArray.create(d / "band.bin", band.shape)
+        rf = RawArray.create(d / "rhs.bin", rhs.shape)
+        bf[:] = band
+        rf[:] = rhs
+        t0 = time.perf_counter()
+        x = solve_out_of_core(bf, rf, bw, chunk_rows=256)
+        dt = time.perf_counter() - t0
+        bf.close()
+        rf.close()
+        return dt, x
+
+    t_ooc, x_ooc = min((ooc() for _ in range(REPEAT)), key=lambda r: r[0])
+    sol_diff = float(np.abs(x_ooc - x_in).max() / np.abs(x_in).max())
+    # LAPACK full solve for the like-for-like solve comparison
+    t_lapack_solve, x_lap = best(lambda: scipy.linalg.cho_solve_banded(
+        (scipy.linalg.cholesky_banded(ab, lower=True), True), rhs.ravel()))
+    row = {
+        "band_width": bw, "stations": n_st, "unknowns": n, "count_gflop": count / 1e9,
+        "factor_s": {"sapgo_in_core": t_ours, "lapack_dpbtrf": t_lapack,
+                     "lapack_1_thread": lap[1], "lapack_2_threads": lap[2],
+                     "dense_ceiling": count / (gemm * 1e9)},
+        "solve_s": {"sapgo_in_core": t_in, "sapgo_out_of_core": t_ooc,
+                    "lapack_dpbtrf_dpbtrs": t_lapack_solve},
+        "gflops": {"sapgo_in_core": count / t_ours / 1e9, "lapack_dpbtrf": count / t_lapack / 1e9,
+                   "dense_ceiling": gemm},
+        "ratio_lapack_over_sapgo": t_lapack / t_ours,
+        "ratio_out_of_core_over_in_core": t_ooc / t_in,
+        "factor_max_rel_diff_vs_lapack": diff,
+        "solution_max_rel_diff_out_of_core_vs_in_core": sol_diff,
+        "solution_max_rel_diff_vs_lapack": float(np.abs(x_in.ravel() - x_lap).max()
+                                                 / np.abs(x_lap).max()),
+    }
+    if with_sparse:
+        t_sp, how, x_sp = sparse_time(band, rhs)
+        row["solve_s"]["sparse"] = t_sp
+        row["sparse_configuration"] = how
+        row["gflops"]["sparse_solve"] = count / t_sp / 1e9
+        row["ratio_sparse_over_sapgo_solve"] = t_sp / t_in
+    return row
+
+
+def fit(x, y):
+    k, c = np.polyfit(np.log(x), np.log(y), 1)
+    return float(k), float(c)
+
+
+def scaling_in_photos(tmp, sizes):
+    rows = []
+    for photos in sizes:
+        band, rhs, bw = reduced_matrix(tmp, 20, photos)
+        d = Path(tmp) / "scale"
+        d.mkdir(exist_ok=True)
+        ts = []
+        for _ in range(REPEAT):
+            bf = RawArray.create(d / "band.bin", band.shape)
+            rf = RawArray.create(d / "rhs.bin", rhs.shape)
+            bf[:] = band
+            rf[:] = rhs
+            t = time.perf_counter()
+            solve_out_of_core(bf, rf, bw, chunk_rows=256)
+            ts.append(time.perf_counter() - t)
+            bf.close()
+            rf.close()
+        rows.append({"photos": band.shape[0], "band_width": bw, "sapgo_out_of_core_s": min(ts)})
+        del band, rhs
+    return rows
+
+
+def plots(res, out_dir, suffix=""):
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed: no plots (pip install sapgo[plot])")
+        return []
+    rows = res["by_band_width"]
+    bw = np.array([r["band_width"] for r in rows], float)
+    t = np.array([r["solve_s"]["sapgo_out_of_core"] for r in rows])
+    k, c = res["fit_band_width"]["exponent"], res["fit_band_width"]["log_constant"]
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    ax.loglog(bw, t, "o", label="sapgo out of core (factor + solve)")
+    for key, label in (("lapack_dpbtrf_dpbtrs", "LAPACK dpbtrf + dpbtrs"),
+                       ("sparse", res["sparse_solver"])):
+        y = [r["solve_s"].get(key) for r in rows]
+        if all(v is not None for v in y):
+            ax.loglog(bw, y, "s--", ms=4, label=label)
+    xs = np.linspace(bw.min(), bw.max(), 50)
+    ax.loglog(xs, np.exp(c) * xs ** k, "-", label=f"fit: t ~ b^{k:.2f}")
+    ax.set_xlabel("band width b (stations)")
+    ax.set_ylabel("solve time (s)")
+    ax.set_title(f"Solve time, {rows[0]['stations']} photos")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    p1 = out_dir / f"solver_bandwidth{suffix}.png"
+    fig.savefig(p1, dpi=110)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    for key, label in (("sapgo_in_core", "sapgo"), ("lapack_dpbtrf", "LAPACK dpbtrf"),
+                       ("sparse_solve", res["sparse_solver"] + " (factor + solve)"),
+                       ("dense_ceiling", "dense DGEMM rate")):
+        y = [r["gflops"].get(key) for r in rows]
+        if all(v is not None for v in y):
+            ax.plot(bw, y, "o-" if key != "dense_ceiling" else "k:", label=label)
+    ax.set_xlabel("band width b (stations)")
+    ax.set_ylabel("GFLOP/s  (count n (6b)^2)")
+    ax.set_title("Factorisation rate, same matrices, 2 cores")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    p2 = out_dir / f"solver_gflops{suffix}.png"
+    fig.savefig(p2, dpi=110)
+    plt.close(fig)
+    return [str(p1.relative_to(out_dir.parent)), str(p2.relative_to(out_dir.parent))]
+
+
+def table(res):
+    out = ["| b | stations | LAPACK dpbtrf s | sapgo s | ratio | GFLOP/s sapgo / LAPACK / "
+           "ceiling | sapgo in core solve s | out of core s | ooc/in-core | "
+           f"{res['sparse_solver']} s | max rel diff |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in res["by_band_width"]:
+        f, s, g = r["factor_s"], r["solve_s"], r["gflops"]
+        out.append(
+            f"| {r['band_width']} | {r['stations']} | {f['lapack_dpbtrf']:.4f} | "
+            f"{f['sapgo_in_core']:.4f} | **{r['ratio_lapack_over_sapgo']:.2f}** | "
+            f"{g['sapgo_in_core']:.0f} / {g['lapack_dpbtrf']:.0f} / {g['dense_ceiling']:.0f} | "
+            f"{s['sapgo_in_core']:.4f} | {s['sapgo_out_of_core']:.4f} | "
+            f"{r['ratio_out_of_core_over_in_core']:.2f} | "
+            f"{s.get('sparse', float('nan')):.3f} | {r['factor_max_rel_diff_vs_lapack']:.1e} |")
+    out.append("")
+    out.append("| photos | band width | sapgo out-of-core solve s |")
+    out.append("|---|---|---|")
+    for r in res["by_photos"]:
+        out.append(f"| {r['photos']} | {r['band_width']} | {r['sapgo_out_of_core_s']:.3f} |")
+    out.append("")
+    out.append(f"Fitted exponents: solve time ~ b^{res['fit_band_width']['exponent']:.2f} "
+               f"(fixed photo count), ~ n^{res['fit_photos']['exponent']:.2f} (fixed band "
+               "width).")
+    return "\n".join(out)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--photos", type=int, default=6000, help="photos per band-width block")
+    ap.add_argument("--sizes", default="5000,10000,20000,50000,100000",
+                    help="photo counts for the scaling at fixed band width")
+    ap.add_argument("--quick", action="store_true", help="small blocks, for a smoke run")
+    args = ap.parse_args()
+    strips = STRIPS
+    sizes = [int(s) for s in args.sizes.split(",")]
+    if args.quick:
+        strips, sizes, args.photos = [3, 12, 24], [2000, 4000], 1200
+    gemm = gemm_rate()
+    res = {"machine": {"platform": platform.platform(), "processor": platform.processor(),
+                       "python": sys.version.split()[0], "numpy": np.__version__,
+                       "scipy": scipy.__version__, "cores": 2},
+           "dense_gemm_gflops": gemm, "sparse_solver": sparse_solver(),
+           "photos": args.photos, "by_band_width": []}
+    with tempfile.TemporaryDirectory(dir=HERE.parent / "data" if (HERE.parent / "data").exists()
+                                     else None) as tmp:
+        warm_band, warm_rhs, warm_bw = reduced_matrix(tmp, 3, 60)
+        one_matrix(tmp, warm_band, warm_rhs, warm_bw, gemm, with_sparse=False)
+        for s in strips:
+            band, rhs, bw = reduced_matrix(tmp, s, args.photos)
+            row = one_matrix(tmp, band, rhs, bw, gemm, with_sparse=bw <= 66)
+            res["by_band_width"].append(row)
+            print(f"b={bw:3d}: LAPACK {row['factor_s']['lapack_dpbtrf']:.4f} s, sapgo "
+                  f"{row['factor_s']['sapgo_in_core']:.4f} s, ratio "
+                  f"{row['ratio_lapack_over_sapgo']:.2f}; out of core / in core "
+                  f"{row['ratio_out_of_core_over_in_core']:.2f}", flush=True)
+            del band, rhs
+        res["by_photos"] = scaling_in_photos(tmp, sizes)
+    rows = res["by_band_width"]
+    k, c = fit([r["band_width"] for r in rows], [r["solve_s"]["sapgo_out_of_core"] for r in rows])
+    res["fit_band_width"] = {"exponent": k, "log_constant": c}
+    k2, c2 = fit([r["photos"] for r in res["by_photos"]],
+                 [r["sapgo_out_of_core_s"] for r in res["by_photos"]])
+    res["fit_photos"] = {"exponent": k2, "log_constant": c2}
+    out_dir = HERE / "results"
+    out_dir.mkdir(exist_ok=True)
+    res["plots"] = plots(res, out_dir, "_quick" if args.quick else "")
+    name = "solver_quick.json" if args.quick else "solver.json"
+    (out_dir / name).write_text(json.dumps(res, indent=1))
+    print(table(res))
+    print(f"fitted exponents: band width {k:.2f}, photos {k2:.2f}")
+
+
+if __name__ == "__main__":
+    main()
