@@ -65,8 +65,16 @@ def with_mixed_control_and_prior(path):
 
 
 @pytest.mark.parametrize("chunks", [dict(), dict(chunk_points=5, chunk_rows=1),
-                                    dict(chunk_points=3, chunk_rows=2)])
-def test_streamed_reduced_normals_equal_dense(small_block, tmp_path, chunks):
+                                    dict(chunk_points=3, chunk_rows=2), "parallel"])
+def test_streamed_reduced_normals_equal_dense(small_block, tmp_path, chunks, monkeypatch):
+    if chunks == "parallel":  # every window split between the threads, down to 1 point each
+        import numba
+
+        from sapgo import normals
+        if numba.get_num_threads() < 2:
+            pytest.skip("one thread")
+        monkeypatch.setattr(normals, "PARALLEL_MIN_POINTS", 1)
+        chunks = dict(chunk_rows=3)
     with_mixed_control_and_prior(small_block)
     order_project(small_block)
     m_ref, d_ref = dense(small_block)

@@ -33,8 +33,10 @@ import time
 import uuid
 from pathlib import Path
 
+import numba
 import numpy as np
 
+from . import normals
 from .bandsolve import PIVOT_TOLERANCE, PivotError, solve_out_of_core
 from .errors import DatumDefectError, SapgoError, SingularNormalsError
 from .normals import (
@@ -43,7 +45,7 @@ from .normals import (
     CTRL_MASK,
     OK,
     PointChunk,
-    build_points,
+    build_points_parallel,
     update_points,
 )
 from .ordering import order_project
@@ -331,6 +333,9 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0):
     cap = min(n, bw + opts.chunk_rows)
     band = np.zeros((cap, 6, 6 * bw))
     rhs = np.zeros((cap, 6))
+    threads = numba.get_num_threads()  # per thread: b rows of its own beyond its station range
+    ovf_band = np.zeros((threads, bw, 6, 6 * bw))
+    ovf_rhs = np.zeros((threads, bw, 6))
     band_ds, rhs_ds = work.band, work.rhs
     xyz_ds = work.xyz_current if xyz is None else xyz
     priors = _PriorCursor(p, opts.chunk_points)
@@ -357,10 +362,11 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0):
             c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma)
             j = 0
             while j < len(c.xyz):
-                j, status, bad = build_points(
-                    j, c.xyz, c.kind, c.ctrl, c.csig, c.pt_start, c.nobs, c.smax, c.active,
-                    c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, blk.camera,
-                    blk.cam_f, blk.cam_x0, blk.cam_y0, CTRL_MASK, band, rhs, base, c.max_rays,
+                j, status, bad = build_points_parallel(
+                    j, c.xyz, c.kind, c.ctrl, c.csig, c.pt_start, c.nobs, c.smin, c.smax,
+                    c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
+                    blk.camera, blk.cam_f, blk.cam_x0, blk.cam_y0, CTRL_MASK, band, rhs, base,
+                    c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS,
                 )
                 if status != OK:
                     raise _point_error(p, c, bad, status, blk)

@@ -22,7 +22,7 @@ to the diagonal block when the row enters the window.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from .geometry import linearize, project
 from .project import CONTROL_MASK, STATUS_ACTIVE
@@ -136,16 +136,19 @@ def _workspace(max_rays):
             np.zeros((3, 3)), np.empty(3))
 
 
-@njit(cache=True)
-def build_points(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_smax, pt_active,
-                 obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cam_f, cam_x0,
-                 cam_y0, ctrl_mask, band, rhs, base, max_rays):
-    """Add points ``j0, j0+1, ...`` of a chunk into the band-row window.
+@njit(cache=True, nogil=True)
+def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_smax,
+                 pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
+                 cam_f, cam_x0, cam_y0, ctrl_mask, band, rhs, base, max_rays, split, ovf_band,
+                 ovf_rhs):
+    """Add points ``j0 .. j_stop-1`` of a chunk into the band-row window.
 
-    ``band[r]`` (6 x 6b) and ``rhs[r]`` (6) are the rows of logical station ``base + r``.
-    Processing stops before the first active point whose largest station lies beyond the
-    window. Returns ``(next_point, status, point)``: status OK, or SINGULAR_POINT /
-    BEHIND_CAMERA with the offending point.
+    ``band[r]`` (6 x 6b) and ``rhs[r]`` (6) are the rows of logical station ``base + r``;
+    rows ``r >= split`` go to ``ovf_band[r - split]`` / ``ovf_rhs[r - split]`` instead (a
+    thread's private rows, see :func:`build_points_parallel`). Processing stops before the
+    first active point whose largest station lies beyond the window. Returns
+    ``(next_point, status, point)``: status OK, or SINGULAR_POINT / BEHIND_CAMERA /
+    BAD_LAYOUT with the offending point.
     """
     cap = band.shape[0]
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
@@ -153,8 +156,7 @@ def build_points(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_sm
     h = np.empty(3)
     col = np.empty(3)
     tmp = np.empty(3)
-    n_pts = pt_xyz.shape[0]
-    for j in range(j0, n_pts):
+    for j in range(j0, j_stop):
         if pt_active[j] != 0:
             continue
         if pt_smax[j] >= base + cap:
@@ -169,23 +171,25 @@ def build_points(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_sm
         for q in range(k):
             r = st_all[q] - base
             if r < 0 or r >= cap or st_all[q] - st_all[0] >= bw or (
-                    q > 0 and st_all[q] < st_all[q - 1]):
+                    q > 0 and st_all[q] < st_all[q - 1]) or r - split >= ovf_band.shape[0]:
                 return j, BAD_LAYOUT, j
         if not _chol3(nn, lo):
             return j, SINGULAR_POINT, j
         _solve3(lo, cc, h)
         for q in range(k):
             r = st_all[q] - base
+            row = band[r] if r < split else ovf_band[r - split]
+            rrow = rhs[r] if r < split else ovf_rhs[r - split]
             p = w_all[q]
             a = a_all[q]
             # station diagonal block and right-hand side
             for u in range(6):
                 for v in range(6):
-                    band[r, u, v] += p * (a[0, u] * a[0, v] + a[1, u] * a[1, v])
+                    row[u, v] += p * (a[0, u] * a[0, v] + a[1, u] * a[1, v])
                 s = p * (a[0, u] * l_all[q, 0] + a[1, u] * l_all[q, 1])
                 for c in range(3):
                     s -= nbar[q, u, c] * h[c]
-                rhs[r, u] += s
+                rrow[u] += s
             # G = Nbar Ndd^-1 (row by row)
             for u in range(6):
                 for c in range(3):
@@ -196,6 +200,7 @@ def build_points(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_sm
         # Schur complement into the band rows: M[s_q, s_t] -= G_q Nbar_t'
         for q in range(k):
             r = st_all[q] - base
+            row = band[r] if r < split else ovf_band[r - split]
             for t in range(q, k):
                 off = 6 * (st_all[t] - st_all[q])
                 same = st_all[t] == st_all[q]
@@ -204,10 +209,78 @@ def build_points(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_sm
                         x = 0.0
                         for c in range(3):
                             x += g[q, u, c] * nbar[t, v, c]
-                        band[r, u, off + v] -= x
+                        row[u, off + v] -= x
                         if same and t != q:
-                            band[r, v, off + u] -= x
-    return n_pts, OK, -1
+                            row[v, off + u] -= x
+    return j_stop, OK, -1
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_smin,
+                          pt_smax, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
+                          cam_of_station, cam_f, cam_x0, cam_y0, ctrl_mask, band, rhs, base,
+                          max_rays, ovf_band, ovf_rhs, min_points):
+    """:func:`build_points` for the points from ``j0`` that fit the window, on
+    ``len(ovf_band)`` threads over station ranges.
+
+    The points (sorted by first station) are cut into equal parts; part ``t`` owns the rows
+    from its first point's first station up to the next part's, and writes the rows beyond
+    (at most ``b`` of them) into its own buffer ``ovf_band[t]``, which is added to the window
+    afterwards. Fewer than ``min_points`` points a thread are built on one thread. Same
+    return value as :func:`build_points`.
+    """
+    cap = band.shape[0]
+    n_pts = pt_xyz.shape[0]
+    j_end = n_pts
+    for j in range(j0, n_pts):
+        if pt_active[j] == 0 and pt_smax[j] >= base + cap:
+            j_end = j
+            break
+    nthreads = ovf_band.shape[0]
+    empty_b = ovf_band[0, :0]
+    empty_r = ovf_rhs[0, :0]
+    if nthreads < 2 or j_end - j0 < max(1, min_points) * nthreads:
+        j, status, bad = build_points(j0, j_end, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start,
+                                      pt_nobs, pt_smax, pt_active, obs_station, obs_xy,
+                                      obs_sigma, obs_active, eo, cam_of_station, cam_f, cam_x0,
+                                      cam_y0, ctrl_mask, band, rhs, base, max_rays, cap,
+                                      empty_b, empty_r)
+        if status != OK or j < j_end:
+            return j, status, bad
+        return j_end, OK, -1
+    cut = np.empty(nthreads + 1, np.int64)
+    split = np.empty(nthreads, np.int64)
+    for t in range(nthreads + 1):
+        cut[t] = j0 + (j_end - j0) * t // nthreads
+    for t in range(nthreads):
+        split[t] = cap if t == nthreads - 1 else max(0, min(cap, pt_smin[cut[t + 1]] - base))
+    res = np.zeros((nthreads, 3), np.int64)
+    for t in prange(nthreads):
+        ovf_band[t] = 0.0
+        ovf_rhs[t] = 0.0
+        ob = ovf_band[t] if t < nthreads - 1 else empty_b
+        orr = ovf_rhs[t] if t < nthreads - 1 else empty_r
+        j, status, bad = build_points(cut[t], cut[t + 1], pt_xyz, pt_kind, pt_ctrl, pt_csig,
+                                      pt_start, pt_nobs, pt_smax, pt_active, obs_station,
+                                      obs_xy, obs_sigma, obs_active, eo, cam_of_station, cam_f,
+                                      cam_x0, cam_y0, ctrl_mask, band, rhs, base, max_rays,
+                                      split[t], ob, orr)
+        res[t, 0] = j
+        res[t, 1] = status
+        res[t, 2] = bad
+    for t in range(nthreads):
+        if res[t, 1] != OK:
+            return res[t, 0], res[t, 1], res[t, 2]
+        if res[t, 0] < cut[t + 1]:  # cannot happen: all points fit the window
+            return res[t, 0], BAD_LAYOUT, res[t, 0]
+    for t in range(nthreads - 1):
+        for r in range(ovf_band.shape[1]):
+            rr = split[t] + r
+            if rr >= cap:
+                break
+            band[rr] += ovf_band[t, r]
+            rhs[rr] += ovf_rhs[t, r]
+    return j_end, OK, -1
 
 
 @njit(cache=True)
@@ -307,5 +380,8 @@ class PointChunk:
         self.obs_active = c(obs["status"] == STATUS_ACTIVE)
         self.max_rays = int(max(1, self.nobs.max() if len(self.nobs) else 1))
 
+
+#: Points a thread at least, for the build to run on several threads.
+PARALLEL_MIN_POINTS = 32
 
 CTRL_MASK = np.ascontiguousarray(CONTROL_MASK.astype(np.int64))
