@@ -48,7 +48,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from .blas import FNS, L, N, R, T, blas_limits, gemm, gemv, potrf, syrk, trmm, trsv, trtri
+from .blas import FNS, L, N, R, T, blas_limits, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
 
 #: A pivot at or below this fraction of the original diagonal element counts as zero.
 PIVOT_TOLERANCE = 1e-12
@@ -57,6 +57,10 @@ PIVOT_TOLERANCE = 1e-12
 #: dsyrk/dgemm of the trailing update when the threads' shares are balanced: they run at
 #: about half the rate.
 _PANEL_WEIGHT = 2.0
+
+
+#: Below this many rows under a panel, dtrsm beats dtrtri + dtrmm.
+_TRSM_ROWS = 100
 
 
 def panel_width(u):
@@ -99,12 +103,31 @@ def _factor_panel(fns, a, orig, ring, ld1, k0, pb, m, tol, tmp):
             return j + 1
     if info != 0:
         return info
-    if m > 0:
+    if m > _TRSM_ROWS:
         for j in range(pb):
             for i in range(j, pb):
                 tmp[j * pb + i] = x[j * ld + i]
         trtri(fns.dtrtri, L, N, pb, tmp, pb)
         trmm(fns.dtrmm, R, L, T, N, m, pb, 1.0, tmp, pb, a[base + pb:], ld)
+    elif m > 0:
+        trsm(fns.dtrsm, R, L, T, N, m, pb, 1.0, x, ld, a[base + pb:], ld)
+    return 0
+
+
+@njit(cache=True, nogil=True)
+def _factor_panel_blocked(fns, a, orig, ring, ld1, k0, pb, m, tol, tmp, inner):
+    """:func:`_factor_panel` in sub-panels of ``inner`` columns (smaller dpotrf/dtrtri, whose
+    cost is what limits the look-ahead thread)."""
+    if inner <= 0 or inner >= pb:
+        return _factor_panel(fns, a, orig, ring, ld1, k0, pb, m, tol, tmp)
+    for s in range(0, pb, inner):
+        ib = min(inner, pb - s)
+        rest = pb - s - ib
+        f = _factor_panel(fns, a, orig, ring, ld1, k0 + s, ib, rest + m, tol, tmp)
+        if f:
+            return s + f
+        if rest > 0:
+            _update_cols(fns, a, ring, ld1, k0 + s, ib, 0, rest, rest + m)
     return 0
 
 
@@ -156,7 +179,8 @@ def _area_cut(c, m, frac):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, tol, nthreads):
+def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, tol, nthreads,
+                  inner=0):
     """Factor the panels starting at ``k_start, k_start + p, ... < k_stop`` (scalar columns)
     with forward substitution; panel ``k_start`` is already factored unless ``first``, and the
     panel at ``k_stop`` is factored on return (look-ahead). Returns -1 or the failing column.
@@ -165,8 +189,8 @@ def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, t
     fail = np.full(1, -1, np.int64)
     if first:
         pb = min(p, n - k_start)
-        f = _factor_panel(fns, a, orig, ring, ld1, k_start, pb, min(u, n - k_start - pb), tol,
-                          tmp[0])
+        f = _factor_panel_blocked(fns, a, orig, ring, ld1, k_start, pb, min(u, n - k_start - pb),
+                                  tol, tmp[0], inner)
         if f:
             return k_start + f - 1
     for k0 in range(k_start, k_stop, p):
@@ -178,8 +202,8 @@ def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, t
             continue
         pn = min(p, n - c_lo)
         if m <= 0:  # the next panel lies outside this one's band (u < p)
-            f = _factor_panel(fns, a, orig, ring, ld1, c_lo, pn, min(u, n - c_lo - pn), tol,
-                              tmp[0])
+            f = _factor_panel_blocked(fns, a, orig, ring, ld1, c_lo, pn, min(u, n - c_lo - pn),
+                                      tol, tmp[0], inner)
             if f:
                 return c_lo + f - 1
             continue
@@ -189,7 +213,8 @@ def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, t
         for t in prange(nthreads):
             if t == 0:
                 _update_cols(fns, a, ring, ld1, k0, pb, 0, c, m)
-                f = _factor_panel(fns, a, orig, ring, ld1, c_lo, pn, m2, tol, tmp[0])
+                f = _factor_panel_blocked(fns, a, orig, ring, ld1, c_lo, pn, m2, tol, tmp[0],
+                                          inner)
                 if f:
                     fail[0] = c_lo + f - 1
             else:
