@@ -79,13 +79,13 @@ RESULTS = HERE / "results" / "colmap.json"
 
 #: block sizes: photos -> generate_block parameters (9-point pattern, 1 control per 25 photos)
 BLOCKS = {
-    1000: dict(strips=10, photos_per_strip=100, control_points=40),
-    10000: dict(strips=20, photos_per_strip=500, control_points=400),
+    1000: {"strips": 10, "photos_per_strip": 100, "control_points": 40},
+    10000: {"strips": 20, "photos_per_strip": 500, "control_points": 400},
 }
 S_PX = 100.0  # pixels per mm of the COLMAP images
 MAX_DENSE_PHOTOS = 2000  # DENSE_SCHUR only up to this many photos (6n x 6n dense matrix)
-CERES_TOL = dict(function_tolerance=1e-10, gradient_tolerance=1e-10, parameter_tolerance=1e-12,
-                 max_num_iterations=50)
+CERES_TOL = {"function_tolerance": 1e-10, "gradient_tolerance": 1e-10,
+             "parameter_tolerance": 1e-12, "max_num_iterations": 50}
 RMS_MATCH = 1e-6  # "reached sapgo's RMS": within this relative difference
 REPEAT_BELOW_S = 10.0  # runs slower than this are not repeated
 RMS_SAME = 1e-3  # a configuration counts as converged to the same solution within this
@@ -115,7 +115,8 @@ def load_problem(path):
     act = obs["status"] == 0
     act &= st["status"][obs["station"]] == 0
     act &= pts["status"][obs["point"]] == 0
-    sig = np.where(obs["sigma"] > 0, obs["sigma"], cams["sigma_image"][st["camera"][obs["station"]]])
+    cam_sigma = cams["sigma_image"][st["camera"][obs["station"]]]
+    sig = np.where(obs["sigma"] > 0, obs["sigma"], cam_sigma)
     if not np.allclose(sig[act], sig[act][0], rtol=1e-12, atol=0):
         raise SystemExit(f"{path}: observations of unequal weight; COLMAP would need weights")
     kind = pts["kind"]
@@ -126,16 +127,17 @@ def load_problem(path):
         raise SystemExit(f"{path}: only fixed full control (control_sigma 0) is supported")
     xyz = pts["xyz"].copy()
     xyz[fixed_full] = pts["control"][fixed_full]  # sapgo sets fixed components to control
-    return dict(
-        f=cams["focal_length"], x0=cams["x0"], y0=cams["y0"],
-        fmt_x=cams["format_x"], fmt_y=cams["format_y"],
-        camera=st["camera"].astype(np.int64), station_active=st["status"] == 0,
-        eo=st["eo"].copy(), eo_adj=st["eo"] + sc,
-        xyz=xyz, xyz_adj=pts["xyz"] + pc, fixed=fixed_full, point_active=pts["status"] == 0,
-        st=obs["station"][act].astype(np.int64), pt=obs["point"][act].astype(np.int64),
-        x=obs["x"][act].copy(), y=obs["y"][act].copy(), sigma=float(sig[act][0]),
-        residuals=None if res is None else res[act],
-    )
+    return {
+        "f": cams["focal_length"], "x0": cams["x0"], "y0": cams["y0"],
+        "fmt_x": cams["format_x"], "fmt_y": cams["format_y"],
+        "camera": st["camera"].astype(np.int64), "station_active": st["status"] == 0,
+        "eo": st["eo"].copy(), "eo_adj": st["eo"] + sc,
+        "xyz": xyz, "xyz_adj": pts["xyz"] + pc, "fixed": fixed_full,
+        "point_active": pts["status"] == 0,
+        "st": obs["station"][act].astype(np.int64), "pt": obs["point"][act].astype(np.int64),
+        "x": obs["x"][act].copy(), "y": obs["y"][act].copy(), "sigma": float(sig[act][0]),
+        "residuals": None if res is None else res[act],
+    }
 
 
 def rotation(eo):
@@ -176,7 +178,7 @@ def intrinsics(prob, c):
     """PINHOLE parameters and image size of sapgo camera ``c``."""
     w, h = prob["fmt_x"][c] * S_PX, prob["fmt_y"][c] * S_PX
     fpx = S_PX * prob["f"][c]
-    return [fpx, fpx, w / 2, h / 2], int(round(w)), int(round(h))
+    return [fpx, fpx, w / 2, h / 2], round(w), round(h)
 
 
 def to_pixels(prob, x, y, cam):
@@ -323,18 +325,19 @@ def solver_configs(n_photos, pycolmap):
     import pycolmap.pyceres as pc
 
     L = pc.LinearSolverType
-    cfgs = [dict(name="SPARSE_SCHUR (SuiteSparse)", linear_solver_type=L.SPARSE_SCHUR,
-                 sparse_linear_algebra_library_type=pc.SparseLinearAlgebraLibraryType.SUITE_SPARSE)]
+    suitesparse = pc.SparseLinearAlgebraLibraryType.SUITE_SPARSE
+    cfgs = [{"name": "SPARSE_SCHUR (SuiteSparse)", "linear_solver_type": L.SPARSE_SCHUR,
+             "sparse_linear_algebra_library_type": suitesparse}]
     if n_photos <= MAX_DENSE_PHOTOS:
-        cfgs.append(dict(name="DENSE_SCHUR (Eigen)", linear_solver_type=L.DENSE_SCHUR,
-                         dense_linear_algebra_library_type=pc.DenseLinearAlgebraLibraryType.EIGEN))
-    cfgs.append(dict(name="ITERATIVE_SCHUR + SCHUR_JACOBI", linear_solver_type=L.ITERATIVE_SCHUR,
-                     preconditioner_type=pc.PreconditionerType.SCHUR_JACOBI))
+        cfgs.append({"name": "DENSE_SCHUR (Eigen)", "linear_solver_type": L.DENSE_SCHUR,
+                     "dense_linear_algebra_library_type": pc.DenseLinearAlgebraLibraryType.EIGEN})
+    cfgs.append({"name": "ITERATIVE_SCHUR + SCHUR_JACOBI", "linear_solver_type": L.ITERATIVE_SCHUR,
+                 "preconditioner_type": pc.PreconditionerType.SCHUR_JACOBI})
     # Levenberg-Marquardt as good as undamped from the first step, i.e. Gauss-Newton like sapgo
-    cfgs.append(dict(name="SPARSE_SCHUR (SuiteSparse), initial trust radius 1e16",
-                     linear_solver_type=L.SPARSE_SCHUR,
-                     sparse_linear_algebra_library_type=pc.SparseLinearAlgebraLibraryType.SUITE_SPARSE,
-                     initial_trust_region_radius=1e16))
+    cfgs.append({"name": "SPARSE_SCHUR (SuiteSparse), initial trust radius 1e16",
+                 "linear_solver_type": L.SPARSE_SCHUR,
+                 "sparse_linear_algebra_library_type": suitesparse,
+                 "initial_trust_region_radius": 1e16})
     return cfgs
 
 
@@ -557,7 +560,8 @@ def bench_size(n_photos, workdir, pycolmap, repeat):
             continue
         r = best_of(reps)
         r["runs_time_to_solution_s"] = [x["time_to_solution_s"] for x in reps]
-        r["rms_relative_difference_to_sapgo"] = (r["final_rms_um"] - sap["final_rms_um"]) / sap["final_rms_um"]
+        r["rms_relative_difference_to_sapgo"] = ((r["final_rms_um"] - sap["final_rms_um"])
+                                                 / sap["final_rms_um"])
         hit = next((row for row in r["log"] if row["image_rms_um"]
                     <= sap["final_rms_um"] * (1 + RMS_MATCH)), None)
         r["iterations_to_sapgo_rms"] = None if hit is None else hit["iteration"]
@@ -595,8 +599,8 @@ def fmt(v, nd=3):
 
 
 def table(rows):
-    L = ["| photos | tool | configuration | iterations | s per iteration | time to solution s | "
-         "final RMS um | Ceres iterations to sapgo's RMS |",
+    L = [("| photos | tool | configuration | iterations | s per iteration | time to solution s | "
+          "final RMS um | Ceres iterations to sapgo's RMS |"),
          "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         s = r["sapgo"]
@@ -606,11 +610,14 @@ def table(rows):
         for c in r["colmap_all_configurations"]:
             if "error" in c:
                 continue
-            star = " (best)" if r["colmap"] and c["configuration"] == r["colmap"]["configuration"] else ""
-            L.append(f"| {r['photos']:,} | COLMAP {pycolmap_version} | {c['configuration']}{star} | "
+            best_conf = r["colmap"] and c["configuration"] == r["colmap"]["configuration"]
+            star = " (best)" if best_conf else ""
+            to_rms = c["iterations_to_sapgo_rms"]
+            L.append(f"| {r['photos']:,} | COLMAP {pycolmap_version} | "
+                     f"{c['configuration']}{star} | "
                      f"{c['iterations']} | {fmt(c['s_per_iteration'])} | "
                      f"{fmt(c['time_to_solution_s'], 2)} | {fmt(c['final_rms_um'], 4)} | "
-                     f"{c['iterations_to_sapgo_rms'] if c['iterations_to_sapgo_rms'] is not None else '-'} |")
+                     f"{to_rms if to_rms is not None else '-'} |")
     L.append("")
     L.append("| photos | speedup per iteration (COLMAP best / sapgo) | speedup time to solution | "
              "RMS relative difference |")
@@ -653,7 +660,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     try:
         import pycolmap
-        import pycolmap.pyceres  # noqa: F401
+        import pycolmap.pyceres
     except ImportError:
         raise SystemExit("this benchmark needs pycolmap: pip install pycolmap")
     pycolmap_version = pycolmap.__version__
