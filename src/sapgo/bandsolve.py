@@ -42,6 +42,7 @@ same names (same storage, arguments and results), running the same kernel on LAP
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numba
@@ -304,6 +305,16 @@ def _up(x, k):
     return -(-x // k) * k
 
 
+class _Inline:
+    """:class:`_Background`'s interface, running the job at once in the caller's thread."""
+
+    def start(self, fn, *args):
+        self._result = fn(*args)
+
+    def wait(self):
+        return self._result
+
+
 class _Background:
     """One job at a time on a helper thread; ``wait()`` returns its result or re-raises."""
 
@@ -363,50 +374,65 @@ def solve_out_of_core(band_ds, rhs_ds, band_width, chunk_rows=256, pivot_tol=PIV
     orig = np.zeros(ring)
     state = {"loaded": 0, "stored": 0}
 
-    def load(stop_st):
-        i0 = state["loaded"]
-        if stop_st > i0:
-            _load_rows(np.ascontiguousarray(band_ds[i0:stop_st], dtype=np.float64),
-                       np.ascontiguousarray(rhs_ds[i0:stop_st], dtype=np.float64),
-                       i0, a, y, orig, ring, ld1)
-            state["loaded"] = stop_st
+    def read(i0, i1):                                      # file -> staging (helper thread)
+        return (np.ascontiguousarray(band_ds[i0:i1], dtype=np.float64),
+                np.ascontiguousarray(rhs_ds[i0:i1], dtype=np.float64))
 
-    def store(stop_st):
+    def place(staged, i1):                                 # staging -> ring (main thread)
+        if i1 > state["loaded"]:
+            _load_rows(staged[0], staged[1], state["loaded"], a, y, orig, ring, ld1)
+            state["loaded"] = i1
+
+    def take(i1):                                          # ring -> staging (main thread)
         i0 = state["stored"]
-        if stop_st > i0:
-            band = np.empty((stop_st - i0, 6, width))
-            rhs = np.empty((stop_st - i0, 6))
-            _store_rows(a, y, ring, ld1, i0, band, rhs)
-            band_ds[i0:stop_st] = band
-            rhs_ds[i0:stop_st] = rhs
-            state["stored"] = stop_st
+        band = np.empty((i1 - i0, 6, width))
+        rhs = np.empty((i1 - i0, 6))
+        _store_rows(a, y, ring, ld1, i0, band, rhs)
+        state["stored"] = i1
+        return i0, band, rhs
+
+    def write(out):                                        # staging -> file (helper thread)
+        i0, band, rhs = out
+        if len(band):
+            band_ds[i0:i0 + len(band)] = band
+            rhs_ds[i0:i0 + len(rhs)] = rhs
+
+    def io(out, i0, i1):
+        write(out)
+        return read(i0, i1) if i1 > i0 else None
 
     def reach(col):                                        # stations covering columns < col
         return min(n_st, -(-min(n, col) // 6))
 
-    def io(store_st, load_st):
-        store(store_st)
-        load(load_st)
-
-    bg = _Background()
-    load(reach(seg + u + p))
+    # Only the file transfers overlap the kernel, and only when a core is free for them: the
+    # kernel's threads meet at a barrier every panel, and a transfer that takes one of their
+    # cores (even a copy from the page cache) stalls both. The conversions between band rows
+    # and the ring are CPU work and run between kernel calls.
+    bg = _Background() if (os.cpu_count() or 1) > nthreads else _Inline()
+    first = reach(seg + u + p)
+    place(read(0, first), first)
     k = 0
     with blas_limits(1):
         while k < n:
             stop = min(n, k + seg)
-            load(reach(stop + u + p))                      # (already there but for tiny rings)
-            bg.start(io, k // 6, reach(stop + seg + u + p))
+            need = reach(stop + u + p)
+            if need > state["loaded"]:                     # (only for tiny rings)
+                place(read(state["loaded"], need), need)
+            nxt = reach(stop + seg + u + p)
+            bg.start(io, take(k // 6), state["loaded"], nxt)
             try:
                 fail = _factor_range(FNS, a, y, orig, ring, ld1, n, u, p, k, stop, k == 0,
                                      pivot_tol, nthreads)
             finally:
-                bg.wait()
+                staged = bg.wait()
             if fail >= 0:
                 raise PivotError(fail // 6, fail % 6)
+            if staged is not None:
+                place(staged, nxt)
             if progress is not None:
                 progress((stop - k) // 6)
             k = stop
-    store(n_st)
+    write(take(n_st))
     return _back_substitute(band_ds, rhs_ds, n_st, max(1, chunk_rows))
 
 
