@@ -55,41 +55,33 @@ def test_in_core_matches_lapack_and_dense(n, bw):
                                atol=1e-12 * np.abs(x_dense).max())
 
 
-@pytest.mark.parametrize("chunk_rows", [1, 2, 7, 1000])
-def test_out_of_core_equals_in_core(tmp_path, chunk_rows):
+@pytest.mark.parametrize("chunk_rows, threads, storage", [
+    (1, None, "h5"), (2, None, "h5"), (7, None, "h5"), (1000, None, "h5"),
+    # one kernel thread (file transfers then overlap on a helper thread when a core is
+    # free), and more kernel threads than cores
+    (3, 1, "raw"), (3, 3, "raw")])
+def test_out_of_core_equals_in_core(tmp_path, chunk_rows, threads, storage):
+    from sapgo.rawfile import RawArray
+
     n, bw = 37, 6
     a = random_block_banded(n, bw, seed=3)
     band = dense_to_band(a, bw)
     rhs = np.random.default_rng(2).normal(0, 1, (n, 6))
     factor_ref, delta_ref = solve_in_core(band, rhs)
     with h5py.File(tmp_path / "s.h5", "w") as f:
-        bds = f.create_dataset("band", data=band, chunks=(4, 6, 6 * bw))
-        rds = f.create_dataset("rhs", data=rhs)
-        delta = solve_out_of_core(bds, rds, bw, chunk_rows=chunk_rows)
-        np.testing.assert_allclose(bds[...], factor_ref, rtol=1e-13, atol=1e-300)
-    np.testing.assert_allclose(delta, delta_ref, rtol=1e-12, atol=1e-15)
+        if storage == "h5":
+            bds = f.create_dataset("band", data=band, chunks=(4, 6, 6 * bw))
+            rds = f.create_dataset("rhs", data=rhs)
+        else:
+            bds = RawArray.create(tmp_path / "band.bin", band.shape)
+            rds = RawArray.create(tmp_path / "rhs.bin", rhs.shape)
+            bds[:] = band
+            rds[:] = rhs
+        delta = solve_out_of_core(bds, rds, bw, chunk_rows=chunk_rows, threads=threads)
+        np.testing.assert_allclose(bds[:], factor_ref, rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(delta, delta_ref, rtol=1e-11, atol=1e-15)
     np.testing.assert_allclose(a @ delta.ravel(), rhs.ravel(), rtol=1e-8,
                                atol=1e-8 * np.abs(rhs).max())
-
-
-@pytest.mark.parametrize("threads", [1, 3])
-def test_kernel_threads_and_background_transfers_agree(tmp_path, threads):
-    # one kernel thread (file transfers then overlap on a helper thread when a core is free)
-    # and more kernel threads than cores give the same factor and solution
-    from sapgo.rawfile import RawArray
-
-    n, bw = 45, 7
-    a = random_block_banded(n, bw, seed=4)
-    band = dense_to_band(a, bw)
-    rhs = np.random.default_rng(3).normal(0, 1, (n, 6))
-    factor_ref, delta_ref = solve_in_core(band, rhs)
-    bf = RawArray.create(tmp_path / "band.bin", band.shape)
-    rf = RawArray.create(tmp_path / "rhs.bin", rhs.shape)
-    bf[:] = band
-    rf[:] = rhs
-    delta = solve_out_of_core(bf, rf, bw, chunk_rows=3, threads=threads)
-    np.testing.assert_allclose(bf[:], factor_ref, rtol=1e-12, atol=1e-300)
-    np.testing.assert_allclose(delta, delta_ref, rtol=1e-11, atol=1e-15)
 
 
 def test_non_positive_pivot_names_the_row():

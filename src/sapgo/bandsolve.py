@@ -20,7 +20,7 @@ The factorisation goes panel by panel (``P`` scalar columns, a multiple of 6; El
 Wong's recursive partitioning with a panel of stations as the partition):
 
     L11 = chol(A11)                      dpotrf, then the pivot test below
-    L21 = A21 L11'^-1                    dtrtri + dtrmm (faster than dtrsm at these sizes)
+    L21 = A21 L11'^-1                    dtrtri + dtrmm (faster than dtrsm), dtrsm below 100 rows
     A22 -= L21 L21'                      dsyrk on the diagonal part, dgemm below it
     y1 = L11^-1 d1;  d2 -= L21 y1        dtrsv, dgemv
 
@@ -116,23 +116,6 @@ def _factor_panel(fns, a, orig, ring, ld1, k0, pb, m, tol, tmp):
 
 
 @njit(cache=True, nogil=True)
-def _factor_panel_blocked(fns, a, orig, ring, ld1, k0, pb, m, tol, tmp, inner):
-    """:func:`_factor_panel` in sub-panels of ``inner`` columns (smaller dpotrf/dtrtri, whose
-    cost is what limits the look-ahead thread)."""
-    if inner <= 0 or inner >= pb:
-        return _factor_panel(fns, a, orig, ring, ld1, k0, pb, m, tol, tmp)
-    for s in range(0, pb, inner):
-        ib = min(inner, pb - s)
-        rest = pb - s - ib
-        f = _factor_panel(fns, a, orig, ring, ld1, k0 + s, ib, rest + m, tol, tmp)
-        if f:
-            return s + f
-        if rest > 0:
-            _update_cols(fns, a, ring, ld1, k0 + s, ib, 0, rest, rest + m)
-    return 0
-
-
-@njit(cache=True, nogil=True)
 def _forward(fns, a, y, ring, ld1, k0, pb, m):
     """``y1 <- L11^-1 y1`` for panel ``k0``, then ``y2 -= L21 y1`` (split at the ring's end)."""
     ld = ld1 - 1
@@ -180,8 +163,7 @@ def _area_cut(c, m, frac):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, tol, nthreads,
-                  inner=0):
+def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, tol, nthreads):
     """Factor the panels starting at ``k_start, k_start + p, ... < k_stop`` (scalar columns)
     with forward substitution; panel ``k_start`` is already factored unless ``first``, and the
     panel at ``k_stop`` is factored on return (look-ahead). Returns -1 or the failing column.
@@ -190,8 +172,8 @@ def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, t
     fail = np.full(1, -1, np.int64)
     if first:
         pb = min(p, n - k_start)
-        f = _factor_panel_blocked(fns, a, orig, ring, ld1, k_start, pb, min(u, n - k_start - pb),
-                                  tol, tmp[0], inner)
+        f = _factor_panel(fns, a, orig, ring, ld1, k_start, pb, min(u, n - k_start - pb), tol,
+                          tmp[0])
         if f:
             return k_start + f - 1
     for k0 in range(k_start, k_stop, p):
@@ -203,8 +185,8 @@ def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, t
             continue
         pn = min(p, n - c_lo)
         if m <= 0:  # the next panel lies outside this one's band (u < p)
-            f = _factor_panel_blocked(fns, a, orig, ring, ld1, c_lo, pn, min(u, n - c_lo - pn),
-                                      tol, tmp[0], inner)
+            f = _factor_panel(fns, a, orig, ring, ld1, c_lo, pn, min(u, n - c_lo - pn), tol,
+                              tmp[0])
             if f:
                 return c_lo + f - 1
             continue
@@ -214,8 +196,7 @@ def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, t
         for t in prange(nthreads):
             if t == 0:
                 _update_cols(fns, a, ring, ld1, k0, pb, 0, c, m)
-                f = _factor_panel_blocked(fns, a, orig, ring, ld1, c_lo, pn, m2, tol, tmp[0],
-                                          inner)
+                f = _factor_panel(fns, a, orig, ring, ld1, c_lo, pn, m2, tol, tmp[0])
                 if f:
                     fail[0] = c_lo + f - 1
             else:

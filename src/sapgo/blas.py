@@ -95,8 +95,8 @@ def syrk(fn, uplo, trans, n, k, alpha, a, lda, beta, c, ldc):
 
 
 @njit(cache=True, nogil=True)
-def trsm(fn, side, uplo, ta, diag, m, n, alpha, a, lda, b, ldb):
-    """``b <- alpha op(a)^-1 b`` (side L) or ``alpha b op(a)^-1`` (side R); ``b`` m x n."""
+def _triangular3(fn, side, uplo, ta, diag, m, n, alpha, a, lda, b, ldb):
+    """The common call of dtrsm and dtrmm (same arguments)."""
     iv = np.empty(4, np.int32)
     iv[0] = m
     iv[1] = n
@@ -114,22 +114,15 @@ def trsm(fn, side, uplo, ta, diag, m, n, alpha, a, lda, b, ldb):
 
 
 @njit(cache=True, nogil=True)
+def trsm(fn, side, uplo, ta, diag, m, n, alpha, a, lda, b, ldb):
+    """``b <- alpha op(a)^-1 b`` (side L) or ``alpha b op(a)^-1`` (side R); ``b`` m x n."""
+    _triangular3(fn, side, uplo, ta, diag, m, n, alpha, a, lda, b, ldb)
+
+
+@njit(cache=True, nogil=True)
 def trmm(fn, side, uplo, ta, diag, m, n, alpha, a, lda, b, ldb):
     """``b <- alpha op(a) b`` (side L) or ``alpha b op(a)`` (side R); ``b`` m x n."""
-    iv = np.empty(4, np.int32)
-    iv[0] = m
-    iv[1] = n
-    iv[2] = lda
-    iv[3] = ldb
-    dv = np.empty(1)
-    dv[0] = alpha
-    ch = np.empty(4, np.uint8)
-    ch[0] = side
-    ch[1] = uplo
-    ch[2] = ta
-    ch[3] = diag
-    fn(ch[0:].ctypes, ch[1:].ctypes, ch[2:].ctypes, ch[3:].ctypes, iv[0:].ctypes, iv[1:].ctypes,
-       dv[0:].ctypes, a.ctypes, iv[2:].ctypes, b.ctypes, iv[3:].ctypes)
+    _triangular3(fn, side, uplo, ta, diag, m, n, alpha, a, lda, b, ldb)
 
 
 @njit(cache=True, nogil=True)
