@@ -37,7 +37,7 @@ import numba
 import numpy as np
 
 from . import normals
-from .bandsolve import PIVOT_TOLERANCE, PivotError, solve_out_of_core
+from .bandsolve import PIVOT_TOLERANCE, BandSolver, PivotError
 from .errors import DatumDefectError, SapgoError, SingularNormalsError
 from .normals import (
     BAD_LAYOUT,
@@ -322,11 +322,13 @@ def _point_error(p, chunk, j, status, blk):
     )
 
 
-def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0):
-    """Stream the points and write the reduced normal band rows to ``work.band``.
+def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, sink=None):
+    """Stream the points and hand over the reduced normal band rows as they are completed.
 
-    ``xyz`` is the array of current point coordinates (rows in point order; default
-    ``work.xyz_current``).
+    Completed rows go to ``sink(band_rows, rhs_rows)`` in station order (the adjustment feeds
+    them straight to the :class:`~sapgo.bandsolve.BandSolver`), by default into ``work.band``
+    and ``work.rhs``. ``xyz`` is the array of current point coordinates (rows in point order;
+    default ``work.xyz_current``).
     """
     n = len(blk.station_ids)
     bw = blk.band_width
@@ -336,7 +338,10 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0):
     threads = numba.get_num_threads()  # per thread: b rows of its own beyond its station range
     ovf_band = np.zeros((threads, bw, 6, 6 * bw))
     ovf_rhs = np.zeros((threads, bw, 6))
-    band_ds, rhs_ds = work.band, work.rhs
+    if sink is None:
+        def sink(rows, rhs_rows, band_ds=work.band, rhs_ds=work.rhs):
+            band_ds[base:base + len(rows)] = rows
+            rhs_ds[base:base + len(rows)] = rhs_rows
     xyz_ds = work.xyz_current if xyz is None else xyz
     priors = _PriorCursor(p, opts.chunk_points)
     base = 0
@@ -348,8 +353,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0):
             raise SapgoError(f"{p.path}: the points are not sorted by their first station; "
                              f"the records were changed after ordering: run 'sapgo order'")
         shift = min(new_base, n) - base
-        band_ds[base:base + shift] = band[:shift]
-        rhs_ds[base:base + shift] = rhs[:shift]
+        sink(band[:shift], rhs[:shift])
         band[:cap - shift] = band[shift:]
         rhs[:cap - shift] = rhs[shift:]
         band[cap - shift:] = 0.0
@@ -546,19 +550,20 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
     bw = blk.band_width
     for it in range(work.state + 1, opts.max_iterations + 1):
         t0 = time.perf_counter()
-        build(p, work, blk, opts, iteration=it)
-        t1 = time.perf_counter()
-        with _progress(opts.progress, n, "solve") as bar:
-            try:
-                delta = solve_out_of_core(
-                    work.band, work.rhs, bw, opts.chunk_rows, opts.pivot_tolerance,
-                    progress=bar.update,
-                )
-            except PivotError as exc:
-                raise _pivot_error(exc, blk, p) from None
+        # The factorisation runs inside the build: every segment of band rows is factored as
+        # soon as the build has completed it, so the band rows never go to disk. Its time is
+        # booked as "solve", the rest as "build".
+        solver = BandSolver(n, bw, work.band, work.rhs, opts.chunk_rows, opts.pivot_tolerance)
+        try:
+            build(p, work, blk, opts, iteration=it, sink=solver.feed)
+            delta = solver.finish()
+        except PivotError as exc:
+            raise _pivot_error(exc, blk, p) from None
         _fault("solve", it)
         delta[~blk.station_active] = 0.0
         t2 = time.perf_counter()
+        t1 = t0 + (t2 - t0 - solver.seconds)
+        del solver
         st = update(p, work, blk, delta, opts, iteration=it)
         t3 = time.perf_counter()
         timings["build"] += t1 - t0

@@ -3,13 +3,17 @@
 Storage on disk: the reduced matrix ``M`` (n stations, 6x6 blocks, band width ``b`` stations)
 is kept as band rows ``band[i] = [M[i,i], M[i,i+1], ..., M[i,i+b-1]]`` (6 x 6b each; blocks
 past the last station are zero): ``band[i, r, 6k + c] == M[6i + r, 6(i+k) + c]``. The solver
-overwrites them with the rows of the factor ``U`` (``M = U' U``, same band) and the right-hand
-side with ``y = U'^-1 d``, then back-substitutes.
+takes them in station order (:class:`BandSolver`, fed by the build as it completes them, so
+they never go to disk), writes the rows of the factor ``U`` (``M = U' U``, same band) in
+*diagonal-first* form ``fac[i, r, d] == U[6i + r, 6i + r + d]`` (:func:`factor_to_band` gives
+band rows again) and the right-hand side ``y = U'^-1 d``, then back-substitutes reading them
+in reverse.
 
 In core the solver works on the lower factor ``L = U'`` in *skewed band storage*: scalar column
 ``h`` of ``L`` occupies ``LD`` consecutive doubles ``L[h, h], L[h+1, h], ...`` -- LAPACK's lower
 band storage, transposed in memory. Row ``r`` of station ``i``'s band row is exactly that column
-(``band[i, r, r + d] == L[6i + r + d, 6i + r]``), so loading and storing are contiguous copies.
+(``band[i, r, r + d] == L[6i + r + d, 6i + r]``) and a factor row is its first ``6b`` doubles,
+so loading and storing are contiguous copies.
 The point of the layout: element ``(g, h)`` sits at ``h (LD - 1) + g``, so every submatrix that
 lies inside the band is an ordinary Fortran matrix with leading dimension ``LD - 1`` and can be
 handed to BLAS-3 as it is (the trick of LAPACK's dpbtrf). Columns live in a **ring** of ``R``
@@ -44,6 +48,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 
 import numba
 import numpy as np
@@ -209,49 +214,62 @@ def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, t
     return -1
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _load_rows(band, rhs, i0, a, y, orig, ring, ld1):
     """Band rows of stations ``i0 ..`` into the ring as columns of ``L`` (zero padded)."""
     width = band.shape[2]
-    for ii in range(band.shape[0]):
+    for ii in prange(band.shape[0]):
         for r in range(6):
             h = 6 * (i0 + ii) + r
             base = (h % ring) * ld1
-            for d in range(ld1):
-                a[base + d] = band[ii, r, r + d] if r + d < width else 0.0
+            for d in range(width - r):
+                a[base + d] = band[ii, r, r + d]
+            for d in range(width - r, ld1):
+                a[base + d] = 0.0
             y[h % ring] = rhs[ii, r]
             orig[h % ring] = abs(band[ii, r, r])
 
 
 @njit(cache=True, nogil=True)
-def _store_rows(a, y, ring, ld1, i0, band, rhs):
-    """Factor rows (and forward-substituted right-hand side) of stations ``i0 ..`` from the
-    ring; the lower triangle of each diagonal block is zero."""
-    width = band.shape[2]
-    for ii in range(band.shape[0]):
-        for r in range(6):
-            h = 6 * (i0 + ii) + r
-            base = (h % ring) * ld1
-            for c in range(r):
-                band[ii, r, c] = 0.0
-            for c in range(r, width):
-                band[ii, r, c] = a[base + c - r]
-            rhs[ii, r] = y[h % ring]
-
-
-@njit(cache=True, nogil=True)
-def _back_rows(band, y, x, i0, n):
-    """Back substitution ``x <- L'^-1 y`` for the scalar rows of the stations ``i0 ..`` of the
-    factor band rows ``band`` (in reverse); ``x`` holds the solution of the rows after them."""
-    width = band.shape[2]
-    for ii in range(band.shape[0] - 1, -1, -1):
+def _back_rows(fac, y, x, i0, n):
+    """Back substitution ``x <- U^-1 y`` for the scalar rows of the stations ``i0 ..`` of the
+    factor rows ``fac`` (in reverse; diagonal-first, ``fac[i, r, d] = U[h, h + d]``); ``x``
+    holds the solution of the rows after them."""
+    width = fac.shape[2]
+    for ii in range(fac.shape[0] - 1, -1, -1):
         for r in range(5, -1, -1):
             h = 6 * (i0 + ii) + r
             s = y[ii, r]
-            top = min(width - r, n - h)
+            top = min(width, n - h)
             for d in range(1, top):
-                s -= band[ii, r, r + d] * x[h + d]
-            x[h] = s / band[ii, r, r]
+                s -= fac[ii, r, d] * x[h + d]
+            x[h] = s / fac[ii, r, 0]
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _take_cols(a, y, ring, ld1, lo, fac, rhs):
+    """Diagonal-first factor rows ``fac`` (k x 6 x 6b) and ``rhs`` (k x 6) from the ring
+    columns ``lo, lo + 1, ...`` (slots modulo ``ring``)."""
+    width = fac.shape[2]
+    for ii in prange(fac.shape[0]):
+        for r in range(6):
+            slot = (lo + 6 * ii + r) % ring
+            base = slot * ld1
+            for d in range(width):
+                fac[ii, r, d] = a[base + d]
+            rhs[ii, r] = y[slot]
+
+
+def factor_to_band(fac):
+    """Band rows of ``U`` (``band[i, r, r + d] = U[h, h + d]``, lower triangle of each diagonal
+    block zero) from the solver's diagonal-first factor rows ``fac[i, r, d] = U[h, h + d]``
+    (``h = 6 i + r``)."""
+    fac = np.asarray(fac)
+    band = np.zeros_like(fac)
+    width = fac.shape[2]
+    for r in range(6):
+        band[:, r, r:] = fac[:, r, :width - r]
+    return band
 
 
 @njit(cache=True, nogil=True)
@@ -289,11 +307,14 @@ def _up(x, k):
 class _Inline:
     """:class:`_Background`'s interface, running the job at once in the caller's thread."""
 
+    _result = None
+
     def start(self, fn, *args):
         self._result = fn(*args)
 
     def wait(self):
-        return self._result
+        result, self._result = self._result, None
+        return result
 
 
 class _Background:
@@ -325,96 +346,149 @@ class _Background:
         return self._box.get("result")
 
 
+class BandSolver:
+    """Streaming factorisation: band rows go in, in station order; factor rows go out.
+
+    ``feed(band, rhs)`` takes the next band rows (k x 6 x 6b) and right-hand-side rows
+    (k x 6) -- any number at a time, e.g. as the build completes them -- places them into the
+    ring and factors every segment of ``chunk_rows`` stations whose rows are all in. The factor
+    rows and the forward-substituted right-hand side are written to ``factor_ds`` and
+    ``y_ds`` (n x 6 x 6b and n x 6: direct-access files, HDF5 datasets or arrays), so the band
+    rows never go to disk. ``finish()`` factors the rest and returns the solution ``delta``
+    (n x 6), back-substituting from the factor rows read in reverse. ``seconds`` is the time
+    spent in the solver so far. In core: the ring of about ``3 chunk_rows + 2 b`` stations'
+    columns and one segment of factor rows in transit.
+    """
+
+    def __init__(self, n_st, band_width, factor_ds, y_ds, chunk_rows=256,
+                 pivot_tol=PIVOT_TOLERANCE, progress=None, panel=None, threads=None):
+        self.n_st = n_st
+        self.width = width = 6 * band_width
+        self.n = n = 6 * n_st
+        self.u = u = width - 1
+        self.p = p = panel or panel_width(u)
+        if p % 6:
+            raise ValueError(f"panel width {p} is not a multiple of 6")
+        self.factor_ds, self.y_ds = factor_ds, y_ds
+        self.chunk_rows = max(1, chunk_rows)
+        self.pivot_tol = pivot_tol
+        self.progress = progress
+        self.nthreads = threads or numba.get_num_threads()
+        self.seg = _up(6 * self.chunk_rows, p)          # scalar columns per segment
+        self.ld1 = u + p + 1
+        self.ring = min(_up(3 * self.seg + u + 2 * p + 6, p), _up(max(n, 1), p))
+        self.a = np.zeros(self.ring * self.ld1)
+        self.y = np.zeros(self.ring)
+        self.orig = np.zeros(self.ring)
+        self.loaded = 0          # stations placed into the ring
+        self.stored = 0          # stations whose factor rows left the ring
+        self.k = 0               # scalar columns factored
+        self.seconds = 0.0
+        # The factor rows are written by a helper thread only when a core is free for it: the
+        # kernel's threads meet at a barrier every panel, and a transfer that takes one of
+        # their cores stalls both (measured on 2 cores).
+        self._writer = (_Background() if (os.cpu_count() or 1) > self.nthreads else _Inline())
+
+    def feed(self, band, rhs):
+        """Place the next band rows (and right-hand-side rows) and factor what is ready."""
+        t0 = time.perf_counter()
+        band = np.ascontiguousarray(band, dtype=np.float64)
+        rhs = np.ascontiguousarray(rhs, dtype=np.float64).reshape(-1, 6)
+        if band.shape[1:] != (6, self.width) or len(rhs) != len(band):
+            raise ValueError(f"band rows of shape {band.shape[1:]} and {len(rhs)} right-hand "
+                             f"side rows, expected (6, {self.width}) and {len(band)}")
+        if self.loaded + len(band) > self.n_st:
+            raise ValueError(f"{self.loaded + len(band)} band rows fed for {self.n_st} stations")
+        i = 0
+        while i < len(band):
+            room = (6 * self.stored + self.ring) // 6 - self.loaded
+            take = min(room, len(band) - i)
+            if take > 0:
+                self._writer.wait()   # (the slots may still be on their way to the file)
+                _load_rows(band[i:i + take], rhs[i:i + take], self.loaded, self.a, self.y,
+                           self.orig, self.ring, self.ld1)
+                self.loaded += take
+                i += take
+            self._factor_ready()
+        self.seconds += time.perf_counter() - t0
+
+    def _reach(self, col):
+        """Stations covering the scalar columns below ``col``."""
+        return min(self.n_st, -(-min(self.n, col) // 6))
+
+    def _factor_ready(self):
+        n, u, p = self.n, self.u, self.p
+        while self.k < n:
+            k = self.k
+            stop = min(n, k + self.seg)
+            if self.loaded < self._reach(stop + u + p):
+                return
+            self._writer.wait()
+            self._writer.start(self._write, *self._take(k // 6))
+            with blas_limits(1):
+                fail = _factor_range(FNS, self.a, self.y, self.orig, self.ring, self.ld1, n,
+                                     u, p, k, stop, k == 0, self.pivot_tol, self.nthreads)
+            if fail >= 0:
+                self._writer.wait()
+                raise PivotError(fail // 6, fail % 6)
+            if self.progress is not None:
+                self.progress((stop - k) // 6)
+            self.k = stop
+
+    def _take(self, i1):
+        """Factor rows of the stations ``stored .. i1`` out of the ring (diagonal-first: the
+        first ``6 b`` doubles of each column of ``L``)."""
+        i0 = self.stored
+        fac = np.empty((i1 - i0, 6, self.width))
+        rhs = np.empty((i1 - i0, 6))
+        _take_cols(self.a, self.y, self.ring, self.ld1, (6 * i0) % self.ring, fac, rhs)
+        self.stored = i1
+        return i0, fac, rhs
+
+    def _write(self, i0, band, rhs):
+        if len(band):
+            self.factor_ds[i0:i0 + len(band)] = band
+            self.y_ds[i0:i0 + len(rhs)] = rhs
+
+    def finish(self):
+        """Factor the rest (every row must have been fed) and return ``delta`` (n x 6)."""
+        if self.loaded != self.n_st:
+            raise ValueError(f"{self.loaded} band rows fed for {self.n_st} stations")
+        t0 = time.perf_counter()
+        if self.n == 0:
+            return np.zeros((0, 6))
+        self._factor_ready()
+        self._writer.wait()
+        self._write(*self._take(self.n_st))
+        delta = _back_substitute(self.factor_ds, self.y_ds, self.n_st, self.chunk_rows)
+        self.seconds += time.perf_counter() - t0
+        return delta
+
+
 def solve_out_of_core(band_ds, rhs_ds, band_width, chunk_rows=256, pivot_tol=PIVOT_TOLERANCE,
                       progress=None, panel=None, threads=None):
     """Factor the band rows of ``band_ds`` in place and solve for ``rhs_ds``.
 
     ``band_ds`` (n x 6 x 6b) and ``rhs_ds`` (n x 6) are direct-access files, HDF5 datasets or
-    arrays. The factor rows overwrite the band rows and the forward-substituted right-hand side
-    overwrites ``rhs_ds``; returns the solution ``delta`` (n x 6). In core: the ring of about
-    ``3 chunk_rows + 2 b`` stations' columns and two segments of rows in transit.
-    ``panel`` (scalar columns, a multiple of 6) and ``threads`` override the defaults.
+    arrays. The factor rows (diagonal-first, see the module docstring) overwrite the band rows
+    and the forward-substituted right-hand side overwrites ``rhs_ds``; returns the solution
+    ``delta`` (n x 6). The rows are read segment by
+    segment and fed to a :class:`BandSolver` (a segment is read before any of its rows is
+    overwritten). ``panel`` (scalar columns, a multiple of 6) and ``threads`` override the
+    defaults.
     """
     n_st = band_ds.shape[0]
     width = 6 * band_width
     if band_ds.shape[1:] != (6, width):
         raise ValueError(f"band rows have shape {band_ds.shape[1:]}, expected (6, {width})")
-    n = 6 * n_st
-    if n == 0:
-        return np.zeros((0, 6))
-    u = width - 1
-    p = panel or panel_width(u)
-    if p % 6:
-        raise ValueError(f"panel width {p} is not a multiple of 6")
-    nthreads = threads or numba.get_num_threads()
-    seg = _up(6 * max(1, chunk_rows), p)                 # scalar columns per segment
-    ld1 = u + p + 1
-    ring = min(_up(3 * seg + u + 2 * p + 6, p), _up(n, p))
-    a = np.zeros(ring * ld1)
-    y = np.zeros(ring)
-    orig = np.zeros(ring)
-    state = {"loaded": 0, "stored": 0}
-
-    def read(i0, i1):                                      # file -> staging (helper thread)
-        return (np.ascontiguousarray(band_ds[i0:i1], dtype=np.float64),
-                np.ascontiguousarray(rhs_ds[i0:i1], dtype=np.float64))
-
-    def place(staged, i1):                                 # staging -> ring (main thread)
-        if i1 > state["loaded"]:
-            _load_rows(staged[0], staged[1], state["loaded"], a, y, orig, ring, ld1)
-            state["loaded"] = i1
-
-    def take(i1):                                          # ring -> staging (main thread)
-        i0 = state["stored"]
-        band = np.empty((i1 - i0, 6, width))
-        rhs = np.empty((i1 - i0, 6))
-        _store_rows(a, y, ring, ld1, i0, band, rhs)
-        state["stored"] = i1
-        return i0, band, rhs
-
-    def write(out):                                        # staging -> file (helper thread)
-        i0, band, rhs = out
-        if len(band):
-            band_ds[i0:i0 + len(band)] = band
-            rhs_ds[i0:i0 + len(rhs)] = rhs
-
-    def io(out, i0, i1):
-        write(out)
-        return read(i0, i1) if i1 > i0 else None
-
-    def reach(col):                                        # stations covering columns < col
-        return min(n_st, -(-min(n, col) // 6))
-
-    # Only the file transfers overlap the kernel, and only when a core is free for them: the
-    # kernel's threads meet at a barrier every panel, and a transfer that takes one of their
-    # cores (even a copy from the page cache) stalls both. The conversions between band rows
-    # and the ring are CPU work and run between kernel calls.
-    bg = _Background() if (os.cpu_count() or 1) > nthreads else _Inline()
-    first = reach(seg + u + p)
-    place(read(0, first), first)
-    k = 0
-    with blas_limits(1):
-        while k < n:
-            stop = min(n, k + seg)
-            need = reach(stop + u + p)
-            if need > state["loaded"]:                     # (only for tiny rings)
-                place(read(state["loaded"], need), need)
-            nxt = reach(stop + seg + u + p)
-            bg.start(io, take(k // 6), state["loaded"], nxt)
-            try:
-                fail = _factor_range(FNS, a, y, orig, ring, ld1, n, u, p, k, stop, k == 0,
-                                     pivot_tol, nthreads)
-            finally:
-                staged = bg.wait()
-            if fail >= 0:
-                raise PivotError(fail // 6, fail % 6)
-            if staged is not None:
-                place(staged, nxt)
-            if progress is not None:
-                progress((stop - k) // 6)
-            k = stop
-    write(take(n_st))
-    return _back_substitute(band_ds, rhs_ds, n_st, max(1, chunk_rows))
+    solver = BandSolver(n_st, band_width, band_ds, rhs_ds, chunk_rows, pivot_tol, progress,
+                        panel, threads)
+    step = max(1, chunk_rows)
+    for i0 in range(0, n_st, step):
+        i1 = min(n_st, i0 + step)
+        solver.feed(np.ascontiguousarray(band_ds[i0:i1], dtype=np.float64),
+                    np.ascontiguousarray(rhs_ds[i0:i1], dtype=np.float64))
+    return solver.finish()
 
 
 def _back_substitute(band_ds, rhs_ds, n_st, step):
@@ -444,13 +518,14 @@ def _back_substitute(band_ds, rhs_ds, n_st, step):
 def solve_in_core(band, rhs, pivot_tol=PIVOT_TOLERANCE, panel=None, threads=None):
     """Factor band rows ``band`` (n x 6 x 6b) and solve; returns ``(factor, delta)``.
 
-    The same kernels and driver as the out-of-core path, with the whole band in one segment.
+    The same kernels and driver as the out-of-core path, with the whole band in one segment;
+    ``factor`` holds the band rows of ``U`` (as :func:`factor_to_band`).
     """
     band = np.array(band, dtype=np.float64, order="C")
     y = np.array(rhs, dtype=np.float64, order="C").reshape(-1, 6)
     delta = solve_out_of_core(band, y, band.shape[2] // 6, max(1, band.shape[0]), pivot_tol,
                               panel=panel, threads=threads)
-    return band, delta
+    return factor_to_band(band), delta
 
 
 def band_to_dense(band):
