@@ -185,11 +185,12 @@ def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, t
         pb = min(p, n - k0)
         c_lo = k0 + pb
         m = min(u, n - c_lo)
-        _forward(fns, a, y, ring, ld1, k0, pb, m)
         if c_lo >= n:
+            _forward(fns, a, y, ring, ld1, k0, pb, m)
             continue
         pn = min(p, n - c_lo)
         if m <= 0:  # the next panel lies outside this one's band (u < p)
+            _forward(fns, a, y, ring, ld1, k0, pb, m)
             f = _factor_panel(fns, a, orig, ring, ld1, c_lo, pn, min(u, n - c_lo - pn), tol,
                               tmp[0])
             if f:
@@ -199,6 +200,8 @@ def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, t
         m2 = min(u, n - c_lo - pn)
         c = _cut(m, near, pb, pn, m2, nthreads)
         for t in prange(nthreads):
+            if t == nthreads - 1:  # the forward substitution runs beside the update
+                _forward(fns, a, y, ring, ld1, k0, pb, m)
             if t == 0:
                 _update_cols(fns, a, ring, ld1, k0, pb, 0, c, m)
                 f = _factor_panel(fns, a, orig, ring, ld1, c_lo, pn, m2, tol, tmp[0])
