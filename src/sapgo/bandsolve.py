@@ -591,12 +591,13 @@ def _skewed(ab, lower, p):
     return buf[pad:], view, u, n, ld1
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _skew_copy(ab, a, ld1, lower):
     """``a[h ld1 + d] = L[h + d, h]`` from LAPACK storage, 64 columns at a time (both reads and
     writes stay in cache; a plain strided assignment is a cache-hostile transposition)."""
     u, n = ab.shape[0] - 1, ab.shape[1]
-    for h0 in range(0, n, 64):
+    for blk in prange((n + 63) // 64):
+        h0 = 64 * blk
         h1 = min(n, h0 + 64)
         for d in range(u + 1):
             if lower:
