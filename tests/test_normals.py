@@ -25,7 +25,7 @@ def streamed(path, tmp_path, **opts):
         try:
             w.initialise(p, 1000)
             build(p, w, blk, Options(progress=False, **opts))
-            return band_to_dense(w.band[:]), w.rhs[:].ravel(), blk.band_width
+            return band_to_dense(w.factor[:]), w.y[:].ravel(), blk.band_width
         finally:
             w.close()
 

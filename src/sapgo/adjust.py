@@ -326,9 +326,10 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     """Stream the points and hand over the reduced normal band rows as they are completed.
 
     Completed rows go to ``sink(band_rows, rhs_rows)`` in station order (the adjustment feeds
-    them straight to the :class:`~sapgo.bandsolve.BandSolver`), by default into ``work.band``
-    and ``work.rhs``. ``xyz`` is the array of current point coordinates (rows in point order;
-    default ``work.xyz_current``).
+    them straight to the :class:`~sapgo.bandsolve.BandSolver`). Without a sink they are
+    written into the files ``work.factor`` and ``work.y`` as they are, for tests and
+    benchmarks that look at the band rows themselves. ``xyz`` is the array of current point
+    coordinates (rows in point order; default ``work.xyz_current``).
     """
     n = len(blk.station_ids)
     bw = blk.band_width
@@ -339,7 +340,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     ovf_band = np.zeros((threads, bw, 6, 6 * bw))
     ovf_rhs = np.zeros((threads, bw, 6))
     if sink is None:
-        def sink(rows, rhs_rows, band_ds=work.band, rhs_ds=work.rhs):
+        def sink(rows, rhs_rows, band_ds=work.factor, rhs_ds=work.y):
             band_ds[base:base + len(rows)] = rows
             rhs_ds[base:base + len(rows)] = rhs_rows
     xyz_ds = work.xyz_current if xyz is None else xyz
@@ -460,7 +461,8 @@ def _pivot_error(exc: PivotError, blk: _Block, p: Project):
 class Work:
     """The work directory of a run: scratch record files and the checkpoint.
 
-    Files: ``band.bin`` (n x 6 x 6b band rows, then factor rows), ``rhs.bin`` (n x 6),
+    Files: ``factor.bin`` (n x 6 x 6b factor rows, diagonal-first), ``y.bin`` (n x 6, the
+    forward-substituted right-hand side),
     ``xyz.0.bin`` / ``xyz.1.bin`` (point coordinates, double-buffered), ``residuals.0.bin`` /
     ``residuals.1.bin`` (vx, vy of every observation), ``eo.K.npy`` (the stations'
     orientation after iteration K) and ``checkpoint.json`` (the last completed iteration K,
@@ -477,8 +479,8 @@ class Work:
                 shutil.rmtree(self.dir)
             self.dir.mkdir(parents=True)
         bw = band_width
-        self.band = RawArray(self.dir / "band.bin", (self.n_st, 6, 6 * bw), mode=mode)
-        self.rhs = RawArray(self.dir / "rhs.bin", (self.n_st, 6), mode=mode)
+        self.factor = RawArray(self.dir / "factor.bin", (self.n_st, 6, 6 * bw), mode=mode)
+        self.y = RawArray(self.dir / "y.bin", (self.n_st, 6), mode=mode)
         self.xyz = [RawArray(self.dir / f"xyz.{i}.bin", (self.n_pt, 3), mode=mode)
                     for i in (0, 1)]
         self.res = [RawArray(self.dir / f"residuals.{i}.bin", (self.n_obs, 2), mode=mode)
@@ -535,7 +537,7 @@ class Work:
         return record
 
     def close(self):
-        for a in [self.band, self.rhs, *self.xyz, *self.res]:
+        for a in [self.factor, self.y, *self.xyz, *self.res]:
             a.close()
 
 
@@ -553,7 +555,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         # The factorisation runs inside the build: every segment of band rows is factored as
         # soon as the build has completed it, so the band rows never go to disk. Its time is
         # booked as "solve", the rest as "build".
-        solver = BandSolver(n, bw, work.band, work.rhs, opts.chunk_rows, opts.pivot_tolerance)
+        solver = BandSolver(n, bw, work.factor, work.y, opts.chunk_rows, opts.pivot_tolerance)
         try:
             build(p, work, blk, opts, iteration=it, sink=solver.feed)
             delta = solver.finish()

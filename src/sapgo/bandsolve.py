@@ -31,11 +31,11 @@ Wong's recursive partitioning with a panel of stations as the partition):
 with a look-ahead of one panel on two (or more) threads: thread 0 applies panel k's update to
 the columns of panel k+1 and factors panel k+1 at once, while the other threads update the
 rest of the trailing block; the split is balanced by operation counts. The BLAS libraries are
-held to one thread meanwhile (:func:`sapgo.blas.blas_limits`). Out of core, a reader/writer
-thread loads the band rows of the next segment into the ring and stores the factor rows of the
-previous one while the kernel computes; a segment is ``chunk_rows`` stations. In core:
-the ring (``~(3 chunk_rows + 2 b) x 6`` columns of ``6b + P`` doubles) and one segment of band
-rows on each side.
+held to one thread meanwhile (:func:`sapgo.blas.blas_limits`). Out of core, a segment of
+``chunk_rows`` stations is factored as soon as its band rows (and the ``b`` after them) have
+been fed, after the factor rows of the segment before have been written out. In core: the
+ring (``~(3 chunk_rows + 2 b) x 6`` columns of ``6b + P`` doubles) and one segment of factor
+rows in transit.
 
 A pivot ``L[h,h]^2`` at or below ``pivot_tol`` times the original diagonal element (or a failed
 dpotrf) stops the factorisation and names the station and parameter.
