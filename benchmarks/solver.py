@@ -12,7 +12,7 @@ and their band rows are built by sapgo's own ``build`` pass. On each matrix, in 
   drop-in; includes its copies in and out), checked against LAPACK's factor to 1e-8 relative;
 - **sapgo out of core**: ``solve_out_of_core`` on the band rows in direct-access files (factor,
   forward and back substitution, ``chunk_rows=256``), against the same driver in core (band
-  rows in arrays, the whole band one segment): the cost of being out of core;
+  rows in arrays): the cost of the files;
 - **LAPACK dpbtrf**: ``scipy.linalg.cholesky_banded``, best of OpenBLAS with 1 and 2 threads;
 - **sparse Cholesky**: CHOLMOD (scikit-sparse) if it is installed, else SciPy's SuperLU with
   natural ordering and no pivoting (the band order is already the good one), best of both
@@ -224,12 +224,12 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
         calls["sapgo"].append(time.perf_counter() - t0)
     t_call_lapack, t_call_ours = min(calls["scipy"]), min(calls["sapgo"])
     diff_call = float(np.abs(np.asarray(c2) - ref).max() / np.abs(ref).max())
-    # full solves: in core (arrays, the whole band one segment) and out of core (files,
-    # 256-station segments)
+    # full solves (factor, forward and back substitution), the same driver with 256-station
+    # segments: in core (band rows in arrays) and out of core (band rows in files)
     def in_core():
         b, r = band.copy(), rhs.copy()
         t0 = time.perf_counter()
-        x = solve_out_of_core(b, r, bw, chunk_rows=n_st)
+        x = solve_out_of_core(b, r, bw, chunk_rows=256)
         return time.perf_counter() - t0, x
 
     t_in, x_in = min((in_core() for _ in range(REPEAT)), key=lambda r: r[0])

@@ -233,7 +233,7 @@ def _load_rows(band, rhs, i0, a, y, orig, ring, ld1):
             orig[h % ring] = abs(band[ii, r, r])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath=True)
 def _back_rows(fac, y, x, i0, n):
     """Back substitution ``x <- U^-1 y`` for the scalar rows of the stations ``i0 ..`` of the
     factor rows ``fac`` (in reverse; diagonal-first, ``fac[i, r, d] = U[h, h + d]``); ``x``
@@ -463,7 +463,9 @@ class BandSolver:
         self._factor_ready()
         self._writer.wait()
         self._write(*self._take(self.n_st))
-        delta = _back_substitute(self.factor_ds, self.y_ds, self.n_st, self.chunk_rows)
+        # read back in blocks of at least 8 MiB (fewer, larger reads)
+        step = max(self.chunk_rows, (8 << 20) // (48 * self.width))
+        delta = _back_substitute(self.factor_ds, self.y_ds, self.n_st, step)
         self.seconds += time.perf_counter() - t0
         return delta
 
@@ -521,13 +523,14 @@ def _back_substitute(band_ds, rhs_ds, n_st, step):
 def solve_in_core(band, rhs, pivot_tol=PIVOT_TOLERANCE, panel=None, threads=None):
     """Factor band rows ``band`` (n x 6 x 6b) and solve; returns ``(factor, delta)``.
 
-    The same kernels and driver as the out-of-core path, with the whole band in one segment;
-    ``factor`` holds the band rows of ``U`` (as :func:`factor_to_band`).
+    The same kernels and driver as the out-of-core path, on arrays instead of files (segments
+    of 256 stations: the ring stays small and in cache); ``factor`` holds the band rows of
+    ``U`` (as :func:`factor_to_band`).
     """
     band = np.array(band, dtype=np.float64, order="C")
     y = np.array(rhs, dtype=np.float64, order="C").reshape(-1, 6)
-    delta = solve_out_of_core(band, y, band.shape[2] // 6, max(1, band.shape[0]), pivot_tol,
-                              panel=panel, threads=threads)
+    delta = solve_out_of_core(band, y, band.shape[2] // 6, 256, pivot_tol, panel=panel,
+                              threads=threads)
     return factor_to_band(band), delta
 
 
