@@ -175,25 +175,32 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
     count = n * (6 * bw) ** 2
     ab = lower_storage(band)
     # Factorisation alone, each on its own storage laid out beforehand (no copies timed):
-    # LAPACK dpbtrf on a Fortran-ordered array it may overwrite (its best configuration),
-    # best of 1 and 2 OpenBLAS threads; sapgo's panel kernel on its skewed storage.
+    # LAPACK dpbtrf on a Fortran-ordered array it may overwrite, lower and upper form
+    # (SciPy's default), 1 and 2 OpenBLAS threads, the best of the four counted (its best
+    # configuration); sapgo's panel kernel on its skewed storage.
     ab_f = np.asfortranarray(ab)
+    ab_u = np.zeros_like(ab)                       # upper form: ab_u[u + i - j, j] = a[i, j]
+    for d in range(ab.shape[0]):
+        ab_u[ab.shape[0] - 1 - d, d:] = ab[d, :n - d]
+    ab_uf = np.asfortranarray(ab_u)
     u = 6 * bw - 1
     p = panel_width(u)
-    lap = {1: [], 2: []}
+    lap = {(form, threads): [] for form in ("lower", "upper") for threads in (1, 2)}
     ts = []
     ref = c = None
     # Interleaved rounds, the best of each kept: this machine's speed drifts for seconds at a
     # time (other tenants), which must not favour either side. A pause after LAPACK lets
     # OpenBLAS's idle threads stop spinning before sapgo's kernel runs.
     for _ in range(ROUNDS):
-        for threads in (1, 2):
+        for form, threads in lap:
             with threadpool_limits(threads, "blas"):
-                work = ab_f.copy(order="F")
+                work = (ab_f if form == "lower" else ab_uf).copy(order="F")
                 t0 = time.perf_counter()
-                ref = scipy.linalg.cholesky_banded(work, lower=True, overwrite_ab=True,
-                                                   check_finite=False)
-                lap[threads].append(time.perf_counter() - t0)
+                out = scipy.linalg.cholesky_banded(work, lower=form == "lower",
+                                                   overwrite_ab=True, check_finite=False)
+                lap[form, threads].append(time.perf_counter() - t0)
+                if form == "lower":
+                    ref = out
         time.sleep(0.2)
         a, c, _, _, ld1 = _skewed(ab, True, p)
         ring = -(-n // p) * p
@@ -208,6 +215,8 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
         assert fail < 0
     lap = {k: min(v) for k, v in lap.items()}
     t_lapack = min(lap.values())
+    lapack_best = "%s form, %d thread%s" % (*min(lap, key=lap.get),
+                                           "s" if min(lap, key=lap.get)[1] > 1 else "")
     t_ours = min(ts)
     diff = float(np.abs(np.asarray(c) - ref).max() / np.abs(ref).max())
     # The drop-in call against SciPy's, C-ordered input as a user would pass it (both copy),
@@ -256,8 +265,12 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
     row = {
         "band_width": bw, "stations": n_st, "unknowns": n, "count_gflop": count / 1e9,
         "factor_s": {"sapgo_in_core": t_ours, "lapack_dpbtrf": t_lapack,
-                     "lapack_1_thread": lap[1], "lapack_2_threads": lap[2],
+                     "lapack_1_thread": min(lap["lower", 1], lap["upper", 1]),
+                     "lapack_2_threads": min(lap["lower", 2], lap["upper", 2]),
+                     **{f"lapack_{f}_{t}_thread{'s' if t > 1 else ''}": v
+                        for (f, t), v in lap.items()},
                      "dense_ceiling": count / (gemm * 1e9)},
+        "lapack_best_configuration": lapack_best,
         "call_s": {"sapgo_cholesky_banded": t_call_ours,
                    "scipy_cholesky_banded": t_call_lapack},
         "ratio_call_scipy_over_sapgo": t_call_lapack / t_call_ours,
