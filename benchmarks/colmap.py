@@ -256,11 +256,12 @@ def verify_mapping(rec, prob, origin, pycolmap):
     M, Xc, X = rotation(prob["eo"]), prob["eo"][:, 3:], prob["xyz"]
     x, y = project(M, Xc, X, prob)
     # sapgo's own kernel on the same values
-    from sapgo.geometry import project_observations
+    from sapgo.geometry import plain_camera, project_observations
 
+    cams = np.array([plain_camera(f, x0, y0)
+                     for f, x0, y0 in zip(prob["f"], prob["x0"], prob["y0"])])
     xy = np.empty((len(x), 2))
-    project_observations(prob["st"], prob["pt"], prob["eo"], X, prob["camera"], prob["f"],
-                         prob["x0"], prob["y0"], xy)
+    project_observations(prob["st"], prob["pt"], prob["eo"], X, prob["camera"], cams, xy)
     d_sapgo = max(np.abs(xy[:, 0] - x).max(), np.abs(xy[:, 1] - y).max())
     # COLMAP: world -> camera -> image, per image
     cam = prob["camera"][prob["st"]]

@@ -21,22 +21,30 @@ def rotation(omega, phi, kappa):
     return np.einsum("ij...,jk...,kl...->il...", r3, r2, r1)
 
 
-def project(eo, xyz, f, x0=0.0, y0=0.0):
-    """Collinearity for arrays: eo (..., 6), xyz (..., 3) -> (..., 2)."""
+def project(eo, xyz, f, x0=0.0, y0=0.0, dist=None):
+    """Collinearity for arrays: eo (..., 6), xyz (..., 3) -> (..., 2); ``dist`` = Brown's
+    (k1, k2, k3, p1, p2) added to the ideal image point (works for complex arguments)."""
     m = rotation(eo[..., 0], eo[..., 1], eo[..., 2])
     d = xyz - eo[..., 3:6]
     q = np.einsum("ij...,...j->...i", m, d)
-    return np.stack([x0 - f * q[..., 0] / q[..., 2], y0 - f * q[..., 1] / q[..., 2]], axis=-1)
+    xi, yi = -f * q[..., 0] / q[..., 2], -f * q[..., 1] / q[..., 2]
+    if dist is not None:
+        k1, k2, k3, p1, p2 = dist
+        r2 = xi ** 2 + yi ** 2
+        rad = k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+        xi, yi = (xi + xi * rad + p1 * (r2 + 2 * xi ** 2) + 2 * p2 * xi * yi,
+                  yi + yi * rad + p2 * (r2 + 2 * yi ** 2) + 2 * p1 * xi * yi)
+    return np.stack([x0 + xi, y0 + yi], axis=-1)
 
 
-def jacobian_complex_step(eo, xyz, f, x0=0.0, y0=0.0, h=1e-30):
+def jacobian_complex_step(eo, xyz, f, x0=0.0, y0=0.0, h=1e-30, dist=None):
     """d(x, y)/d(eo, xyz) for one ray by complex step: (2 x 6), (2 x 3)."""
     p = np.concatenate([eo, xyz]).astype(complex)
     jac = np.zeros((2, 9))
     for k in range(9):
         q = p.copy()
         q[k] += 1j * h
-        jac[:, k] = project(q[:6], q[6:], f, x0, y0).imag / h
+        jac[:, k] = project(q[:6], q[6:], f, x0, y0, dist).imag / h
     return jac[:, :6], jac[:, 6:]
 
 
@@ -78,7 +86,7 @@ def reduced_normals_dense(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma,
 
 
 def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma, ctrl_mask,
-                            ctrl, ctrl_sigma, iterations=30, tol=1e-11):
+                            ctrl, ctrl_sigma, iterations=30, tol=1e-11, dist=None):
     """Gauss-Newton on the full dense normal equations (no reduction, no band).
 
     Control components with sigma 0 are held at their control values. Returns adjusted
@@ -98,11 +106,11 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
         res = np.zeros(jac.shape[0])
         for i in range(nobs):
             s, j = obs_station[i], obs_point[i]
-            a, b = jacobian_complex_step(eo[s], xyz[j], f)
+            a, b = jacobian_complex_step(eo[s], xyz[j], f, dist=dist)
             sw = 1.0 / obs_sigma[i]
             jac[2 * i:2 * i + 2, 6 * s:6 * s + 6] = a * sw
             jac[2 * i:2 * i + 2, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b * sw
-            res[2 * i:2 * i + 2] = (project(eo[s], xyz[j], f) - obs_xy[i]) * sw
+            res[2 * i:2 * i + 2] = (project(eo[s], xyz[j], f, dist=dist) - obs_xy[i]) * sw
         r = 2 * nobs
         for j, k in zip(*np.nonzero(weighted)):
             jac[r, 6 * ns + 3 * j + k] = 1.0 / ctrl_sigma[j, k]
@@ -118,7 +126,7 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
         if np.abs(dx).max() < tol:
             break
     # final residuals
-    v = project(eo[obs_station], xyz[obs_point], f) - obs_xy
+    v = project(eo[obs_station], xyz[obs_point], f, dist=dist) - obs_xy
     vpv = float(((v / obs_sigma[:, None]) ** 2).sum())
     vc = (xyz - ctrl)[weighted] / ctrl_sigma[weighted]
     vpv += float((vc ** 2).sum())

@@ -98,6 +98,32 @@ def test_non_finite_values(small_block, capsys, dataset, field, index, value, wo
     assert digest(small_block) == before
 
 
+def test_lens_distortion_that_folds_the_image_is_refused(small_block, capsys):
+    """k1 given in the wrong unit (per um^2 read as per mm^2) folds the image over inside the
+    format: a one-line error naming the camera and the units, the project unchanged."""
+    rec = read_records(small_block)
+    rec["cameras"]["k1"] = -2.0e-5
+    rewrite(small_block, rec)
+    before = digest(small_block)
+    assert_one_line_error(*run_cli(capsys, "adjust", small_block)[::2], "cameras record 0",
+                          "(id 1)", "folds the image over", "mm^-2")
+    assert digest(small_block) == before
+
+
+def test_generator_distortion_from_the_command_line(tmp_path, capsys):
+    code, out, err = run_cli(capsys, "generate", "--strips", "2", "--photos-per-strip", "4",
+                             "--control-points", "6", "--distortion=-2e-8,0,0,1e-6,0",
+                             tmp_path / "d.h5")
+    assert code == 0, err
+    with sapgo.Project(tmp_path / "d.h5") as p:
+        cam = p.cameras()[0]
+    assert (cam["k1"], cam["p1"]) == (-2e-8, 1e-6)
+    with pytest.raises(SystemExit) as exc:  # argparse: usage and the error, exit code 2
+        run_cli(capsys, "generate", "--distortion", "1,2", tmp_path / "e.h5")
+    assert exc.value.code == 2
+    assert "expected 5 numbers separated by commas" in capsys.readouterr().err
+
+
 def test_bad_generator_parameters(tmp_path, capsys):
     assert_one_line_error(*run_cli(capsys, "generate", "--pattern", "9", "--forelap", "0.2",
                                    tmp_path / "x.h5")[::2], "forelap")

@@ -39,6 +39,7 @@ import numpy as np
 from . import normals
 from .bandsolve import PIVOT_TOLERANCE, BandSolver, PivotError
 from .errors import DatumDefectError, SapgoError, SingularNormalsError
+from .geometry import camera_array
 from .normals import (
     BAD_LAYOUT,
     BEHIND_CAMERA,
@@ -189,9 +190,7 @@ class _Block:
     station_active: np.ndarray
     camera: np.ndarray
     eo: np.ndarray
-    cam_f: np.ndarray
-    cam_x0: np.ndarray
-    cam_y0: np.ndarray
+    cams: np.ndarray  # per camera: the kernels' row (f, x0, y0, k1, k2, k3, p1, p2)
     cam_sigma: np.ndarray  # per camera: sigma_image (mm), for observations with sigma 0
     band_width: int
     n_points: int = 0
@@ -219,9 +218,7 @@ def _load_block(p: Project) -> _Block:
         station_active=p.read_field("stations", "status") == STATUS_ACTIVE,
         camera=np.ascontiguousarray(p.read_field("stations", "camera"), dtype=np.int32),
         eo=np.ascontiguousarray(p.read_field("stations", "eo"), dtype=np.float64),
-        cam_f=np.ascontiguousarray(cams["focal_length"]),
-        cam_x0=np.ascontiguousarray(cams["x0"]),
-        cam_y0=np.ascontiguousarray(cams["y0"]),
+        cams=camera_array(cams),
         cam_sigma=np.ascontiguousarray(cams["sigma_image"]),
         band_width=p.band_width,
     )
@@ -370,7 +367,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
                 j, status, bad = build_points_parallel(
                     j, c.xyz, c.kind, c.ctrl, c.csig, c.pt_start, c.nobs, c.smin, c.smax,
                     c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
-                    blk.camera, blk.cam_f, blk.cam_x0, blk.cam_y0, CTRL_MASK, band, rhs, base,
+                    blk.camera, blk.cams, CTRL_MASK, band, rhs, base,
                     c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS,
                 )
                 if status != OK:
@@ -400,7 +397,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0):
             update_points(
                 c.xyz, c.kind, c.ctrl, c.csig, c.pt_start, c.nobs, c.active, c.obs_station,
                 c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
-                blk.cam_f, blk.cam_x0, blk.cam_y0, CTRL_MASK, c.max_rays, xyz_out, res_out,
+                blk.cams, CTRL_MASK, c.max_rays, xyz_out, res_out,
                 stats,
             )
             if stats[7]:

@@ -32,6 +32,17 @@ def _report_exclusions(points, stations, n_points=None, n_stations=None):
               f"the adjustment (they stay in the project): ids {_ids(stations)}")
 
 
+def _five_numbers(text):
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 5:
+        raise argparse.ArgumentTypeError(f"expected 5 numbers separated by commas "
+                                          f"(k1,k2,k3,p1,p2), got {text!r}")
+    return values
+
+
 def cmd_generate(args):
     from .generate import generate_block
 
@@ -44,6 +55,7 @@ def cmd_generate(args):
         station_position_perturbation=args.station_position_perturbation,
         station_angle_perturbation=angle, control_perturbation=args.control_perturbation,
         terrain_relief=args.terrain_relief, seed=args.seed,
+        distortion=args.distortion,
     )
     print(f"generated {info['path']}: {info['photos']} photos in {info['strips']} strips, "
           f"{info['points']} points ({info['control_points']} control, "
@@ -178,6 +190,11 @@ def build_parser():
     g.add_argument("--control-perturbation", type=float, help="m (default 0.001)")
     g.add_argument("--terrain-relief", type=float,
                    help="standard deviation of terrain heights, m (default 100)")
+    g.add_argument("--distortion", type=_five_numbers, metavar="K1,K2,K3,P1,P2",
+                   help="the camera's lens distortion (Brown; mm^-2, mm^-4, mm^-6, mm^-1, "
+                        "mm^-1), applied to the simulated image coordinates; write it with "
+                        "'=' when it starts with a minus: --distortion=-2e-8,0,0,1e-6,0 "
+                        "(default none)")
     g.add_argument("--seed", type=int, help="random seed (default 1)")
     g.set_defaults(func=cmd_generate)
 

@@ -8,16 +8,75 @@ with the elementary rotations
     R3(k) = [[cos k, sin k, 0], [-sin k, cos k, 0], [0, 0, 1]]
 
 and the collinearity equations for a point X seen from station Xc with focal length f and
-principal point (x0, y0):
+principal point (x0, y0), with Brown's lens distortion (radial k1, k2, k3 and decentring p1,
+p2, held fixed) added to the ideal image point:
 
-    [u, v, w] = M (X - Xc),    x = x0 - f u / w,    y = y0 - f v / w.
+    [u, v, w] = M (X - Xc),    xi = -f u / w,    yi = -f v / w,    r^2 = xi^2 + yi^2,
+    x = x0 + xi + xi (k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 xi^2) + 2 p2 xi yi,
+    y = y0 + yi + yi (k1 r^2 + k2 r^4 + k3 r^6) + p2 (r^2 + 2 yi^2) + 2 p1 xi yi.
 
-Station parameters are ordered (omega, phi, kappa, Xc, Yc, Zc); angles in radians, object
-coordinates in metres, image coordinates in millimetres.
+A camera is a row of :data:`CAMERA_FIELDS` (``camera_array``). Station parameters are ordered
+(omega, phi, kappa, Xc, Yc, Zc); angles in radians, object coordinates in metres, image
+coordinates in millimetres (k1 mm^-2, k2 mm^-4, k3 mm^-6, p1 and p2 mm^-1).
 """
 
 import numpy as np
 from numba import njit
+
+#: The camera row of the kernels: ``cams[c] = (f, x0, y0, k1, k2, k3, p1, p2)``.
+CAMERA_FIELDS = ("focal_length", "x0", "y0", "k1", "k2", "k3", "p1", "p2")
+
+
+def camera_array(cameras):
+    """The kernels' camera rows (n x 8 float64) of ``/cameras`` records."""
+    return np.ascontiguousarray(np.column_stack([np.asarray(cameras[k], dtype=np.float64)
+                                                 for k in CAMERA_FIELDS]).reshape(-1, 8))
+
+
+def plain_camera(f, x0=0.0, y0=0.0):
+    """A camera row without distortion."""
+    return np.array([f, x0, y0, 0.0, 0.0, 0.0, 0.0, 0.0])
+
+
+@njit(cache=True)
+def distortion(xi, yi, c):
+    """Brown's distortion at the ideal image point ``(xi, yi)`` (mm, from the principal point)
+    of camera row ``c``: ``(dx, dy, j00, j01, j11)``, where ``J = [[j00, j01], [j01, j11]]``
+    is the Jacobian of ``(xi + dx, yi + dy)`` (symmetric)."""
+    k1, k2, k3, p1, p2 = c[3], c[4], c[5], c[6], c[7]
+    r2 = xi * xi + yi * yi
+    rad = r2 * (k1 + r2 * (k2 + r2 * k3))
+    drad = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)          # d rad / d r^2
+    dx = xi * rad + p1 * (r2 + 2.0 * xi * xi) + 2.0 * p2 * xi * yi
+    dy = yi * rad + p2 * (r2 + 2.0 * yi * yi) + 2.0 * p1 * xi * yi
+    j00 = 1.0 + rad + 2.0 * xi * xi * drad + 6.0 * p1 * xi + 2.0 * p2 * yi
+    j01 = 2.0 * xi * yi * drad + 2.0 * p1 * yi + 2.0 * p2 * xi
+    j11 = 1.0 + rad + 2.0 * yi * yi * drad + 6.0 * p2 * yi + 2.0 * p1 * xi
+    return dx, dy, j00, j01, j11
+
+
+@njit(cache=True)
+def undistort(x, y, c):
+    """The ideal image point ``(xi, yi)`` (from the principal point) that camera row ``c``
+    images at ``(x, y)``: Newton's method on ``xi + dx(xi, yi) = x - x0``. Returns
+    ``(xi, yi, converged)``."""
+    xd, yd = x - c[1], y - c[2]
+    xi, yi = xd, yd
+    if c[3] == 0.0 and c[4] == 0.0 and c[5] == 0.0 and c[6] == 0.0 and c[7] == 0.0:
+        return xi, yi, True
+    for _ in range(50):
+        dx, dy, j00, j01, j11 = distortion(xi, yi, c)
+        fx, fy = xi + dx - xd, yi + dy - yd
+        det = j00 * j11 - j01 * j01
+        if det == 0.0 or not np.isfinite(det):
+            return xi, yi, False
+        sx = (j11 * fx - j01 * fy) / det
+        sy = (j00 * fy - j01 * fx) / det
+        xi -= sx
+        yi -= sy
+        if abs(sx) + abs(sy) <= 1e-13 * (1.0 + abs(xi) + abs(yi)):
+            return xi, yi, True
+    return xi, yi, False
 
 
 @njit(cache=True)
@@ -81,8 +140,10 @@ def rotation_and_derivatives(omega, phi, kappa):
 
 
 @njit(cache=True)
-def project(eo, xyz, f, x0, y0):
-    """Image coordinates (mm) of object point ``xyz`` seen from station ``eo``."""
+def project(eo, xyz, c):
+    """Image coordinates (mm) of object point ``xyz`` seen from station ``eo`` with camera
+    row ``c``."""
+    f = c[0]
     m = _rot9(eo[0], eo[1], eo[2])
     dx = xyz[0] - eo[3]
     dy = xyz[1] - eo[4]
@@ -92,17 +153,21 @@ def project(eo, xyz, f, x0, y0):
     w = m[6] * dx + m[7] * dy + m[8] * dz
     if w == 0.0:
         return np.nan, np.nan
-    return x0 - f * u / w, y0 - f * v / w
+    xi, yi = -f * u / w, -f * v / w
+    dx, dy, _, _, _ = distortion(xi, yi, c)
+    return c[1] + xi + dx, c[2] + yi + dy
 
 
 @njit(cache=True)
-def linearize(eo, xyz, f, x0, y0, a, b):
+def linearize(eo, xyz, c, a, b):
     """Computed image coordinates and the partial derivatives of the collinearity equations.
 
     Fills ``a`` (2x6) with d(x, y)/d(omega, phi, kappa, Xc, Yc, Zc) and ``b`` (2x3) with
-    d(x, y)/d(X, Y, Z); returns the computed ``x, y`` and ``w`` (the depth along the optical
-    axis, negative for a point in front of the camera).
+    d(x, y)/d(X, Y, Z), distortion included (chain rule through its Jacobian); returns the
+    computed ``x, y`` and ``w`` (the depth along the optical axis, negative for a point in
+    front of the camera).
     """
+    f = c[0]
     # q = M d with M = R3 R2 R1, and its derivatives without forming matrices:
     # dR1/dw = Kx R1, dR2/dp = Ky R2, dR3/dk = Kz R3 with constant skew matrices K, so
     # dq/dw = R3 R2 Kx (R1 d), dq/dp = R3 Ky (R2 R1 d), dq/dk = Kz q.
@@ -144,14 +209,27 @@ def linearize(eo, xyz, f, x0, y0, a, b):
         b[1, k] = by
         a[0, 3 + k] = -bx
         a[1, 3 + k] = -by
-    return x0 - f * u / w, y0 - f * v / w, w
+    xi, yi = -f * u / w, -f * v / w
+    dx, dy, j00, j01, j11 = distortion(xi, yi, c)
+    if j00 != 1.0 or j01 != 0.0 or j11 != 1.0:
+        for k in range(6):
+            a0, a1 = a[0, k], a[1, k]
+            a[0, k] = j00 * a0 + j01 * a1
+            a[1, k] = j01 * a0 + j11 * a1
+        for k in range(3):
+            b0, b1 = b[0, k], b[1, k]
+            b[0, k] = j00 * b0 + j01 * b1
+            b[1, k] = j01 * b0 + j11 * b1
+    return c[1] + xi + dx, c[2] + yi + dy, w
 
 
 @njit(cache=True)
-def _add_ray(eo, x, y, f, x0, y0, a, r):
-    """Add the ray from station ``eo`` through image point (x, y) to the normal system."""
+def _add_ray(eo, x, y, c, a, r):
+    """Add the ray from station ``eo`` through image point (x, y) of camera row ``c`` to the
+    normal system (the image point freed of distortion first)."""
     m = _rot9(eo[0], eo[1], eo[2])
-    i0, i1, i2 = x - x0, y - y0, -f
+    i0, i1, _ = undistort(x, y, c)
+    i2 = -c[0]
     d0 = m[0] * i0 + m[3] * i1 + m[6] * i2
     d1 = m[1] * i0 + m[4] * i1 + m[7] * i2
     d2 = m[2] * i0 + m[5] * i1 + m[8] * i2
@@ -197,28 +275,27 @@ def _solve_sym3(a, r, out):
 
 
 @njit(cache=True)
-def intersect(eo_rays, xy_rays, f_rays, x0_rays, y0_rays):
+def intersect(eo_rays, xy_rays, cam_rays):
     """Least-squares intersection of image rays: the point nearest to all of them.
 
     Each ray ``i`` is the line from station ``eo_rays[i]`` through image point ``xy_rays[i]``
-    of a camera with focal length ``f_rays[i]`` and principal point ``(x0, y0)``. Returns the
-    point and a flag that is False when the rays are (nearly) parallel or fewer than two.
+    of camera row ``cam_rays[i]``. Returns the point and a flag that is False when the rays
+    are (nearly) parallel or fewer than two.
     """
     n = eo_rays.shape[0]
     a = np.zeros((3, 3))
     r = np.zeros(3)
     out = np.zeros(3)
     for i in range(n):
-        _add_ray(eo_rays[i], xy_rays[i, 0], xy_rays[i, 1], f_rays[i], x0_rays[i], y0_rays[i],
-                 a, r)
+        _add_ray(eo_rays[i], xy_rays[i, 0], xy_rays[i, 1], cam_rays[i], a, r)
     if n < 2 or not _solve_sym3(a, r, out):
         return np.zeros(3), False
     return out, True
 
 
 @njit(cache=True)
-def intersect_points(obs_start, n_obs, obs_station, obs_xy, eo, cam_of_station, cam_f,
-                     cam_x0, cam_y0, out, ok):
+def intersect_points(obs_start, n_obs, obs_station, obs_xy, eo, cam_of_station, cams, out,
+                     ok):
     """Intersect every point from its rays (chunk kernel: indices relative to the chunk)."""
     a = np.empty((3, 3))
     r = np.empty(3)
@@ -229,7 +306,7 @@ def intersect_points(obs_start, n_obs, obs_station, obs_xy, eo, cam_of_station, 
         for i in range(obs_start[j], obs_start[j] + n_obs[j]):
             st = obs_station[i]
             c = cam_of_station[st]
-            _add_ray(eo[st], obs_xy[i, 0], obs_xy[i, 1], cam_f[c], cam_x0[c], cam_y0[c], a, r)
+            _add_ray(eo[st], obs_xy[i, 0], obs_xy[i, 1], cams[c], a, r)
         good = n_obs[j] >= 2 and _solve_sym3(a, r, p)
         ok[j] = good
         for k in range(3):
@@ -237,12 +314,21 @@ def intersect_points(obs_start, n_obs, obs_station, obs_xy, eo, cam_of_station, 
 
 
 @njit(cache=True)
-def project_observations(station_of_obs, point_of_obs, eo, xyz, cam_of_station, cam_f,
-                         cam_x0, cam_y0, out):
+def undistort_points(xy, cam_of_row, cams, out):
+    """Ideal image coordinates (from the principal point) of the image points ``xy`` (n x 2)
+    taken with cameras ``cams[cam_of_row]``, into ``out`` (nan where Newton fails)."""
+    for i in range(xy.shape[0]):
+        xi, yi, ok = undistort(xy[i, 0], xy[i, 1], cams[cam_of_row[i]])
+        out[i, 0] = xi if ok else np.nan
+        out[i, 1] = yi if ok else np.nan
+
+
+@njit(cache=True)
+def project_observations(station_of_obs, point_of_obs, eo, xyz, cam_of_station, cams, out):
     """Image coordinates of every (station, point) pair into ``out`` (n x 2, mm)."""
     for i in range(station_of_obs.shape[0]):
         s = station_of_obs[i]
         c = cam_of_station[s]
-        x, y = project(eo[s], xyz[point_of_obs[i]], cam_f[c], cam_x0[c], cam_y0[c])
+        x, y = project(eo[s], xyz[point_of_obs[i]], cams[c])
         out[i, 0] = x
         out[i, 1] = y

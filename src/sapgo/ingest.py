@@ -45,7 +45,7 @@ from .formats.text import (
     parse_chunk,
     read_chunks,
 )
-from .geometry import intersect_points
+from .geometry import camera_array, intersect_points, undistort_points
 from .project import (
     CAMERA_DTYPE,
     CONTROL_MASK,
@@ -147,11 +147,13 @@ def _rotations(eo):
     return r3 @ r2 @ r1
 
 
-def ray_points(eo, xy, f, x0, y0, height, distance):
-    """A point on each image ray: where it meets the plane ``Z = height`` in front of the
-    camera, else at ``distance`` metres from the projection centre (all finite)."""
+def ray_points(eo, xy, f, height, distance):
+    """A point on each image ray (``xy``: ideal image coordinates from the principal point,
+    :func:`~sapgo.geometry.undistort_points`): where it meets the plane ``Z = height`` in
+    front of the camera, else at ``distance`` metres from the projection centre (all
+    finite)."""
     m = _rotations(eo)
-    img = np.stack([xy[:, 0] - x0, xy[:, 1] - y0, -f], axis=1)
+    img = np.stack([xy[:, 0], xy[:, 1], -f], axis=1)
     d = np.einsum("nji,nj->ni", m, img)
     d /= np.linalg.norm(d, axis=1)[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -245,12 +247,6 @@ class _Import:
                        f"loaded once: {', '.join(examples)}")
         self.s["cameras_loaded_twice"] = twice
         cams = cams[keep]
-        dist = np.stack([cams[n] for n in ("k1", "k2", "k3", "p1", "p2")], axis=1)
-        with_dist = cams["id"][(dist != 0).any(axis=1)]
-        if len(with_dist):
-            self._warn(f"camera(s) {_ids(with_dist)} have lens distortion coefficients: this "
-                       f"version of sapgo cannot adjust such photos ('sapgo adjust' refuses "
-                       f"them); correct the image coordinates beforehand")
         self.cameras = cams
         return cams
 
@@ -597,7 +593,7 @@ class _Import:
         xy = np.ascontiguousarray(np.stack([o["x"], o["y"]], axis=1)) if n_o else np.zeros((0, 2))
         if n_o:
             intersect_points(starts, counts, station, xy, self.eo, self.cam_of_station,
-                             self.cam_f, self.cam_x0, self.cam_y0, xyz, ok)
+                             self.cams, xyz, ok)
             ok &= np.isfinite(xyz).all(axis=1)
         # one ray (or parallel rays): a point on the first ray at the ground height (a
         # vertical control point: at its known height)
@@ -609,8 +605,10 @@ class _Import:
             height = np.full(len(ray), np.nan if self.ground is None else self.ground)
             vert = kind[ray] == KIND_VERTICAL
             height[vert] = control[ray[vert], 2]
-            xyz[ray] = ray_points(self.eo[s], xy[first_obs], self.cam_f[c], self.cam_x0[c],
-                                  self.cam_y0[c], height, self.ray_distance)
+            ideal = np.empty((len(ray), 2))
+            undistort_points(np.ascontiguousarray(xy[first_obs]), c, self.cams, ideal)
+            xyz[ray] = ray_points(self.eo[s], ideal, self.cams[c, 0], height,
+                                  self.ray_distance)
         none = counts == 0
         xyz[none] = self.no_ray_xyz
         # known components replace the approximations (no rays: check points too)
@@ -660,9 +658,7 @@ class _Import:
             st = self.stations
             self.eo = np.ascontiguousarray(st["eo"])
             self.cam_of_station = st["camera"].astype(np.int64)
-            self.cam_f = np.ascontiguousarray(self.cameras["focal_length"])
-            self.cam_x0 = np.ascontiguousarray(self.cameras["x0"])
-            self.cam_y0 = np.ascontiguousarray(self.cameras["y0"])
+            self.cams = camera_array(self.cameras)
             self.read_control(p)
             sorter = ExternalSorter(MEAS_DTYPE, ["point", "station"], self.memory // 2,
                                     self.work, "observations")

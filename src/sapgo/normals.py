@@ -36,7 +36,7 @@ BAD_LAYOUT = 3  # the records do not follow the logical order the band width was
 
 @njit(cache=True)
 def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, obs_station,
-                  obs_xy, obs_sigma, obs_active, eo, cam_of_station, cam_f, cam_x0, cam_y0,
+                  obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                   ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc):
     """Linearise point ``j``: fill its rays' A, l, p, Nbar and its 3x3 system nn, cc.
 
@@ -59,7 +59,7 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, obs_s
             continue
         s = obs_station[i]
         cam = cam_of_station[s]
-        x, y, w = linearize(eo[s], xyz, cam_f[cam], cam_x0[cam], cam_y0[cam], a, b)
+        x, y, w = linearize(eo[s], xyz, cams[cam], a, b)
         if w >= 0.0:
             return -1
         p = 1.0 / (obs_sigma[i] * obs_sigma[i])
@@ -139,7 +139,7 @@ def _workspace(max_rays):
 @njit(cache=True, nogil=True)
 def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_smax,
                  pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
-                 cam_f, cam_x0, cam_y0, ctrl_mask, band, rhs, base, max_rays, split, ovf_band,
+                 cams, ctrl_mask, band, rhs, base, max_rays, split, ovf_band,
                  ovf_rhs):
     """Add points ``j0 .. j_stop-1`` of a chunk into the band-row window.
 
@@ -163,7 +163,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nob
             return j, OK, -1
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
-                          cam_f, cam_x0, cam_y0, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
+                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
                           st_all, nn, cc)
         if k < 0:
             return j, BEHIND_CAMERA, j
@@ -218,7 +218,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nob
 @njit(cache=True, nogil=True, parallel=True)
 def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_smin,
                           pt_smax, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
-                          cam_of_station, cam_f, cam_x0, cam_y0, ctrl_mask, band, rhs, base,
+                          cam_of_station, cams, ctrl_mask, band, rhs, base,
                           max_rays, ovf_band, ovf_rhs, min_points):
     """:func:`build_points` for the points from ``j0`` that fit the window, on
     ``len(ovf_band)`` threads over station ranges.
@@ -242,8 +242,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_no
     if nthreads < 2 or j_end - j0 < max(1, min_points) * nthreads:
         j, status, bad = build_points(j0, j_end, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start,
                                       pt_nobs, pt_smax, pt_active, obs_station, obs_xy,
-                                      obs_sigma, obs_active, eo, cam_of_station, cam_f, cam_x0,
-                                      cam_y0, ctrl_mask, band, rhs, base, max_rays, cap,
+                                      obs_sigma, obs_active, eo, cam_of_station, cams,
+                                      ctrl_mask, band, rhs, base, max_rays, cap,
                                       empty_b, empty_r)
         if status != OK or j < j_end:
             return j, status, bad
@@ -262,8 +262,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_no
         orr = ovf_rhs[t] if t < nthreads - 1 else empty_r
         j, status, bad = build_points(cut[t], cut[t + 1], pt_xyz, pt_kind, pt_ctrl, pt_csig,
                                       pt_start, pt_nobs, pt_smax, pt_active, obs_station,
-                                      obs_xy, obs_sigma, obs_active, eo, cam_of_station, cam_f,
-                                      cam_x0, cam_y0, ctrl_mask, band, rhs, base, max_rays,
+                                      obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
+                                      ctrl_mask, band, rhs, base, max_rays,
                                       split[t], ob, orr)
         res[t, 0] = j
         res[t, 1] = status
@@ -285,8 +285,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_no
 
 @njit(cache=True)
 def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_active, obs_station,
-                  obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cam_f,
-                  cam_x0, cam_y0, ctrl_mask, max_rays, xyz_out, resid_out, stats):
+                  obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cams,
+                  ctrl_mask, max_rays, xyz_out, resid_out, stats):
     """Back-solve point corrections and compute residuals for a chunk of points.
 
     ``eps_j = Ndd_j^-1 (cdd_j - sum_s Nbar_s' delta_s)`` with the system linearised at the
@@ -305,7 +305,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_activ
             continue
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
-                          cam_f, cam_x0, cam_y0, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
+                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
                           st_all, nn, cc)
         if k < 0 or not _chol3(nn, lo):
             stats[7] = j + 1
@@ -337,7 +337,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_activ
             cam = cam_of_station[s]
             for u in range(6):
                 e_new[u] = eo[s, u] + delta[s, u]
-            x, y = project(e_new, xyz_out[j], cam_f[cam], cam_x0[cam], cam_y0[cam])
+            x, y = project(e_new, xyz_out[j], cams[cam])
             vx = x - obs_xy[i, 0]
             vy = y - obs_xy[i, 1]
             resid_out[i, 0] = vx

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import DataError
+from .geometry import camera_array, distortion
 from .project import (
     CONTROL_MASK,
     KIND_CHECK,
@@ -68,10 +69,14 @@ def check_values(project: Project, ordered_layout=True):
             raise DataError(f"cameras record {i} (id {c['id']}): focal length must be positive")
         if c["sigma_image"] <= 0:
             raise DataError(f"cameras record {i} (id {c['id']}): sigma_image must be positive")
-        if any(c[k] != 0 for k in ("k1", "k2", "k3", "p1", "p2")):
+        fold = _distortion_fold(c)
+        if fold is not None:
             raise DataError(
-                f"cameras record {i} (id {c['id']}): lens distortion is not supported by "
-                f"this version of sapgo; correct the image coordinates beforehand"
+                f"cameras record {i} (id {c['id']}): the lens distortion (k1 {c['k1']:g}, "
+                f"k2 {c['k2']:g}, k3 {c['k3']:g}, p1 {c['p1']:g}, p2 {c['p2']:g}) folds the "
+                f"image over at ({fold[0]:.1f}, {fold[1]:.1f}) mm from the principal point, "
+                f"inside the format: check the coefficients and their units (k1 mm^-2, "
+                f"k2 mm^-4, k3 mm^-6, p1 and p2 mm^-1)"
             )
     for a, b in project.chunks("stations"):
         st = project.read("stations", a, b)
@@ -180,3 +185,18 @@ def check_values(project: Project, ordered_layout=True):
         for a, b in project.chunks("truth/stations"):
             _check_finite("truth/stations", a, None, "eo",
                           project.read_field("truth/stations", "eo", a, b))
+
+
+def _distortion_fold(cam):
+    """The first ideal image point (x, y) inside the format (a grid of 41 x 41 over it) where
+    the distortion mapping stops being one-to-one (Jacobian determinant <= 0), else None."""
+    if all(cam[k] == 0 for k in ("k1", "k2", "k3", "p1", "p2")):
+        return None
+    row = camera_array(np.asarray(cam).reshape(1))[0]
+    hx, hy = 0.5 * cam["format_x"], 0.5 * cam["format_y"]
+    for x in np.linspace(-hx, hx, 41):
+        for y in np.linspace(-hy, hy, 41):
+            _, _, j00, j01, j11 = distortion(x, y, row)
+            if not j00 * j11 - j01 * j01 > 0.0:
+                return x, y
+    return None

@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 from ..errors import ParameterError
-from ..geometry import intersect_points, project_observations
+from ..geometry import camera_array, intersect_points, project_observations
 from ..project import (
     CAMERA_DTYPE,
     KIND_CHECK,
@@ -60,6 +60,9 @@ class BlockSpec:
     terrain_relief: float = 100.0  # m, standard deviation of the terrain heights
     tilt: float = 0.5  # deg, standard deviation of the true photo tilts
     point_jitter: float = 0.04  # fraction of the grid spacing
+    #: the camera's lens distortion (Brown: k1 mm^-2, k2 mm^-4, k3 mm^-6, p1, p2 mm^-1),
+    #: applied to the simulated image coordinates and stored with the camera
+    distortion: tuple = (0.0, 0.0, 0.0, 0.0, 0.0)
     seed: int = 1
 
     def check(self):
@@ -75,6 +78,9 @@ class BlockSpec:
                 "sidelap must be in [0.1, 0.6) so that the pattern fits the format")
         if self.focal_length <= 0 or self.scale <= 0 or self.format <= 0:
             raise ParameterError("focal length, scale and format must be positive")
+        self.distortion = tuple(float(v) for v in self.distortion)
+        if len(self.distortion) != 5 or not all(np.isfinite(self.distortion)):
+            raise ParameterError("distortion must be 5 finite numbers: k1 k2 k3 p1 p2")
         if self.sigma_image < 0 or self.station_position_perturbation < 0 or \
                 self.station_angle_perturbation < 0 or self.control_perturbation < 0:
             raise ParameterError("perturbations must not be negative")
@@ -234,7 +240,8 @@ def write_block(spec: BlockSpec, writer, progress=None):
 
     cameras = np.zeros(1, CAMERA_DTYPE)
     cameras[0] = (1, spec.focal_length, 0.0, 0.0, spec.format, spec.format, sigma,
-                  0, 0, 0, 0, 0)
+                  *spec.distortion)
+    cams = camera_array(cameras)
     writer.append("cameras", cameras)
     st_strip, true_eo, approx_eo = _station_arrays(spec, z_mean)
     n_st = S * G
@@ -253,8 +260,6 @@ def write_block(spec: BlockSpec, writer, progress=None):
     control_index = np.sort(cc.astype(np.int64) * n_rows + rr)
     csig = spec.control_sigma if spec.control_sigma is not None else spec.control_perturbation
     cam_of_station = np.zeros(n_st, np.int64)
-    f = np.array([spec.focal_length])
-    zero = np.zeros(1)
     # the pattern of a photo: rows 0 .. 2 sub of its strip, columns sub g - sub .. sub g + sub
     k = np.arange(-sub, sub + 1)
     dr, dc = np.meshgrid(np.arange(0, 2 * sub + 1), k, indexing="ij")
@@ -287,7 +292,7 @@ def write_block(spec: BlockSpec, writer, progress=None):
         order = np.lexsort((o_st, o_pt))
         o_st, o_pt = o_st[order], o_pt[order]
         xy = np.empty((len(o_pt), 2))
-        project_observations(o_st, o_pt, true_eo, true_xyz, cam_of_station, f, zero, zero, xy)
+        project_observations(o_st, o_pt, true_eo, true_xyz, cam_of_station, cams, xy)
         xy += rng.normal(0, spec.sigma_image, xy.shape)
         # a pattern point displaced off the photo (tilt, relief) cannot be measured on it
         inside = (np.abs(xy) < spec.format / 2 - 1.0).all(axis=1)
@@ -306,8 +311,7 @@ def write_block(spec: BlockSpec, writer, progress=None):
         np.cumsum(n_obs[:-1], out=starts[1:])
         approx = np.empty((n_pts, 3))
         ok = np.zeros(n_pts, np.bool_)
-        intersect_points(starts, n_obs, o_st, xy, approx_eo, cam_of_station, f, zero, zero,
-                         approx, ok)
+        intersect_points(starts, n_obs, o_st, xy, approx_eo, cam_of_station, cams, approx, ok)
         fallback = rng.normal(0, spec.station_position_perturbation, (n_pts, 3))
         approx = np.where(ok[:, None], approx, true_xyz + fallback)
         approx[is_control] = control[is_control]
