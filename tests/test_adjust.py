@@ -32,6 +32,19 @@ def dense_reference(path):
         pt["control_sigma"], dist=dist if any(dist) else None)
 
 
+def assert_equals_dense(path):
+    """Adjust ``path`` tightly and compare with the dense least-squares solution."""
+    eo_ref, xyz_ref, sigma0_ref, _ = dense_reference(path)
+    summary = sapgo.adjust(path, TIGHT)
+    assert summary.converged
+    eo, xyz = adjusted_by_id(path)
+    assert np.abs(xyz - xyz_ref).max() < 1e-6
+    assert np.abs(eo[:, 3:] - eo_ref[:, 3:]).max() < 1e-6
+    assert np.abs(eo[:, :3] - eo_ref[:, :3]).max() < 1e-9
+    assert summary.sigma0 == pytest.approx(sigma0_ref, rel=1e-8)
+    return summary
+
+
 def test_lens_distortion_equals_dense_least_squares(block_cache, tmp_path):
     """A block whose images carry Brown distortion (radial and decentring, about 0.06 and
     0.05 mm at the format corner) adjusts to the dense least-squares solution of the same
@@ -45,13 +58,7 @@ def test_lens_distortion_equals_dense_least_squares(block_cache, tmp_path):
     with Project(path) as p:
         cam = p.cameras()[0]
     assert tuple(cam[k] for k in ("k1", "k2", "k3", "p1", "p2")) == dist
-    eo_ref, xyz_ref, sigma0_ref, _ = dense_reference(path)
-    summary = sapgo.adjust(path, TIGHT)
-    assert summary.converged
-    eo, xyz = adjusted_by_id(path)
-    assert np.abs(xyz - xyz_ref).max() < 1e-6
-    assert np.abs(eo[:, 3:] - eo_ref[:, 3:]).max() < 1e-6
-    assert summary.sigma0 == pytest.approx(sigma0_ref, rel=1e-8)
+    summary = assert_equals_dense(path)
     # the model is right: sigma0 near 1 (image noise 6 um), unlike ignoring the distortion
     assert 0.7 < summary.sigma0 < 1.3
     rec = read_records(path)
@@ -61,14 +68,7 @@ def test_lens_distortion_equals_dense_least_squares(block_cache, tmp_path):
 
 
 def test_sapgo_p1_equals_dense_least_squares(p1_block):
-    eo_ref, xyz_ref, sigma0_ref, _ = dense_reference(p1_block)
-    summary = sapgo.adjust(p1_block, TIGHT)
-    assert summary.converged
-    eo, xyz = adjusted_by_id(p1_block)
-    assert np.abs(xyz - xyz_ref).max() < 1e-6
-    assert np.abs(eo[:, 3:] - eo_ref[:, 3:]).max() < 1e-6
-    assert np.abs(eo[:, :3] - eo_ref[:, :3]).max() < 1e-9
-    assert summary.sigma0 == pytest.approx(sigma0_ref, rel=1e-8)
+    assert_equals_dense(p1_block)
 
 
 def test_fixed_and_weighted_control_equal_dense(small_block):
