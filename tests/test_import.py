@@ -584,3 +584,112 @@ def test_memory_stays_within_the_budget(block_cache, tmp_path):
     s = import_text(tmp_path / "ref.h5", memory="1G", **big)
     assert s["observations"] == n_lines
     assert_same_records(tmp_path / "large.h5", tmp_path / "ref.h5")
+
+
+# -- exposure-station priors -----------------------------------------------------------
+
+ARCSEC = np.pi / (180 * 3600)
+PRIOR_SIGMA = (10.0, 10.0, 10.0, 0.1, 0.1, 0.1)  # arc seconds, m
+
+
+def priors_from_truth(gen, d, covariances=False, sigma=PRIOR_SIGMA):
+    """A priors file of every photo at its true orientation (degrees): sigmas, or the same
+    as a diagonal covariance."""
+    rec = read_records(gen)
+    st, truth = rec["stations"], rec["truth"]["stations"]
+    assert (truth["id"] == st["id"]).all()
+    path = d / ("prior_cov.txt" if covariances else "priors.txt")
+    with open(path, "w") as f:
+        for sid, eo in zip(st["id"], truth["eo"]):
+            vals = [repr(float(v)) for v in np.degrees(eo[:3])] + [repr(float(v))
+                                                                    for v in eo[3:]]
+            if covariances:
+                cov = np.diag(np.square(sigma))
+                tail = [repr(float(cov[i, j])) for i in range(6) for j in range(i, 6)]
+            else:
+                tail = [repr(float(s)) for s in sigma]
+            f.write(" ".join([str(int(sid))] + vals + tail) + "\n")
+    return path
+
+
+def only_check_points(d):
+    """The control file with every point turned into a check point."""
+    path = d / "check.txt"
+    lines = [ln.split() for ln in open(d / "control.txt") if ln.strip() and ln[0] != "#"]
+    with open(path, "w") as f:
+        for t in lines:
+            f.write(" ".join(t[:7] + ["check"]) + "\n")
+    return path
+
+
+def test_a_block_controlled_only_by_station_priors_adjusts(exported, tmp_path):
+    gen, d = exported
+    files = files_of(d)
+    files["control"] = [only_check_points(d)]
+    out = tmp_path / "priors.h5"
+    s = import_text(out, priors=priors_from_truth(gen, d), **files)
+    assert s["station_priors"] == 12 and s["points_by_kind"]["control"] == 0
+    with Project(out) as p:
+        pr = p.read("station_priors")
+        st = p.read("stations")
+    sig = np.array(PRIOR_SIGMA) * np.array([ARCSEC] * 3 + [1.0] * 3)
+    np.testing.assert_allclose(pr["weight"][0], np.diag(1.0 / sig ** 2), rtol=1e-15)
+    truth = read_records(gen)["truth"]["stations"]
+    np.testing.assert_allclose(pr["value"], truth["eo"][np.searchsorted(truth["id"],
+                                                                        st["id"][pr["station"]])],
+                               rtol=0, atol=1e-12)
+    summary = sapgo.adjust(out, sapgo.Options(progress=False))
+    assert summary.converged
+    assert summary.check_points["n"] > 0 and summary.check_points["sxy"] < 0.5
+    # the same priors given as diagonal covariances: the same weights and result
+    out2 = tmp_path / "cov.h5"
+    import_text(out2, prior_covariances=priors_from_truth(gen, d, covariances=True), **files)
+    with Project(out2) as p:
+        np.testing.assert_allclose(p.read("station_priors")["weight"], pr["weight"],
+                                   rtol=1e-12, atol=0)
+    assert sapgo.adjust(out2, sapgo.Options(progress=False)).converged
+    (eo1, xyz1), (eo2, xyz2) = adjusted_by_id(out), adjusted_by_id(out2)
+    assert max(np.abs(xyz1[k] - xyz2[k]).max() for k in xyz1) < 1e-6
+    assert max(np.abs(eo1[k] - eo2[k]).max() for k in eo1) < 1e-6
+
+
+@pytest.mark.parametrize("line, words", [
+    ("99 0 0 0 0 0 3800 10 10 10 0.1 0.1 0.1", ("priors.txt:1", "photo 99 is not in the photos")),
+    ("1 0 0 0 0 0 3800 - 0 - 0 0 -", ("priors.txt:1", "constrains nothing")),
+    ("1 0 0 0 0 0 3800 10 -1 10 0.1 0.1 0.1", ("priors.txt:1", "column 9 (s_phi)")),
+])
+def test_bad_priors_name_the_line(exported, tmp_path, capsys, line, words):
+    gen, d = exported
+    (d / "priors.txt").write_text("# priors\n" + line + "\n")
+    line_no = words[0].replace(":1", ":2")
+    code, _, err = run_cli(capsys, "import", tmp_path / "x.h5", *cli_args(files_of(d)),
+                           "--priors", d / "priors.txt")
+    assert_one_line_error(code, err, line_no, *words[1:])
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_priors_given_twice_must_agree(exported, tmp_path):
+    gen, d = exported
+    path = priors_from_truth(gen, d)
+    other = d / "other.txt"
+    first = open(path).readline().split()
+    first[7] = "20.0"
+    other.write_text(" ".join(first) + "\n")
+    with pytest.raises(DataError, match=r"prior of photo \d+ is given twice with different "
+                                        r"values \(weight\[0\]\[0\]\)"):
+        import_text(tmp_path / "x.h5", priors=[path, other], **files_of(d))
+    s = import_text(tmp_path / "y.h5", priors=[path, path], **files_of(d))
+    assert s["station_priors"] == 12 and any("loaded once" in w for w in s["warnings"])
+
+
+def test_a_covariance_that_is_not_positive_definite_is_refused(exported, tmp_path):
+    gen, d = exported
+    path = priors_from_truth(gen, d, covariances=True)
+    lines = open(path).read().splitlines()
+    t = lines[2].split()
+    t[8] = repr(1e9)  # c12 far larger than sqrt(c11 c22)
+    lines[2] = " ".join(t)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=r"prior_cov.txt:3: the covariance of the prior of "
+                                        r"photo \d+ is not positive definite"):
+        import_text(tmp_path / "x.h5", prior_covariances=path, **files_of(d))

@@ -81,7 +81,8 @@ def cmd_import(args):
     summary = import_text(
         args.output, cameras=args.cameras, photos=args.photos,
         measurements=args.measurements, control=args.control, angles=args.angles,
-        memory=args.memory, append=args.append, force=args.force,
+        memory=args.memory, append=args.append, force=args.force, priors=args.priors,
+        prior_covariances=args.prior_covariances,
     )
     for w in summary["warnings"]:
         _warn(w)
@@ -224,8 +225,17 @@ def build_parser():
     m.add_argument("--control", action="append", default=[], metavar="FILE",
                    help="point X Y Z sX sY sZ [full|horizontal|vertical|check] (m; '-' = "
                         "unknown)")
+    m.add_argument("--priors", action="append", default=[], metavar="FILE",
+                   help="exposure-station priors (GNSS/INS, orbit): photo omega phi kappa X Y "
+                        "Z s_omega s_phi s_kappa sX sY sZ (angle sigmas in arc seconds, m; 0 "
+                        "or '-' = unconstrained)")
+    m.add_argument("--prior-covariances", action="append", default=[], metavar="FILE",
+                   help="priors with a full covariance: photo omega phi kappa X Y Z and the "
+                        "21 terms c11 c12 ... c16 c22 ... c66 of its upper triangle (arc "
+                        "seconds, m)")
     m.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg",
-                   help="unit of omega, phi, kappa in the photos files (default deg)")
+                   help="unit of omega, phi, kappa in the photos and priors files (default "
+                        "deg)")
     m.add_argument("--memory", default=None, metavar="SIZE",
                    help="memory budget of the external sorts, e.g. 256M or 2G (default 512M)")
     m.add_argument("--append", action="store_true",

@@ -38,9 +38,13 @@ from .extsort import DEFAULT_MEMORY, ExternalSorter, parse_memory
 from .formats.text import (
     CAMERAS,
     CONTROL,
+    COVARIANCE_TERMS,
     MEASUREMENTS,
     NEEDED,
     PHOTOS,
+    PRIOR_COVARIANCES,
+    PRIOR_PARAMETERS,
+    PRIORS,
     check_angles,
     parse_chunk,
     read_chunks,
@@ -74,6 +78,8 @@ CTRL_DTYPE = np.dtype([("id", "<i8"), ("kind", "i1"), ("control", "<f8", (3,)),
 LOC_BITS = 40
 #: Examples listed in a warning.
 EXAMPLES = 5
+#: One arc second in radians (the unit of a prior's angle sigmas).
+ARCSEC = np.pi / (180 * 3600)
 #: Ids listed in a warning.
 LISTED = 20
 #: Distance along a ray (m) of a point that cannot be intersected when no ground height is
@@ -302,6 +308,75 @@ class _Import:
         st["eo"] = eo[keep]
         self.stations = st
         return st
+
+    # -- station priors (in core: at most one per photo) ----------------------------------
+    def read_priors(self, p, st):
+        """The station priors of ``OUT`` (appending) and of the priors files, as PRIOR_DTYPE
+        records sorted by station; a photo given twice must have the same prior."""
+        ids, value, weight, locs = [], [], [], []
+        if p is not None:
+            pr = p.read("station_priors")
+            if len(pr):
+                src = self.src.add(self.existing, "station_priors")
+                ids.append(self.old_station_ids[pr["station"]])
+                value.append(pr["value"])
+                weight.append(pr["weight"])
+                locs.append(self.src.loc(src, np.arange(len(pr))))
+
+        def known_photo(rec):
+            unknown = ~_member(st["id"], rec["photo"])
+            return [(unknown, lambda i: f"photo {rec['photo'][i]} is not in the photos "
+                                        f"file(s) (column 1)")]
+
+        for fmt in (PRIORS, PRIOR_COVARIANCES):
+            for path in self.files[fmt.name]:
+                for rec, loc in self._read(fmt, path, known_photo):
+                    ids.append(rec["photo"])
+                    value.append(np.stack([rec[n] for n in PRIOR_PARAMETERS], axis=1))
+                    weight.append(self._prior_weights(fmt, rec, loc))
+                    locs.append(loc)
+        if not ids or not sum(len(i) for i in ids):
+            return np.zeros(0, PRIOR_DTYPE)
+        ids, value, weight = np.concatenate(ids), np.concatenate(value), np.concatenate(weight)
+        locs = np.concatenate(locs)
+        values = np.concatenate([_bits(value), _bits(weight.reshape(len(ids), 36))], axis=1)
+        names = PRIOR_PARAMETERS + tuple(f"weight[{i}][{j}]" for i in range(6)
+                                         for j in range(6))
+        keep, twice, examples = self._dedupe("prior of photo", ids, values, locs, names)
+        if twice:
+            self._warn(f"{twice} prior(s) given more than once with identical values were "
+                       f"loaded once: {', '.join(examples)}")
+        pr = np.zeros(len(keep), PRIOR_DTYPE)
+        pr["station"] = np.searchsorted(st["id"], ids[keep])
+        pr["value"] = value[keep]
+        pr["weight"] = weight[keep]
+        return pr[np.argsort(pr["station"], kind="stable")]
+
+    def _prior_weights(self, fmt, rec, loc):
+        """6x6 weights (1/rad^2, 1/m^2) of sigmas or covariances given in arc seconds and m."""
+        scale = np.array([ARCSEC] * 3 + [1.0] * 3)
+        n = len(rec)
+        w = np.zeros((n, 6, 6))
+        if fmt is PRIORS:
+            sig = np.stack([rec["s_" + k] for k in PRIOR_PARAMETERS], axis=1) * scale
+            on = sig > 0
+            d = np.where(on, 1.0 / np.where(on, sig, 1.0) ** 2, 0.0)
+            w[:, np.arange(6), np.arange(6)] = d
+            return w
+        cov = np.zeros((n, 6, 6))
+        for t, (i, j) in enumerate((i, j) for i in range(6) for j in range(i, 6)):
+            cov[:, i, j] = cov[:, j, i] = rec[COVARIANCE_TERMS[t]] * scale[i] * scale[j]
+        for r in range(n):
+            try:
+                c = np.linalg.cholesky(cov[r])
+            except np.linalg.LinAlgError:
+                raise DataError(f"{self.src.where(loc[r])}: the covariance of the prior of "
+                                f"photo {rec['photo'][r]} is not positive definite "
+                                f"(columns 8-28: c11 c12 ... c66 in arc seconds and m)") \
+                    from None
+            ci = np.linalg.inv(c)
+            w[r] = ci.T @ ci
+        return w
 
     # -- control (external sort, merged into a work file) --------------------------------
     def read_control(self, p):
@@ -648,7 +723,6 @@ class _Import:
                  kinds=dict.fromkeys(KIND_NAMES, 0))
         self.dup_examples, self.lonely_ids = [], []
         attrs = {}
-        priors = np.zeros(0, PRIOR_DTYPE)
         entry = {"command": "import", "angles": self.angles, "append": bool(self.existing),
                  "files": {k: [str(f) for f in v] for k, v in self.files.items()}}
         with contextlib.ExitStack() as stack:
@@ -664,12 +738,8 @@ class _Import:
                                     self.work, "observations")
             stack.enter_context(sorter)
             self.read_measurements(p, sorter)
+            priors = self.read_priors(p, st)
             if p is not None:
-                pr = p.read("station_priors")
-                if len(pr):
-                    new_of_old = np.searchsorted(st["id"], self.old_station_ids)
-                    pr["station"] = new_of_old[pr["station"]]
-                    priors = pr[np.argsort(pr["station"], kind="stable")]
                 dropped = [n for n, has in (("/truth", p.has_truth),
                                             ("/solution", p.has_solution)) if has]
                 if dropped:
@@ -753,12 +823,14 @@ class _Import:
 
 
 def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles="deg",
-                memory=None, append=False, force=False):
+                memory=None, append=False, force=False, priors=(), prior_covariances=()):
     """Import a block from text files into the project ``out``; returns a summary dict.
 
-    ``cameras``, ``photos``, ``measurements`` and ``control`` are paths or lists of paths
-    (several files of a kind are read as one). ``angles``: the unit of the photos' omega,
-    phi, kappa (``"deg"``, ``"gon"`` or ``"rad"``). ``memory``: the budget of the sorting
+    ``cameras``, ``photos``, ``measurements``, ``control``, ``priors`` (exposure-station
+    priors with a sigma per parameter) and ``prior_covariances`` (with a full 6x6
+    covariance) are paths or lists of paths (several files of a kind are read as one).
+    ``angles``: the unit of the photos' and priors' omega, phi, kappa (``"deg"``, ``"gon"``
+    or ``"rad"``). ``memory``: the budget of the sorting
     phases (bytes or ``"512M"``; default :data:`sapgo.extsort.DEFAULT_MEMORY`).
 
     If ``out`` exists, ``force=True`` replaces it and ``append=True`` adds the files to it:
@@ -777,7 +849,8 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     memory = DEFAULT_MEMORY if memory is None else parse_memory(memory)
     out = Path(out)
     files = {"cameras": _as_list(cameras), "photos": _as_list(photos),
-             "measurements": _as_list(measurements), "control": _as_list(control)}
+             "measurements": _as_list(measurements), "control": _as_list(control),
+             "priors": _as_list(priors), "prior_covariances": _as_list(prior_covariances)}
     if append and force:
         raise ParameterError("--append and --force exclude each other: --append adds the files "
                              "to the project, --force replaces it")
@@ -793,14 +866,15 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
                 raise ParameterError(f"no {kind} file given (--{kind})")
     elif not any(files.values()):
         raise ParameterError("nothing to append: give --cameras, --photos, --measurements "
-                             "or --control files")
+                             "or --control, --priors, --prior-covariances files")
     for kind, paths in files.items():
         for f in paths:
             f = Path(f)
+            opt = "--" + kind.replace("_", "-")
             if not f.exists():
-                raise ParameterError(f"{f}: no such file (--{kind})")
+                raise ParameterError(f"{f}: no such file ({opt})")
             if f.is_dir():
-                raise ParameterError(f"{f}: is a directory, not a {kind} file (--{kind})")
+                raise ParameterError(f"{f}: is a directory, not a {kind} file ({opt})")
     work = out.with_name(out.name + ".import.work")
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)

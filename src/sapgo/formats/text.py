@@ -10,6 +10,8 @@ documented field by field in ``docs/formats.md``::
     photos        id camera strip omega phi kappa X Y Z
     measurements  photo point x y [sigma]
     control       point X Y Z sX sY sZ [kind]
+    priors        photo omega phi kappa X Y Z s_omega s_phi s_kappa sX sY sZ
+    prior_covariances  photo omega phi kappa X Y Z c11 c12 ... c66  (upper triangle)
 
 Parsing is chunk by chunk (:func:`read_chunks` cuts a file into blocks of whole lines,
 :func:`parse_chunk` turns a block into records). The fast path hands the block to
@@ -141,7 +143,25 @@ CONTROL = TextFormat(
      ("sZ", _OPT), ("kind", _KIND)],
     7, "point X Y Z sX sY sZ [kind]", defaults={"kind": b"full"},
 )
-FORMATS = {f.name: f for f in (CAMERAS, PHOTOS, MEASUREMENTS, CONTROL)}
+#: The six parameters of a station, in the order of a prior's value and weight.
+PRIOR_PARAMETERS = ("omega", "phi", "kappa", "X", "Y", "Z")
+PRIORS = TextFormat(
+    "priors",
+    [("photo", _ID)] + [(n, _ANGLE) for n in PRIOR_PARAMETERS[:3]]
+    + [(n, _FLOAT) for n in PRIOR_PARAMETERS[3:]]
+    + [("s_" + n, _OPT) for n in PRIOR_PARAMETERS],
+    13, "photo omega phi kappa X Y Z s_omega s_phi s_kappa sX sY sZ",
+)
+#: Upper triangle of a prior's 6x6 covariance, row by row (c11 c12 ... c16 c22 ... c66).
+COVARIANCE_TERMS = tuple(f"c{i + 1}{j + 1}" for i in range(6) for j in range(i, 6))
+PRIOR_COVARIANCES = TextFormat(
+    "prior_covariances",
+    [("photo", _ID)] + [(n, _ANGLE) for n in PRIOR_PARAMETERS[:3]]
+    + [(n, _FLOAT) for n in PRIOR_PARAMETERS[3:]] + [(c, _FLOAT) for c in COVARIANCE_TERMS],
+    28, "photo omega phi kappa X Y Z c11 c12 ... c16 c22 ... c66",
+)
+FORMATS = {f.name: f for f in (CAMERAS, PHOTOS, MEASUREMENTS, CONTROL, PRIORS,
+                               PRIOR_COVARIANCES)}
 
 
 def check_angles(angles):
@@ -496,6 +516,19 @@ def _checks(fmt, arr, rec):
                 f"{n} is unknown ('-' or nan) but {what(i)} needs it (column {k + 5}; "
                 f"0 fixes the coordinate)")))
         return c
+    if fmt is PRIORS:
+        c = _finite_checks(fmt, rec, PRIOR_PARAMETERS)
+        sig = np.stack([rec["s_" + n] for n in PRIOR_PARAMETERS], axis=1)
+        for k, n in enumerate(PRIOR_PARAMETERS):
+            v = sig[:, k]
+            c.append((np.isinf(v) | (v < 0), lambda i, n=n, v=v, k=k: (
+                f"column {k + 8} (s_{n}) is {_num(v[i])}, expected a sigma > 0, or 0 or '-' "
+                f"for an unconstrained parameter")))
+        c.append((~(sig > 0).any(axis=1), lambda i: (
+            "every sigma is 0 or '-': the prior constrains nothing (columns 8-13)")))
+        return c
+    if fmt is PRIOR_COVARIANCES:
+        return _finite_checks(fmt, rec, PRIOR_PARAMETERS + COVARIANCE_TERMS)
     raise ValueError(fmt)
 
 
