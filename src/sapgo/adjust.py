@@ -59,6 +59,7 @@ from .project import (
     Project,
 )
 from .report import Summary, check_point_statistics, truth_statistics
+from .stripcmp import StripComparison
 from .validate import check_values
 
 ARCSEC = math.pi / (180 * 3600)
@@ -698,10 +699,13 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     xyz_ds, res_ds = work.xyz_current, work.res_current
     checks = check_point_statistics()
     truth = truth_statistics() if p_read.has_truth else None
+    strips = StripComparison(p_read.read_field("stations", "strip"), blk.station_active)
     excluded_points, n_excluded_points = [], 0
     for a, b in p_read.chunks("points", opts.chunk_points):
         pts = p_read.read("points", a, b)
         adj = xyz_ds[a:b]
+        strips.add(PointChunk(p_read, a, b, adj, blk.camera, blk.cam_sigma), blk.eo,
+                   blk.camera, blk.cams)
         act = pts["status"] == STATUS_ACTIVE
         ids = pts["id"][~act]
         n_excluded_points += len(ids)
@@ -748,6 +752,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         truth=truth.result() if truth is not None else None,
         timings_s=timings,
         resumed_from_iteration=resumed_from,
+        strip_comparison=strips.result(),
     )
     its = max(1, len(log))
     summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}

@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from .project import CONTROL_MASK, KIND_CHECK
+from .stripcmp import format_strip_comparison
 
 ARCSEC = math.pi / (180 * 3600)
 
@@ -138,6 +139,9 @@ class Summary:
     timings_per_iteration_s: dict = dataclasses.field(default_factory=dict)
     #: The iteration an interrupted run was resumed from (None: not resumed).
     resumed_from_iteration: int | None = None
+    #: Common points derived from each strip's orientation, compared pair by pair
+    #: (:mod:`sapgo.stripcmp`; None when no two strips share a derived point).
+    strip_comparison: dict | None = None
 
     def to_dict(self):
         return dataclasses.asdict(self)
@@ -210,6 +214,7 @@ class Summary:
                          f"{tp['sxy']:.3f} m sZ {tp['sz']:.3f} m; {ts['n']} stations "
                          f"position RMS {ts['position_rms_m']:.3f} m, angles RMS "
                          f"{ts['angle_rms_arcsec']:.2f}\"")
+        L.extend(format_strip_comparison(self.strip_comparison))
         t = self.timings_s
         if t:
             L.append(
