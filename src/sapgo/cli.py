@@ -82,7 +82,7 @@ def cmd_import(args):
         args.output, cameras=args.cameras, photos=args.photos,
         measurements=args.measurements, control=args.control, angles=args.angles,
         memory=args.memory, append=args.append, force=args.force, priors=args.priors,
-        prior_covariances=args.prior_covariances,
+        prior_covariances=args.prior_covariances, crs=args.crs, orientation=args.orientation,
     )
     for w in summary["warnings"]:
         _warn(w)
@@ -236,6 +236,15 @@ def build_parser():
     m.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg",
                    help="unit of omega, phi, kappa in the photos and priors files (default "
                         "deg)")
+    m.add_argument("--crs", metavar="CRS",
+                   help="coordinate reference system of the photos', control's and priors' X "
+                        "Y Z: an EPSG or IAU code, WKT or PROJ string (EPSG:4978 geocentric, "
+                        "EPSG:4979 longitude latitude height, EPSG:32632 UTM, IAU_2015:30100 "
+                        "the Moon, ...); the block is then computed in the local tangent frame "
+                        "at its centre (Earth) or selenocentric (Moon). Default: a local frame")
+    m.add_argument("--orientation", choices=("tangent", "geocentric"), default="tangent",
+                   help="with --crs: omega, phi, kappa relative to the local east-north-up "
+                        "frame at each photo (default; GNSS/INS) or to the body-fixed axes")
     m.add_argument("--memory", default=None, metavar="SIZE",
                    help="memory budget of the external sorts, e.g. 256M or 2G (default 512M)")
     m.add_argument("--append", action="store_true",

@@ -49,6 +49,7 @@ from .formats.text import (
     parse_chunk,
     read_chunks,
 )
+from .frames import LOCAL, ORIENTATIONS, Frame, parse_crs
 from .geometry import camera_array, intersect_points, undistort_points
 from .project import (
     CAMERA_DTYPE,
@@ -170,10 +171,14 @@ def ray_points(eo, xy, f, height, distance):
 
 
 class _Import:
-    def __init__(self, out, files, angles, memory, work, existing):
+    def __init__(self, out, files, angles, memory, work, existing, crs=None,
+                 orientation="tangent"):
         self.out = out
         self.files = files
         self.angles = angles
+        self.crs = None if crs is None else parse_crs(crs)
+        self.orientation = orientation
+        self.frame = Frame()
         self.memory = memory
         self.work = work
         self.existing = existing  # path of the project appended to, or None
@@ -280,6 +285,7 @@ class _Import:
             return [(unknown, lambda i: f"camera {rec['camera'][i]} is not in the cameras "
                                         f"file(s) (column 2)")]
 
+        n_old = sum(len(e) for e in eo)
         for path in self.files["photos"]:
             for rec, loc in self._read(PHOTOS, path, known_camera):
                 k = np.searchsorted(cam_ids, rec["camera"])
@@ -293,6 +299,11 @@ class _Import:
             raise DataError("no photo: give a photos file with at least one photo (--photos)")
         ids, cam, strip = np.concatenate(ids), np.concatenate(cam), np.concatenate(strip)
         eo, locs = np.concatenate(eo), np.concatenate(locs)
+        self._set_frame(p, eo[n_old:, 3:])
+        if self.crs is not None and len(eo) > n_old:  # the files' photos into the frame
+            xyz = self.frame.from_user(eo[n_old:, 3:], self.crs)
+            eo[n_old:, :3] = self.frame.opk_from_user(eo[n_old:, :3], xyz, self.orientation)
+            eo[n_old:, 3:] = xyz
         values = np.concatenate([cam_ids[cam][:, None], strip[:, None], _bits(eo)], axis=1)
         names = ("camera", "strip", "omega", "phi", "kappa", "X", "Y", "Z")
         keep, twice, examples = self._dedupe("photo", ids, values, locs, names)
@@ -308,6 +319,45 @@ class _Import:
         st["eo"] = eo[keep]
         self.stations = st
         return st
+
+    def _set_frame(self, p, file_xyz):
+        """The computation frame: the appended project's, or one for ``--crs`` (at the centre
+        of the files' photos), else local; refuse mixing a local project with a CRS."""
+        old = p.frame() if p is not None else None
+        if old is not None and (old.kind != LOCAL or p.n_stations):
+            if (self.crs is None) != (old.kind == LOCAL):
+                raise ParameterError(
+                    f"{self.existing} is in the frame {old.describe()!r}: the appended files "
+                    f"must be given " + ("in a CRS (--crs)" if self.crs is None else
+                                         "in its local coordinates (no --crs)"))
+            if self.crs is not None:
+                old.check_body(self.crs, "the appended data")
+            self.frame = old
+        elif self.crs is not None:
+            self.frame = Frame.for_crs(self.crs, file_xyz)
+
+    def _control_to_frame(self, rec, r, loc):
+        """Control coordinates (and sigmas) of a file in ``--crs`` into the frame."""
+        if self.crs is None:
+            return
+        known = np.isfinite(r["control"]).all(axis=1)
+        if not known.all():
+            i = int(np.flatnonzero(~known)[0])
+            raise DataError(f"{self.src.where(loc[i])}: point {rec['id'][i]} has unknown "
+                            f"coordinates ('-'); with --crs every control and check point "
+                            f"needs X, Y and Z (horizontal or vertical control in a CRS is "
+                            f"not supported yet)")
+        if self.crs.is_geocentric:
+            sig = r["sigma"]
+            ctrl = CONTROL_MASK[r["kind"]].astype(bool)
+            aniso = ctrl.any(axis=1) & ~((sig[:, 0] == sig[:, 1]) & (sig[:, 1] == sig[:, 2]))
+            if aniso.any():
+                i = int(np.flatnonzero(aniso)[0])
+                raise DataError(f"{self.src.where(loc[i])}: point {rec['id'][i]}: control "
+                                f"sigmas in a geocentric CRS must be equal in X, Y and Z (they "
+                                f"are not rotated into the frame); give them in a geographic "
+                                f"or projected CRS as east, north, up")
+        r["control"] = self.frame.from_user(r["control"], self.crs)
 
     # -- station priors (in core: at most one per photo) ----------------------------------
     def read_priors(self, p, st):
@@ -332,8 +382,12 @@ class _Import:
             for path in self.files[fmt.name]:
                 for rec, loc in self._read(fmt, path, known_photo):
                     ids.append(rec["photo"])
-                    value.append(np.stack([rec[n] for n in PRIOR_PARAMETERS], axis=1))
-                    weight.append(self._prior_weights(fmt, rec, loc))
+                    v = np.stack([rec[n] for n in PRIOR_PARAMETERS], axis=1)
+                    w = self._prior_weights(fmt, rec, loc)
+                    if self.crs is not None:
+                        v, w = self.frame.prior_from_user(v, w, self.crs, self.orientation)
+                    value.append(v)
+                    weight.append(w)
                     locs.append(loc)
         if not ids or not sum(len(i) for i in ids):
             return np.zeros(0, PRIOR_DTYPE)
@@ -422,6 +476,7 @@ class _Import:
                     r["control"] = np.stack([rec["X"], rec["Y"], rec["Z"]], axis=1)
                     r["sigma"] = np.stack([rec["sX"], rec["sY"], rec["sZ"]], axis=1)
                     r["loc"] = loc
+                    self._control_to_frame(rec, r, loc)
                     sorter.add(r)
             last = None
             with open(path, "wb") as f:
@@ -724,6 +779,8 @@ class _Import:
         self.dup_examples, self.lonely_ids = [], []
         attrs = {}
         entry = {"command": "import", "angles": self.angles, "append": bool(self.existing),
+                 "crs": None if self.crs is None else self.crs.to_string(),
+                 "orientation": self.orientation,
                  "files": {k: [str(f) for f in v] for k, v in self.files.items()}}
         with contextlib.ExitStack() as stack:
             p = stack.enter_context(Project(self.existing)) if self.existing else None
@@ -746,14 +803,11 @@ class _Import:
                     self._warn(f"{self.existing}: {' and '.join(dropped)} no longer match the "
                                f"records and were dropped")
                 history = p.attr("history", "[]")
-                for k in ("frame", "crs"):
-                    v = p.attr(k)
-                    if v is not None:
-                        attrs[k] = v
                 p.close()  # everything is read: OUT is replaced below
             else:
                 history = "[]"
             attrs["history"] = append_history(history, entry)
+            attrs.update(self.frame.to_attrs())
             if sorter.count == 0:
                 raise DataError("the block has no image measurement (--measurements)")
 
@@ -823,14 +877,20 @@ class _Import:
 
 
 def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles="deg",
-                memory=None, append=False, force=False, priors=(), prior_covariances=()):
+                memory=None, append=False, force=False, priors=(), prior_covariances=(),
+                crs=None, orientation="tangent"):
     """Import a block from text files into the project ``out``; returns a summary dict.
 
     ``cameras``, ``photos``, ``measurements``, ``control``, ``priors`` (exposure-station
     priors with a sigma per parameter) and ``prior_covariances`` (with a full 6x6
     covariance) are paths or lists of paths (several files of a kind are read as one).
     ``angles``: the unit of the photos' and priors' omega, phi, kappa (``"deg"``, ``"gon"``
-    or ``"rad"``). ``memory``: the budget of the sorting
+    or ``"rad"``). ``crs``: the coordinate reference system of the photos' and control's
+    X, Y, Z (EPSG or IAU code, WKT, PROJ string; default none: a local frame), in which case
+    the block is computed in the local tangent frame at its centre (Earth) or in the
+    selenocentric frame (Moon) and ``orientation`` says how omega, phi, kappa are given:
+    ``"tangent"`` (to the local east-north-up frame at each station) or ``"geocentric"``
+    (to the body-fixed axes); see :mod:`sapgo.frames`. ``memory``: the budget of the sorting
     phases (bytes or ``"512M"``; default :data:`sapgo.extsort.DEFAULT_MEMORY`).
 
     If ``out`` exists, ``force=True`` replaces it and ``append=True`` adds the files to it:
@@ -846,6 +906,8 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     """
     t0 = time.perf_counter()
     check_angles(angles)
+    if orientation not in ORIENTATIONS:
+        raise ParameterError(f"orientation {orientation!r}: one of {', '.join(ORIENTATIONS)}")
     memory = DEFAULT_MEMORY if memory is None else parse_memory(memory)
     out = Path(out)
     files = {"cameras": _as_list(cameras), "photos": _as_list(photos),
@@ -880,7 +942,7 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     work.mkdir(parents=True)
     try:
         summary = _Import(out, files, angles, memory, work,
-                          out if (append and exists) else None).run()
+                          out if (append and exists) else None, crs, orientation).run()
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary["seconds"] = time.perf_counter() - t0

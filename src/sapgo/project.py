@@ -420,6 +420,12 @@ class Project:
     def history(self):
         return json.loads(self.attr("history", "[]"))
 
+    def frame(self):
+        """The computation frame and the user's CRS (:class:`sapgo.frames.Frame`)."""
+        from .frames import Frame
+
+        return Frame.from_attrs({k: self.attr(k) for k in ("frame", "crs", "frame_origin")})
+
     def add_history(self, entry):
         self.file.attrs["history"] = append_history(self.attr("history", "[]"), entry)
 

@@ -1,0 +1,155 @@
+"""Coordinate systems (pyproj): round trips, frames, and one block given in three CRSs."""
+
+import shutil
+
+import numpy as np
+import pytest
+
+import sapgo
+from conftest import read_records
+from sapgo.errors import DataError, ParameterError
+from sapgo.formats.text import export_text
+from sapgo.frames import LOCAL, SELENOCENTRIC, TANGENT, Frame, enu_rotation, parse_crs
+from sapgo.ingest import import_text
+from sapgo.project import Project
+
+ORIGIN = (48.137, 11.575, 0.0)  # latitude, longitude (deg), height (m)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(11)
+
+
+def geographic_points(rng, n=20):
+    return np.column_stack([ORIGIN[1] + rng.uniform(-0.1, 0.1, n),
+                            ORIGIN[0] + rng.uniform(-0.1, 0.1, n), rng.uniform(-50, 4000, n)])
+
+
+@pytest.mark.parametrize("crs, scale", [("EPSG:4979", (1e-11, 1e-11, 1e-6)),
+                                        ("EPSG:4978", (1e-6,) * 3),
+                                        ("EPSG:32632", (1e-6,) * 3),
+                                        ("EPSG:4326", (1e-11, 1e-11, 1e-6))])
+def test_round_trips_through_the_tangent_frame(rng, crs, scale):
+    geo = geographic_points(rng)
+    frame = Frame(TANGENT, parse_crs("EPSG:4979").to_wkt(), ORIGIN)
+    xyz = frame.from_user(geo)
+    user = Frame(TANGENT, parse_crs(crs).to_wkt(), ORIGIN)
+    given = user.to_user(xyz)  # the same points in ``crs``
+    np.testing.assert_allclose(user.from_user(given), xyz, rtol=0, atol=1e-6)
+    back = frame.to_user(xyz)
+    assert (np.abs(back - geo) <= scale).all()
+
+
+def test_the_tangent_frame_is_east_north_up_at_its_origin():
+    frame = Frame(TANGENT, parse_crs("EPSG:4979").to_wkt(), ORIGIN)
+    lat, lon, _ = ORIGIN
+    pts = np.array([[lon, lat, 0.0], [lon, lat, 100.0], [lon + 0.001, lat, 0.0],
+                    [lon, lat + 0.001, 0.0]])
+    x = frame.from_user(pts)
+    np.testing.assert_allclose(x[0], 0.0, atol=1e-6)
+    np.testing.assert_allclose(x[1], [0, 0, 100.0], atol=1e-6)
+    assert x[2, 0] > 70 and abs(x[2, 1]) < 0.01       # east
+    assert x[3, 1] > 110 and abs(x[3, 0]) < 1e-6     # north
+    r = enu_rotation(lat, lon)[0]
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-15)
+
+
+def test_orientation_in_the_station_tangent_frame(rng):
+    """A photo looking straight down at its own station (tangent omega = phi = 0) looks along
+    the station's local vertical in the frame, away from the origin too."""
+    frame = Frame(TANGENT, parse_crs("EPSG:4979").to_wkt(), ORIGIN)
+    geo = np.array([[ORIGIN[1] + 0.3, ORIGIN[0] - 0.2, 3800.0]])
+    xyz = frame.from_user(geo)
+    opk = frame.opk_from_user(np.zeros((1, 3)), xyz, "tangent")
+    from sapgo.frames import rotation_matrices
+
+    axis = rotation_matrices(opk)[0].T @ np.array([0.0, 0.0, 1.0])  # camera z in the frame
+    up_ground = frame.from_user(geo - [0, 0, 3800.0])
+    up = (xyz - up_ground)[0] / 3800.0
+    np.testing.assert_allclose(axis, up, atol=1e-9)
+    assert abs(opk[0, 0]) + abs(opk[0, 1]) > 1e-3  # not vertical in the frame at the origin
+    for o in ("tangent", "geocentric"):
+        a = rng.normal(0, 0.1, (5, 3))
+        pos = xyz.repeat(5, axis=0)
+        np.testing.assert_allclose(frame.opk_to_user(frame.opk_from_user(a, pos, o), pos, o),
+                                   a, atol=1e-13)
+
+
+def test_bodies_and_bad_crs():
+    moon = Frame.for_crs("IAU_2015:30100", np.array([[10.0, 5.0, 100000.0]]))
+    assert moon.kind == SELENOCENTRIC and moon.body == "moon"
+    x = moon.from_user(np.array([[0.0, 0.0, 0.0], [90.0, 0.0, 1000.0]]))
+    np.testing.assert_allclose(x, [[1737400.0, 0, 0], [0, 1738400.0, 0]], atol=1e-6)
+    with pytest.raises(DataError, match="different bodies"):
+        moon.check_body(parse_crs("EPSG:4979"), "the control")
+    with pytest.raises(ParameterError, match="unknown coordinate reference system 'EPSG:0'"):
+        parse_crs("EPSG:0")
+    assert Frame().kind == LOCAL and Frame.from_attrs({"frame": "local space rectangular"}
+                                                      ).kind == LOCAL
+
+
+# -- one block, three CRSs ---------------------------------------------------------------
+
+def write_in_crs(src_dir, dst_dir, frame_o, crs, orientation):
+    """The text files of a local block, its local frame being the tangent frame at
+    ``ORIGIN``: photos and control written in ``crs`` (orientation per ``orientation``)."""
+    user = Frame(TANGENT, parse_crs(crs).to_wkt(), ORIGIN)
+    dst_dir.mkdir()
+    for name in ("cameras.txt", "measurements.txt"):
+        shutil.copy(src_dir / name, dst_dir / name)
+    rows = [ln.split() for ln in open(src_dir / "photos.txt") if ln[0] != "#"]
+    eo = np.array([[float(v) for v in r[3:9]] for r in rows])
+    xyz = eo[:, 3:]
+    opk = user.opk_to_user(np.radians(eo[:, :3]), xyz, orientation)
+    pos = user.to_user(xyz)
+    with open(dst_dir / "photos.txt", "w") as f:
+        for r, a, p in zip(rows, np.degrees(opk), pos):
+            f.write(" ".join(r[:3] + [repr(float(v)) for v in (*a, *p)]) + "\n")
+    rows = [ln.split() for ln in open(src_dir / "control.txt") if ln[0] != "#"]
+    c = user.to_user(np.array([[float(v) for v in r[1:4]] for r in rows]))
+    with open(dst_dir / "control.txt", "w") as f:
+        for r, p in zip(rows, c):
+            f.write(" ".join([r[0]] + [repr(float(v)) for v in p] + r[4:]) + "\n")
+
+
+def adjusted_ecef(path):
+    with Project(path) as p:
+        pt = p.read("points")
+        xyz = pt["xyz"] + p.solution("point_corr")
+        frame = p.frame()
+    ecef_frame = Frame(TANGENT, parse_crs("EPSG:4978").to_wkt(),
+                       ORIGIN if frame.kind == LOCAL else frame.origin)
+    return dict(zip(pt["id"].tolist(), ecef_frame.to_user(xyz)))
+
+
+def test_one_block_in_local_geographic_and_geocentric_coordinates(block_cache, tmp_path):
+    src = tmp_path / "local.h5"
+    shutil.copy(block_cache("small", strips=2, photos_per_strip=6, control_points=6), src)
+    rec = read_records(src)
+    assert (rec["points"]["control_sigma"][rec["points"]["kind"] == 1] > 0).all()
+    d = tmp_path / "txt"
+    export_text(src, d)
+    opts = sapgo.Options(progress=False, tol_position=1e-7, tol_angle=1e-9,
+                         max_iterations=20)
+    local = tmp_path / "l.h5"
+    import_text(local, cameras=d / "cameras.txt", photos=d / "photos.txt",
+                measurements=d / "measurements.txt", control=d / "control.txt")
+    assert sapgo.adjust(local, opts).converged
+    ref = adjusted_ecef(local)
+    for crs, orientation in (("EPSG:4979", "tangent"), ("EPSG:4978", "geocentric")):
+        dd = tmp_path / crs.replace(":", "_")
+        write_in_crs(d, dd, None, crs, orientation)
+        out = tmp_path / f"{crs.replace(':', '_')}.h5"
+        import_text(out, cameras=dd / "cameras.txt", photos=dd / "photos.txt",
+                    measurements=dd / "measurements.txt", control=dd / "control.txt",
+                    crs=crs, orientation=orientation)
+        with Project(out) as p:
+            f = p.frame()
+        assert f.kind == TANGENT and abs(f.origin[0] - ORIGIN[0]) < 0.1
+        s = sapgo.adjust(out, opts)
+        assert s.converged
+        got = adjusted_ecef(out)
+        assert got.keys() == ref.keys()
+        worst = max(np.abs(got[k] - ref[k]).max() for k in ref)
+        assert worst < 1e-3, (crs, worst)
