@@ -153,3 +153,32 @@ def test_one_block_in_local_geographic_and_geocentric_coordinates(block_cache, t
         assert got.keys() == ref.keys()
         worst = max(np.abs(got[k] - ref[k]).max() for k in ref)
         assert worst < 1e-3, (crs, worst)
+
+
+def test_adjusted_results_in_the_users_crs(block_cache, tmp_path, capsys):
+    """export --adjusted writes the adjusted block back in the CRS it was given in."""
+    from conftest import run_cli
+
+    src = tmp_path / "local.h5"
+    shutil.copy(block_cache("small", strips=2, photos_per_strip=6, control_points=6), src)
+    d = tmp_path / "txt"
+    export_text(src, d)
+    dd = tmp_path / "geo"
+    write_in_crs(d, dd, None, "EPSG:4979", "tangent")
+    out = tmp_path / "geo.h5"
+    import_text(out, cameras=dd / "cameras.txt", photos=dd / "photos.txt",
+                measurements=dd / "measurements.txt", control=dd / "control.txt",
+                crs="EPSG:4979")
+    code, text, err = run_cli(capsys, "adjust", out, "--no-progress")
+    assert code == 0 and "frame: local tangent (east, north, up at 48.1" in text, err
+    code, text, err = run_cli(capsys, "export", out, tmp_path / "res", "--adjusted")
+    assert code == 0, err
+    pts = np.loadtxt(tmp_path / "res" / "adjusted_points.txt", usecols=(0, 1, 2, 3))
+    ecef = adjusted_ecef(out)
+    back = Frame(TANGENT, parse_crs("EPSG:4978").to_wkt(), ORIGIN).from_user(
+        np.array([ecef[int(i)] for i in pts[:, 0]]))
+    geo = Frame(TANGENT, parse_crs("EPSG:4979").to_wkt(), ORIGIN).to_user(back)
+    np.testing.assert_allclose(pts[:, 1:], geo, rtol=0, atol=1e-9)
+    assert 11.3 < pts[:, 1].mean() < 11.8 and 48.0 < pts[:, 2].mean() < 48.3
+    ph = np.loadtxt(tmp_path / "res" / "adjusted_photos.txt")
+    assert len(ph) == 12 and (np.abs(ph[:, 3:5]) < 1.0).all()  # near-vertical: degrees

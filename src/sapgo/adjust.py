@@ -60,6 +60,7 @@ from .project import (
 )
 from .report import Summary, check_point_statistics, truth_statistics
 from .stripcmp import StripComparison
+from .frames import frame_info
 from .validate import check_values
 
 ARCSEC = math.pi / (180 * 3600)
@@ -753,6 +754,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         timings_s=timings,
         resumed_from_iteration=resumed_from,
         strip_comparison=strips.result(),
+        frame=frame_info(p_read.frame()),
     )
     its = max(1, len(log))
     summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}

@@ -126,6 +126,21 @@ def cmd_adjust(args):
     return 0
 
 
+def cmd_export(args):
+    from .formats import export_adjusted, export_text
+
+    if args.adjusted:
+        r = export_adjusted(args.project, args.directory, angles=args.angles,
+                            orientation=args.orientation)
+        print(f"wrote {r['counts']['photos']} adjusted photos and {r['counts']['points']} "
+              f"points to {args.directory}")
+    else:
+        r = export_text(args.project, args.directory, angles=args.angles)
+        print(f"wrote {', '.join(f'{n} {k}' for k, n in r['counts'].items())} to "
+              f"{args.directory}")
+    return 0
+
+
 def cmd_info(args):
     import numpy as np
 
@@ -274,6 +289,18 @@ def build_parser():
     a.add_argument("--no-progress", action="store_true", help="no progress bars")
     a.add_argument("--quiet", action="store_true", help="do not print the report")
     a.set_defaults(func=cmd_adjust)
+
+    e = sub.add_parser("export", help="write a project as text files (inputs, or with "
+                                      "--adjusted the adjusted photos and points)")
+    e.add_argument("project")
+    e.add_argument("directory", help="output directory (created)")
+    e.add_argument("--adjusted", action="store_true",
+                   help="adjusted_photos.txt and adjusted_points.txt in the user's CRS")
+    e.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg")
+    e.add_argument("--orientation", choices=("tangent", "geocentric"), default="tangent",
+                   help="with --adjusted and a CRS: angles to the east-north-up frame at each "
+                        "photo (default) or to the body-fixed axes")
+    e.set_defaults(func=cmd_export)
 
     i = sub.add_parser("info", help="describe a project file")
     i.add_argument("project")

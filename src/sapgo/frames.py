@@ -129,6 +129,13 @@ def opk_of(m):
     return np.column_stack([omega, phi, kappa])
 
 
+def frame_info(frame):
+    """The frame for reports: ``{"kind", "crs", "origin"}`` (crs: its name, or None)."""
+    return {"kind": frame.kind, "crs": frame.crs.name if frame.crs_text else None,
+            "origin": None if frame.origin is None else [float(v) for v in frame.origin],
+            "description": frame.describe()}
+
+
 class Frame:
     """The computation frame of a project and the user's CRS (see the module docstring)."""
 

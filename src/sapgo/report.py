@@ -142,6 +142,8 @@ class Summary:
     #: Common points derived from each strip's orientation, compared pair by pair
     #: (:mod:`sapgo.stripcmp`; None when no two strips share a derived point).
     strip_comparison: dict | None = None
+    #: The computation frame and the user's CRS (:func:`sapgo.frames.frame_info`).
+    frame: dict | None = None
 
     def to_dict(self):
         return dataclasses.asdict(self)
@@ -168,6 +170,8 @@ class Summary:
         )
         before = (f" (record order: {self.band_width_before})"
                   if self.band_width_before is not None else "")
+        if self.frame and self.frame["kind"] != "local space rectangular":
+            L.append(f"  frame: {self.frame['description']}")
         L.append(f"  order: {self.ordering}, band width {self.band_width} stations{before}")
         if self.excluded_stations:
             L.append(f"  left out, too few points: {self.n_excluded_stations} photos "

@@ -660,3 +660,61 @@ def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS):
                 counts["control"] += len(lines)
     return {"paths": {k: str(v) for k, v in paths.items()}, "counts": counts,
             "angles": angles, "inexact_angles": inexact}
+
+
+def export_adjusted(project_path, out_dir, angles="deg", orientation="tangent",
+                    chunk=CHUNK_RECORDS):
+    """Write the adjusted photos and points of an adjusted project in the user's CRS:
+    ``adjusted_photos.txt`` (``id camera strip omega phi kappa X Y Z``) and
+    ``adjusted_points.txt`` (``id X Y Z kind n_rays``; excluded points are left out).
+
+    For a project imported with a CRS the coordinates are converted back into it (a
+    geographic CRS: longitude, latitude in degrees, ellipsoidal height) and the angles are
+    given per ``orientation`` (``"tangent"``: to the east-north-up frame at each photo, or
+    ``"geocentric"``); for a local project they are the frame's. Streams in chunks.
+    Returns a dict with the paths and counts.
+    """
+    check_angles(angles)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {"photos": out_dir / "adjusted_photos.txt",
+             "points": out_dir / "adjusted_points.txt"}
+    counts = dict.fromkeys(paths, 0)
+    with Project(project_path) as p:
+        if not p.has_solution:
+            raise DataError(f"{project_path}: the project has no adjusted solution: run "
+                            f"'sapgo adjust' first")
+        frame = p.frame()
+        where = "" if frame.kind == "local space rectangular" else \
+            f"; {frame.crs.name}, angles {orientation}"
+        cam_ids = p.cameras()["id"]
+        with open(paths["photos"], "w") as f:
+            f.write(f"# adjusted photos: id camera strip omega phi kappa X Y Z  (angles in "
+                    f"{angles}{where})\n")
+            for a, b in p.chunks("stations", chunk):
+                st = p.read("stations", a, b)
+                eo = st["eo"] + p.solution("station_corr", a, b)
+                opk = frame.opk_to_user(eo[:, :3], eo[:, 3:], orientation)
+                xyz = frame.to_user(eo[:, 3:])
+                ang = (opk if angles == "rad" else
+                       opk / float(_ANGLE_FACTOR[angles]))
+                act = st["status"] == 0
+                for i in np.flatnonzero(act):
+                    f.write(" ".join([str(int(st["id"][i])), str(int(cam_ids[st["camera"][i]])),
+                                      str(int(st["strip"][i]))]
+                                     + [repr(float(v)) for v in ang[i]]
+                                     + [repr(float(v)) for v in xyz[i]]) + "\n")
+                counts["photos"] += int(act.sum())
+        with open(paths["points"], "w") as f:
+            f.write(f"# adjusted points: id X Y Z kind n_rays  (m{where.split(',')[0]})\n")
+            for a, b in p.chunks("points", chunk):
+                pts = p.read("points", a, b)
+                xyz = frame.to_user(pts["xyz"] + p.solution("point_corr", a, b))
+                act = pts["status"] == 0
+                for i in np.flatnonzero(act):
+                    f.write(" ".join([str(int(pts["id"][i]))]
+                                     + [repr(float(v)) for v in xyz[i]]
+                                     + [KIND_WORD_OF.get(int(pts["kind"][i]), "pass"),
+                                        str(int(pts["n_obs"][i]))]) + "\n")
+                counts["points"] += int(act.sum())
+    return {"paths": {k: str(v) for k, v in paths.items()}, "counts": counts}
