@@ -190,10 +190,11 @@ def build_parser():
                        description="Generate a SAPGO-P block with known truth into a new "
                                    "project file. Without --preset the parameters below "
                                    "describe the block (defaults: SAPGO-P data set 1).")
-    from .generate import PRESETS
+    from .generate import ALL_PRESETS
 
     g.add_argument("output", help="project file to create (e.g. data/generated/p3.h5)")
-    g.add_argument("--preset", choices=sorted(PRESETS), help="a block of seeds/002 Table 2")
+    g.add_argument("--preset", choices=ALL_PRESETS,
+                   help="a block of seeds/002: SAPGO-P (Table 2) or SAPGO-MFL (Table 5)")
     g.add_argument("--strips", type=int)
     g.add_argument("--photos-per-strip", type=int)
     g.add_argument("--pattern", type=int, choices=(9, 25), help="points per photo")

@@ -208,7 +208,7 @@ class Summary:
             )
         cp = self.control_points
         if cp["n_x"] or cp["n_z"]:
-            parts = [f"{a} {1000 * cp['rms_' + a.lower()]:.2f} mm"
+            parts = [f"{a} {_length(cp['rms_' + a.lower()])}"
                      for a in ("X", "Y", "Z") if cp["rms_" + a.lower()] is not None]
             L.append(f"  control residuals RMS: {', '.join(parts)}")
         if self.truth:
@@ -230,6 +230,11 @@ class Summary:
             L.append(f"  per iteration [s]: build {ti['build']:.3f}, solve {ti['solve']:.3f}, "
                      f"update {ti['update']:.3f}")
         return "\n".join(L)
+
+
+def _length(metres):
+    """A length for the report: mm below a metre, m above."""
+    return f"{1000 * metres:.2f} mm" if metres < 1.0 else f"{metres:.3f} m"
 
 
 def _ids(ids, limit=20):

@@ -9,7 +9,9 @@ from pathlib import Path
 
 from ..errors import ParameterError
 from ..project import ProjectWriter, append_history
+from .mfl import SCENES
 from .sapgo_p import BlockSpec, write_block
+from .scene import write_scene
 
 #: SAPGO-P data sets 1-4 (seeds/002, Table 2).
 PRESETS = {
@@ -18,6 +20,10 @@ PRESETS = {
     "sapgo-p-3": dict(strips=5, photos_per_strip=100, pattern=9, control_points=48),
     "sapgo-p-4": dict(strips=12, photos_per_strip=42, pattern=9, control_points=44),
 }
+
+
+#: Every preset name (the SAPGO-P blocks and the generated scenes of SAPGO-MFL/-L).
+ALL_PRESETS = sorted(PRESETS) + sorted(SCENES)
 
 
 def block_spec(preset=None, **overrides):
@@ -44,6 +50,8 @@ def generate_block(path, preset=None, progress=None, **overrides):
     """
     from tqdm import tqdm
 
+    if preset in SCENES:
+        return _generate_scene(path, preset, **overrides)
     spec = block_spec(preset, **overrides)
     creator = {"command": "generate", "preset": preset, "spec": dataclasses.asdict(spec)}
     enabled = sys.stderr.isatty() if progress is None else progress
@@ -64,3 +72,24 @@ def generate_block(path, preset=None, progress=None, **overrides):
         "check_points": counts["points"] - counts["control"],
         "observations": counts["observations"],
     }
+
+
+def _generate_scene(path, preset, seed=None, **overrides):
+    """A scene preset (SAPGO-MFL/-L); only ``seed`` may be overridden."""
+    unused = {k for k, v in overrides.items() if v is not None}
+    if unused:
+        raise ParameterError(f"preset {preset} takes no block parameters but --seed "
+                             f"(given: {', '.join(sorted(unused))})")
+    seed = 1 if seed is None else seed
+    scene = SCENES[preset](seed)
+    creator = {"command": "generate", "preset": preset, "seed": seed}
+    with ProjectWriter(Path(path), {"creator": json.dumps(creator),
+                                    "history": append_history("[]", creator)},
+                       truth=True) as w:
+        counts = write_scene(scene, w)
+        w.finish()
+    return {"path": str(path), "preset": preset, "photos": counts["photos"],
+            "strips": counts["strips"], "points": counts["points"],
+            "control_points": counts["control"],
+            "check_points": 0, "observations": counts["observations"],
+            "cameras": counts["cameras"]}

@@ -1,0 +1,38 @@
+"""Generated scenes of SAPGO-MFL (seeds/002 Table 5): counts, band width, adjustment."""
+
+import numpy as np
+
+import sapgo
+from conftest import read_records
+from sapgo.project import KIND_HORIZONTAL, KIND_VERTICAL, Project
+
+
+def test_mfl1_preset_counts_band_width_and_adjustment(tmp_path):
+    path = tmp_path / "mfl1.h5"
+    info = sapgo.generate_block(path, preset="sapgo-mfl-1")
+    assert (info["photos"], info["strips"], info["cameras"], info["points"]) == (273, 16, 6,
+                                                                                1771)
+    with Project(path) as p:
+        cams = p.cameras()
+        st = p.read("stations")
+        pt = p.read("points")
+        ob = p.read("observations")
+    assert len(np.unique(st["camera"])) == 6 and (cams["k1"] != 0).all()
+    assert (cams["sigma_image"] == 0.020).all()
+    kinds = dict(zip(*np.unique(pt["kind"], return_counts=True)))
+    assert kinds[KIND_HORIZONTAL] == 40 + 85 and kinds[KIND_VERTICAL] == 125
+    assert (pt["n_obs"] >= 2).all() and len(ob) == pt["n_obs"].sum()
+    # the same seed gives the same file contents
+    again = tmp_path / "again.h5"
+    sapgo.generate_block(again, preset="sapgo-mfl-1")
+    a, b = read_records(path), read_records(again)
+    for k in ("cameras", "stations", "points", "observations"):
+        assert a[k].tobytes() == b[k].tobytes(), k
+    info = sapgo.order_project(path)
+    assert info.band_width <= 32  # Table 5: 32
+    s = sapgo.adjust(path, sapgo.Options(progress=False))
+    assert s.converged and 0.9 < s.sigma0 < 1.1
+    assert s.n_cameras == 6
+    assert s.truth["points"]["sxy"] < 6.0 and s.truth["points"]["sz"] < 4.0
+    sc = s.strip_comparison
+    assert len(sc["pairs"]) >= 15 and sc["weighted_average"]["n"] > 300
