@@ -36,3 +36,22 @@ def test_mfl1_preset_counts_band_width_and_adjustment(tmp_path):
     assert s.truth["points"]["sxy"] < 6.0 and s.truth["points"]["sz"] < 4.0
     sc = s.strip_comparison
     assert len(sc["pairs"]) >= 15 and sc["weighted_average"]["n"] > 300
+
+
+def test_mfl2_crossing_lines_two_heights_and_band_width(tmp_path):
+    path = tmp_path / "mfl2.h5"
+    info = sapgo.generate_block(path, preset="sapgo-mfl-2")
+    assert (info["photos"], info["cameras"], info["points"]) == (167, 4, 1457)
+    with Project(path) as p:
+        st = p.read("stations")
+    angles = set()
+    for s in np.unique(st["strip"]):
+        xy = st["eo"][st["strip"] == s, 3:5]
+        d = xy[-1] - xy[0]
+        angles.add(int(round(np.degrees(np.arctan2(d[1], d[0])) % 180 / 45.0)) * 45 % 180)
+    assert angles == {0, 90, 135}  # east-west, north-south and the diagonal line
+    heights = np.round(st["eo"][:, 5], -3)
+    assert set(heights.tolist()) >= {4000.0, 5000.0}  # 3700 and 5000 m: two flying heights
+    assert sapgo.order_project(path).band_width <= 34  # Table 5: 34
+    s = sapgo.adjust(path, sapgo.Options(progress=False))
+    assert s.converged and 0.9 < s.sigma0 < 1.1 and s.n_cameras == 4

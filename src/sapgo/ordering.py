@@ -25,6 +25,8 @@ import dataclasses
 import shutil
 from pathlib import Path
 
+import math
+
 import numpy as np
 import scipy.sparse as sp
 from numba import njit
@@ -256,6 +258,12 @@ def candidate_orders(xy, strip, active, edges):
         "across_strip_by_position": idx[np.lexsort((v, u))],
         "down_strip": idx[np.lexsort((u, strip_key))],
     }
+    # sweeps across the block in 12 directions: for blocks of crossing flight lines
+    for deg in range(0, 180, 15):
+        a = math.radians(deg)
+        d = xy @ np.array([math.cos(a), math.sin(a)])
+        e = xy @ np.array([-math.sin(a), math.cos(a)])
+        cands[f"sweep_{deg}"] = idx[np.lexsort((e, d))]
     # reverse Cuthill-McKee on the active subgraph (CSR built directly, int32 indices)
     local = np.full(len(active), -1, np.int64)
     local[idx] = np.arange(len(idx))

@@ -74,5 +74,69 @@ def mfl1(seed=1):
                  terrain=terrain, n_points=1771, control=control, seed=seed)
 
 
+MFL2_CAMERAS = [
+    (152.08, 0.006, -0.004, -1.4e-9, 1.0e-7),
+    (153.01, -0.003, 0.007, 1.1e-9, 0.0),
+    (151.55, 0.009, 0.002, -0.6e-9, -1.2e-7),
+    (152.63, -0.005, -0.008, 2.0e-9, 0.5e-7),
+]
+
+
+def _strip(rng, start, direction, n, base, height, camera, number, tilt_deg=1.0):
+    """``n`` photos from ``start`` (x, y) along the unit ``direction`` every ``base`` m."""
+    heading = math.atan2(direction[1], direction[0])
+    t = np.arange(n) * base + rng.normal(0, 0.02 * base, n)
+    tilt = math.radians(tilt_deg)
+    e = np.column_stack([
+        np.clip(rng.normal(0, tilt, n), -3 * tilt, 3 * tilt),
+        np.clip(rng.normal(0, tilt, n), -3 * tilt, 3 * tilt),
+        -heading + rng.normal(0, math.radians(1.0), n),
+        start[0] + t * direction[0], start[1] + t * direction[1],
+        height + rng.normal(0, 10.0, n)])
+    return e, np.full(n, camera), np.full(n, number)
+
+
+def mfl2(seed=1):
+    """The :class:`Scene` of SAPGO-MFL data set 2: 167 photos of four camera systems, 1457
+    points. A western area flown east-west at 4500 m (camera 1: 9 lines of 7 photos), an
+    eastern area overlapping it flown north-south at 3200 m (cameras 2 and 3 alternating: 8
+    lines of 12 photos), and one diagonal line across both at 4500 m (camera 4: 8 photos);
+    control as the paper's (45 horizontal +-10 m on the north and east edges, 61 horizontal
+    +-40 m, 106 vertical +-5 m)."""
+    rng = np.random.default_rng([seed, 102])
+    cams = _cameras(MFL2_CAMERAS, 0.020)
+    ground = 500.0
+    parts = []
+    fp1 = 0.230 * 4500.0 / 0.152
+    b1, a1 = 0.4 * fp1, 0.7 * fp1
+    for s in range(9):
+        d = (1.0, 0.0) if s % 2 == 0 else (-1.0, 0.0)
+        x0 = 0.0 if s % 2 == 0 else 6 * b1
+        parts.append(_strip(rng, (x0, s * a1), d, 7, b1, ground + 4500.0, 0, s + 1))
+    fp2 = 0.230 * 3200.0 / 0.153
+    b2, a2 = 0.4 * fp2, 0.7 * fp2
+    x_east = 6 * b1 + 0.5 * (fp1 + fp2) - 0.3 * fp2   # overlapping the western area
+    for s in range(8):
+        d = (0.0, 1.0) if s % 2 == 0 else (0.0, -1.0)
+        y0 = 0.0 if s % 2 == 0 else 11 * b2
+        parts.append(_strip(rng, (x_east + s * a2, y0), d, 12, b2, ground + 3200.0,
+                            1 + s % 2, 10 + s))
+    diag = np.array([1.0, -1.0]) / math.sqrt(2.0)
+    start = (x_east - 5 * b1 * diag[0], 11 * b2 - 5 * b1 * diag[1])
+    parts.append(_strip(rng, start, diag, 8, b1, ground + 4500.0, 3, 18))
+    eo = np.concatenate([p[0] for p in parts])
+    lo = eo[:, 3:5].min(axis=0) - fp1
+    extent = float((eo[:, 3:5].max(axis=0) - lo).max()) + fp1
+    terrain = Terrain(extent, extent, relief=150.0, base=ground, seed=seed,
+                      origin=(float(lo[0]), float(lo[1])))
+    control = [ControlClass(23, KIND_HORIZONTAL, (10.0, 10.0, 0.0), "north"),
+               ControlClass(22, KIND_HORIZONTAL, (10.0, 10.0, 0.0), "east"),
+               ControlClass(61, KIND_HORIZONTAL, (40.0, 40.0, 0.0)),
+               ControlClass(106, KIND_VERTICAL, (0.0, 0.0, 5.0))]
+    return Scene(cameras=cams, eo=eo, camera=np.concatenate([p[1] for p in parts]),
+                 strip=np.concatenate([p[2] for p in parts]), terrain=terrain, n_points=1457,
+                 control=control, seed=seed)
+
+
 #: Scene presets: name -> function(seed) returning a Scene.
-SCENES = {"sapgo-mfl-1": mfl1}
+SCENES = {"sapgo-mfl-1": mfl1, "sapgo-mfl-2": mfl2}
