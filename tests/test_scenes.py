@@ -55,3 +55,32 @@ def test_mfl2_crossing_lines_two_heights_and_band_width(tmp_path):
     assert sapgo.order_project(path).band_width <= 34  # Table 5: 34
     s = sapgo.adjust(path, sapgo.Options(progress=False))
     assert s.converged and 0.9 < s.sigma0 < 1.1 and s.n_cameras == 4
+
+
+def test_apollo15_lunar_block_adjusts_on_station_priors_alone(tmp_path, capsys):
+    """Apollo 15 data set 1 (Table 6): selenocentric, controlled only by station priors;
+    adjusts and prints its strip comparison along east, north, up (Table 8)."""
+    from conftest import run_cli
+    from sapgo.frames import SELENOCENTRIC
+
+    path = tmp_path / "a1.h5"
+    info = sapgo.generate_block(path, preset="apollo15-1")
+    assert (info["photos"], info["points"], info["control_points"]) == (426, 3319, 0)
+    with Project(path) as p:
+        assert p.frame().kind == SELENOCENTRIC and p.frame().body == "moon"
+        assert p.n_priors == 426
+        r = np.linalg.norm(p.read("points")["xyz"], axis=1)
+        n_obs = p.read("points")["n_obs"]
+    assert abs(np.median(r) - 1737400.0) < 5000.0 and n_obs.max() >= 12
+    assert sapgo.order_project(path).band_width <= 32  # Table 6: 32
+    code, out, err = run_cli(capsys, "adjust", path, "--no-progress", "--json",
+                             tmp_path / "r.json")
+    assert code == 0, err
+    assert "frame: selenocentric" in out and "sE [m]" in out and "weighted average" in out
+    import json
+
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rep["converged"] and 0.9 < rep["sigma0"] < 1.1
+    sc = rep["strip_comparison"]
+    assert sc["axes"] == ["east", "north", "up"] and len(sc["pairs"]) >= 4
+    assert 5.0 < max(sc["weighted_average"]["sigma_m"]) < 300.0

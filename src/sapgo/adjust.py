@@ -700,7 +700,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     xyz_ds, res_ds = work.xyz_current, work.res_current
     checks = check_point_statistics()
     truth = truth_statistics() if p_read.has_truth else None
-    strips = StripComparison(p_read.read_field("stations", "strip"), blk.station_active)
+    strips = StripComparison(p_read.read_field("stations", "strip"), blk.station_active,
+                             p_read.frame())
     excluded_points, n_excluded_points = [], 0
     for a, b in p_read.chunks("points", opts.chunk_points):
         pts = p_read.read("points", a, b)

@@ -9,7 +9,9 @@ standard error of the differences per coordinate,
     sigma_c = sqrt(sum_i (X_c(i, a) - X_c(i, b))^2 / n)        c = X, Y, Z
 
 over the ``n`` points derived in both strips, and over all pairs the weighted average
-``sigma_A = sum n_i sigma_i / sum n_i`` of the paper.
+``sigma_A = sum n_i sigma_i / sum n_i`` of the paper. For a block in a CRS the differences are
+taken along east, north and up at the point (the paper's latitude, longitude and height);
+in a local frame along its X, Y, Z.
 
 A point is derived in a strip when it has active rays from at least two photos of that strip
 whose intersection is well conditioned (``geometry.intersect_points``, distortion removed
@@ -23,16 +25,17 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .frames import LOCAL
 from .geometry import _add_ray, _solve_sym3
 
 
 @njit(cache=True)
 def _strip_points(pt_start, pt_nobs, pt_active, obs_station, obs_xy, obs_active, eo,
-                  st_strip, cam_of_station, cams, out_pair, out_diff):
+                  st_strip, cam_of_station, cams, out_pair, out_diff, out_pos):
     """Differences of the coordinates a point gets from each pair of strips, for a chunk of
-    points. Fills ``out_pair`` (m x 2: strip a < strip b) and ``out_diff`` (m x 3) and
-    returns ``m``; the outputs must hold ``sum_j C(k_j, 2)`` rows (``k_j`` strips of point
-    ``j``)."""
+    points. Fills ``out_pair`` (m x 2: strip a < strip b), ``out_diff`` (m x 3) and
+    ``out_pos`` (m x 3: the point from strip a) and returns ``m``; the outputs must hold
+    ``sum_j C(k_j, 2)`` rows (``k_j`` strips of point ``j``)."""
     m = 0
     a = np.empty((3, 3))
     r = np.empty(3)
@@ -89,6 +92,7 @@ def _strip_points(pt_start, pt_nobs, pt_active, obs_station, obs_xy, obs_active,
                 out_pair[m, 1] = strips[hi]
                 for c in range(3):
                     out_diff[m, c] = xyz[lo, c] - xyz[hi, c]
+                    out_pos[m, c] = xyz[lo, c]
                 m += 1
     return m
 
@@ -96,9 +100,13 @@ def _strip_points(pt_start, pt_nobs, pt_active, obs_station, obs_xy, obs_active,
 class StripComparison:
     """Accumulates :func:`_strip_points` over chunks; :meth:`result` gives the report."""
 
-    def __init__(self, strip_of_station, station_active):
+    def __init__(self, strip_of_station, station_active, frame=None):
         self.strip = np.where(station_active, strip_of_station, -1).astype(np.int64)
         self.acc = {}  # (strip a, strip b) -> [n, sum dx^2, sum dy^2, sum dz^2]
+        #: differences along east, north, up at the point for a frame with a CRS (a lunar
+        #: block's frame axes are far from them), else along the frame's X, Y, Z
+        self.frame = frame if frame is not None and frame.kind != LOCAL else None
+        self.axes = ("east", "north", "up") if self.frame is not None else ("X", "Y", "Z")
 
     def add(self, chunk, eo, cam_of_station, cams):
         """Add the points of a :class:`sapgo.normals.PointChunk` (adjusted orientation
@@ -112,11 +120,14 @@ class StripComparison:
             return
         pair = np.empty((rows, 2), np.int64)
         diff = np.empty((rows, 3))
+        pos = np.empty((rows, 3))
         m = _strip_points(chunk.pt_start, chunk.nobs, chunk.active, chunk.obs_station,
                           chunk.obs_xy, chunk.obs_active, eo, self.strip, cam_of_station, cams,
-                          pair, diff)
+                          pair, diff, pos)
         if not m:
             return
+        if self.frame is not None:
+            diff[:m] = np.einsum("nij,nj->ni", self.frame._station_rotations(pos[:m]), diff[:m])
         key, inv = np.unique(pair[:m], axis=0, return_inverse=True)
         n = np.bincount(inv.ravel(), minlength=len(key))
         sq = np.zeros((len(key), 3))
@@ -127,7 +138,7 @@ class StripComparison:
             for c in range(3):
                 acc[1 + c] += float(s[c])
 
-    def result(self, axes=("X", "Y", "Z")):
+    def result(self):
         """``{"axes", "pairs": [{"strips": [a, b], "n", "sigma_m": [..]}], "weighted_average":
         {"n", "sigma_m"}}`` (strip numbers as in ``/stations.strip``); None without pairs."""
         if not self.acc:
@@ -140,7 +151,7 @@ class StripComparison:
             pairs.append({"strips": [sa, sb], "n": n, "sigma_m": sigma.tolist()})
             total += n
             wsum += n * sigma
-        return {"axes": list(axes), "pairs": pairs,
+        return {"axes": list(self.axes), "pairs": pairs,
                 "weighted_average": {"n": total, "sigma_m": (wsum / total).tolist()}}
 
 
@@ -163,7 +174,7 @@ def format_strip_comparison(sc):
     ax = sc["axes"]
     lines = ["  strip comparison: common points derived from each strip's adjusted orientation "
              "(seeds/002 Table 8)",
-             "    strips compared   " + "".join(f"{'s' + a + ' [m]':>10}" for a in ax)
+             "    strips compared   " + "".join(f"{'s' + a[0].upper() + ' [m]':>10}" for a in ax)
              + "    points"]
     for p in sc["pairs"]:
         a, b = p["strips"]

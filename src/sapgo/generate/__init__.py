@@ -9,7 +9,8 @@ from pathlib import Path
 
 from ..errors import ParameterError
 from ..project import ProjectWriter, append_history
-from .mfl import SCENES
+from .apollo import SCENES as _APOLLO
+from .mfl import SCENES as _MFL
 from .sapgo_p import BlockSpec, write_block
 from .scene import write_scene
 
@@ -21,6 +22,9 @@ PRESETS = {
     "sapgo-p-4": dict(strips=12, photos_per_strip=42, pattern=9, control_points=44),
 }
 
+
+#: Generated scenes: SAPGO-MFL (Table 5) and SAPGO-L Apollo 15 (Table 6).
+SCENES = {**_MFL, **_APOLLO}
 
 #: Every preset name (the SAPGO-P blocks and the generated scenes of SAPGO-MFL/-L).
 ALL_PRESETS = sorted(PRESETS) + sorted(SCENES)

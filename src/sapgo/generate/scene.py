@@ -55,6 +55,13 @@ class Scene:
     position_perturbation: float = 10.0   # m
     angle_perturbation: float = 60.0      # arc seconds
     seed: int = 1
+    #: A lunar block: the stations are Moon-fixed (selenocentric), the points lie on the
+    #: sphere of this radius plus ``terrain(R lon, R lat)``, the grid is in latitude and
+    #: longitude, and ``priors`` (station priors, PRIOR_DTYPE) give the approximations.
+    sphere_radius: float | None = None
+    priors: np.ndarray | None = None
+    #: root attributes of the project (frame, crs)
+    attrs: dict = dataclasses.field(default_factory=dict)
 
 
 @njit(cache=True)
@@ -105,17 +112,31 @@ class _Visibility:
         self.cam_of = np.ascontiguousarray(scene.camera, dtype=np.int64)
         self.half_x = scene.cameras["format_x"] / 2 - 1.0
         self.half_y = scene.cameras["format_y"] / 2 - 1.0
-        height = scene.eo[:, 5] - np.median(scene.terrain(scene.eo[:, 3], scene.eo[:, 4]))
         f = scene.cameras["focal_length"][self.cam_of]
         fmt = np.maximum(scene.cameras["format_x"], scene.cameras["format_y"])[self.cam_of]
-        self.reach = 0.9 * fmt * height / f      # ground half diagonal with tilt: generous
-        self.order = np.argsort(self.eo[:, 3], kind="stable")
-        self.sx = self.eo[self.order, 3]
+        self.sphere = scene.sphere_radius
+        if self.sphere:
+            height = np.linalg.norm(self.eo[:, 3:], axis=1) - self.sphere
+            lat = np.arcsin(self.eo[:, 5] / np.linalg.norm(self.eo[:, 3:], axis=1))
+            # ground half diagonal with tilt, as an angle of longitude
+            self.reach = 0.9 * fmt * height / f / self.sphere / np.cos(np.abs(lat).max() + 0.2)
+            key = self.key(self.eo[:, 3:])
+        else:
+            height = scene.eo[:, 5] - np.median(scene.terrain(scene.eo[:, 3], scene.eo[:, 4]))
+            self.reach = 0.9 * fmt * height / f      # ground half diagonal with tilt: generous
+            key = self.eo[:, 3]
+        self.order = np.argsort(key, kind="stable")
+        self.sx = key[self.order]
         self.r = float(self.reach.max())
 
+    def key(self, xyz):
+        """The sort key of the prefilter: x, or the longitude on a sphere."""
+        return np.arctan2(xyz[:, 1], xyz[:, 0]) if self.sphere else xyz[:, 0]
+
     def ranges(self, xyz):
-        lo = np.searchsorted(self.sx, xyz[:, 0] - self.r).astype(np.int64)
-        hi = np.searchsorted(self.sx, xyz[:, 0] + self.r, side="right").astype(np.int64)
+        k = self.key(xyz)
+        lo = np.searchsorted(self.sx, k - self.r).astype(np.int64)
+        hi = np.searchsorted(self.sx, k + self.r, side="right").astype(np.int64)
         return lo, hi
 
     def count(self, xyz):
@@ -138,6 +159,17 @@ class _Visibility:
 
 def _grid(scene, spacing, bounds):
     x0, x1, y0, y1 = bounds
+    if scene.sphere_radius:  # latitude rows, longitude steps of equal arc length
+        R = scene.sphere_radius
+        pts = []
+        for lat in np.arange(y0, y1 + 1e-12, spacing / R):
+            lon = np.arange(x0, x1 + 1e-12, spacing / (R * max(math.cos(lat), 1e-3)))
+            h = scene.terrain(R * lon, np.full(len(lon), R * lat))
+            r = R + h
+            pts.append(np.column_stack([r * math.cos(lat) * np.cos(lon),
+                                        r * math.cos(lat) * np.sin(lon),
+                                        r * math.sin(lat) * np.ones(len(lon))]))
+        return np.concatenate(pts) if pts else np.zeros((0, 3))
     xs = np.arange(x0, x1 + 1e-9, spacing)
     ys = np.arange(y0, y1 + 1e-9, spacing)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
@@ -149,9 +181,15 @@ def pass_points(scene, vis):
     """True coordinates of the pass points: a grid with ``scene.n_points`` points seen on two
     photos or more (bisection on the spacing, then the surplus dropped at random)."""
     e = scene.eo
-    bounds = (e[:, 3].min() - vis.r, e[:, 3].max() + vis.r,
-              e[:, 4].min() - vis.r, e[:, 4].max() + vis.r)
-    area = (bounds[1] - bounds[0]) * (bounds[3] - bounds[2])
+    if scene.sphere_radius:  # bounds in longitude, latitude (radians); area in m^2
+        lon = np.arctan2(e[:, 4], e[:, 3])
+        lat = np.arcsin(e[:, 5] / np.linalg.norm(e[:, 3:], axis=1))
+        bounds = (lon.min() - vis.r, lon.max() + vis.r, lat.min() - vis.r, lat.max() + vis.r)
+        area = (bounds[1] - bounds[0]) * (bounds[3] - bounds[2]) * scene.sphere_radius ** 2
+    else:
+        bounds = (e[:, 3].min() - vis.r, e[:, 3].max() + vis.r,
+                  e[:, 4].min() - vis.r, e[:, 4].max() + vis.r)
+        area = (bounds[1] - bounds[0]) * (bounds[3] - bounds[2])
     lo, hi = math.sqrt(area / (50 * scene.n_points)), math.sqrt(area / 2)
 
     def tied(spacing):
@@ -211,10 +249,14 @@ def write_scene(scene, writer, progress=None):
     sig = scene.cameras["sigma_image"][scene.camera[st]]
     xy = xy + rng.normal(0, 1, xy.shape) * sig[:, None]
     n_st = len(scene.eo)
-    # approximate stations
-    approx = scene.eo.copy()
-    approx[:, :3] += rng.normal(0, scene.angle_perturbation * ARCSEC, (n_st, 3))
-    approx[:, 3:] += rng.normal(0, scene.position_perturbation, (n_st, 3))
+    # approximate stations: the priors' values (orbit data), else the truth perturbed
+    if scene.priors is not None:
+        approx = np.array(scene.eo)
+        approx[scene.priors["station"]] = scene.priors["value"]
+    else:
+        approx = scene.eo.copy()
+        approx[:, :3] += rng.normal(0, scene.angle_perturbation * ARCSEC, (n_st, 3))
+        approx[:, 3:] += rng.normal(0, scene.position_perturbation, (n_st, 3))
     kind, ctrl, csig = _choose_control(scene, xyz, rng)
     starts = np.zeros(len(xyz), np.int64)
     np.cumsum(n_rays[:-1], out=starts[1:])
@@ -231,6 +273,10 @@ def write_scene(scene, writer, progress=None):
     stations["strip"] = scene.strip
     stations["eo"] = approx
     writer.append("stations", stations)
+    if scene.priors is not None:
+        writer.append("station_priors", scene.priors)
+    if scene.attrs:
+        writer.set_attrs(**scene.attrs)
     truth_st = np.zeros(n_st, TRUTH_STATION_DTYPE)
     truth_st["id"] = stations["id"]
     truth_st["eo"] = scene.eo
