@@ -182,3 +182,39 @@ def test_adjusted_results_in_the_users_crs(block_cache, tmp_path, capsys):
     assert 11.3 < pts[:, 1].mean() < 11.8 and 48.0 < pts[:, 2].mean() < 48.3
     ph = np.loadtxt(tmp_path / "res" / "adjusted_photos.txt")
     assert len(ph) == 12 and (np.abs(ph[:, 3:5]) < 1.0).all()  # near-vertical: degrees
+
+
+def test_orientation_as_rotation_matrices(block_cache, tmp_path, capsys):
+    """Photos given with rotation matrices import to the same stations as with angles; a
+    matrix that is not a rotation names the line."""
+    from conftest import assert_one_line_error, run_cli
+    from sapgo.frames import rotation_matrices
+
+    src = tmp_path / "local.h5"
+    shutil.copy(block_cache("small", strips=2, photos_per_strip=6, control_points=6), src)
+    d = tmp_path / "txt"
+    export_text(src, d, angles="rad")
+    rows = [ln.split() for ln in open(d / "photos.txt") if ln[0] != "#"]
+    with open(d / "pm.txt", "w") as f:
+        for r in rows:
+            m = rotation_matrices(np.array([[float(v) for v in r[3:6]]]))[0]
+            f.write(" ".join(r[:3] + [repr(float(v)) for v in m.ravel()] + r[6:9]) + "\n")
+    files = dict(cameras=d / "cameras.txt", measurements=d / "measurements.txt",
+                 control=d / "control.txt")
+    a, b = tmp_path / "a.h5", tmp_path / "b.h5"
+    import_text(a, photos=d / "photos.txt", angles="rad", **files)
+    import_text(b, photos_matrix=d / "pm.txt", **files)
+    with Project(a) as p, Project(b) as q:
+        ea, eb = p.read("stations")["eo"], q.read("stations")["eo"]
+    dk = (ea[:, 2] - eb[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    np.testing.assert_allclose(ea[:, :2], eb[:, :2], atol=1e-14)
+    np.testing.assert_allclose(dk, 0.0, atol=1e-14)
+    np.testing.assert_array_equal(ea[:, 3:], eb[:, 3:])
+    lines = open(d / "pm.txt").read().splitlines()
+    t = lines[1].split()
+    t[3] = repr(float(t[3]) * 1.01)
+    lines[1] = " ".join(t)
+    (d / "pm.txt").write_text("\n".join(lines) + "\n")
+    code, _, err = run_cli(capsys, "import", tmp_path / "c.h5", "--photos-matrix",
+                           d / "pm.txt", *[f"--{k}={v}" for k, v in files.items()])
+    assert_one_line_error(code, err, "pm.txt:2", "is not a rotation")

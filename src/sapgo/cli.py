@@ -83,6 +83,7 @@ def cmd_import(args):
         measurements=args.measurements, control=args.control, angles=args.angles,
         memory=args.memory, append=args.append, force=args.force, priors=args.priors,
         prior_covariances=args.prior_covariances, crs=args.crs, orientation=args.orientation,
+        photos_matrix=args.photos_matrix,
     )
     for w in summary["warnings"]:
         _warn(w)
@@ -236,6 +237,9 @@ def build_parser():
                         "(mm)")
     m.add_argument("--photos", action="append", default=[], metavar="FILE",
                    help="id camera strip omega phi kappa X Y Z (angles: --angles; m)")
+    m.add_argument("--photos-matrix", action="append", default=[], metavar="FILE",
+                   help="photos with a rotation matrix: id camera strip m11 m12 m13 m21 m22 "
+                        "m23 m31 m32 m33 X Y Z (object to image, row by row)")
     m.add_argument("--measurements", action="append", default=[], metavar="FILE",
                    help="photo point x y [sigma] (mm; sigma 0 or missing = the camera's)")
     m.add_argument("--control", action="append", default=[], metavar="FILE",

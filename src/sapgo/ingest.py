@@ -41,7 +41,9 @@ from .formats.text import (
     COVARIANCE_TERMS,
     MEASUREMENTS,
     NEEDED,
+    MATRIX_TERMS,
     PHOTOS,
+    PHOTOS_MATRIX,
     PRIOR_COVARIANCES,
     PRIOR_PARAMETERS,
     PRIORS,
@@ -49,7 +51,7 @@ from .formats.text import (
     parse_chunk,
     read_chunks,
 )
-from .frames import LOCAL, ORIENTATIONS, Frame, parse_crs
+from .frames import LOCAL, ORIENTATIONS, Frame, opk_of, parse_crs
 from .geometry import camera_array, intersect_points, undistort_points
 from .project import (
     CAMERA_DTYPE,
@@ -286,15 +288,21 @@ class _Import:
                                         f"file(s) (column 2)")]
 
         n_old = sum(len(e) for e in eo)
-        for path in self.files["photos"]:
-            for rec, loc in self._read(PHOTOS, path, known_camera):
-                k = np.searchsorted(cam_ids, rec["camera"])
-                ids.append(rec["id"])
-                cam.append(k)
-                strip.append(rec["strip"])
-                eo.append(np.stack([rec[n] for n in ("omega", "phi", "kappa", "X", "Y", "Z")],
-                                   axis=1))
-                locs.append(loc)
+        for kind in ("photos", "photos_matrix"):
+            for path in self.files[kind]:
+                fmt = PHOTOS if kind == "photos" else PHOTOS_MATRIX
+                for rec, loc in self._read(fmt, path, known_camera):
+                    k = np.searchsorted(cam_ids, rec["camera"])
+                    ids.append(rec["id"])
+                    cam.append(k)
+                    strip.append(rec["strip"])
+                    if fmt is PHOTOS:
+                        opk = np.stack([rec[n] for n in ("omega", "phi", "kappa")], axis=1)
+                    else:
+                        m = np.stack([rec[t] for t in MATRIX_TERMS], axis=1).reshape(-1, 3, 3)
+                        opk = opk_of(m)
+                    eo.append(np.column_stack([opk] + [rec[n] for n in ("X", "Y", "Z")]))
+                    locs.append(loc)
         if not ids or not sum(len(i) for i in ids):
             raise DataError("no photo: give a photos file with at least one photo (--photos)")
         ids, cam, strip = np.concatenate(ids), np.concatenate(cam), np.concatenate(strip)
@@ -878,7 +886,7 @@ class _Import:
 
 def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles="deg",
                 memory=None, append=False, force=False, priors=(), prior_covariances=(),
-                crs=None, orientation="tangent"):
+                crs=None, orientation="tangent", photos_matrix=()):
     """Import a block from text files into the project ``out``; returns a summary dict.
 
     ``cameras``, ``photos``, ``measurements``, ``control``, ``priors`` (exposure-station
@@ -890,8 +898,10 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     the block is computed in the local tangent frame at its centre (Earth) or in the
     selenocentric frame (Moon) and ``orientation`` says how omega, phi, kappa are given:
     ``"tangent"`` (to the local east-north-up frame at each station) or ``"geocentric"``
-    (to the body-fixed axes); see :mod:`sapgo.frames`. ``memory``: the budget of the sorting
-    phases (bytes or ``"512M"``; default :data:`sapgo.extsort.DEFAULT_MEMORY`).
+    (to the body-fixed axes); see :mod:`sapgo.frames`. ``photos_matrix``: photos files whose
+    orientation is a rotation matrix (object to image, row by row; relative to the same axes)
+    instead of three angles. ``memory``: the budget of the sorting phases (bytes or
+    ``"512M"``; default :data:`sapgo.extsort.DEFAULT_MEMORY`).
 
     If ``out`` exists, ``force=True`` replaces it and ``append=True`` adds the files to it:
     its records are read back and combined with the files as if all had been imported
@@ -911,6 +921,7 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     memory = DEFAULT_MEMORY if memory is None else parse_memory(memory)
     out = Path(out)
     files = {"cameras": _as_list(cameras), "photos": _as_list(photos),
+             "photos_matrix": _as_list(photos_matrix),
              "measurements": _as_list(measurements), "control": _as_list(control),
              "priors": _as_list(priors), "prior_covariances": _as_list(prior_covariances)}
     if append and force:
@@ -924,7 +935,7 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
                              f"to replace it")
     if not (append and exists):
         for kind in ("cameras", "photos", "measurements"):
-            if not files[kind]:
+            if not files[kind] and not (kind == "photos" and files["photos_matrix"]):
                 raise ParameterError(f"no {kind} file given (--{kind})")
     elif not any(files.values()):
         raise ParameterError("nothing to append: give --cameras, --photos, --measurements "

@@ -8,6 +8,7 @@ documented field by field in ``docs/formats.md``::
 
     cameras       id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2]
     photos        id camera strip omega phi kappa X Y Z
+    photos_matrix id camera strip m11 m12 m13 m21 m22 m23 m31 m32 m33 X Y Z
     measurements  photo point x y [sigma]
     control       point X Y Z sX sY sZ [kind]
     priors        photo omega phi kappa X Y Z s_omega s_phi s_kappa sX sY sZ
@@ -132,6 +133,14 @@ PHOTOS = TextFormat(
      ("kappa", _ANGLE), ("X", _FLOAT), ("Y", _FLOAT), ("Z", _FLOAT)],
     9, "id camera strip omega phi kappa X Y Z",
 )
+#: Photos with their orientation as a rotation matrix (object to image, row by row).
+MATRIX_TERMS = tuple(f"m{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3))
+PHOTOS_MATRIX = TextFormat(
+    "photos_matrix",
+    [("id", _ID), ("camera", _ID), ("strip", _INT)] + [(m, _FLOAT) for m in MATRIX_TERMS]
+    + [("X", _FLOAT), ("Y", _FLOAT), ("Z", _FLOAT)],
+    15, "id camera strip m11 m12 m13 m21 m22 m23 m31 m32 m33 X Y Z",
+)
 MEASUREMENTS = TextFormat(
     "measurements",
     [("photo", _ID), ("point", _ID), ("x", _FLOAT), ("y", _FLOAT), ("sigma", _FLOAT)],
@@ -160,8 +169,8 @@ PRIOR_COVARIANCES = TextFormat(
     + [(n, _FLOAT) for n in PRIOR_PARAMETERS[3:]] + [(c, _FLOAT) for c in COVARIANCE_TERMS],
     28, "photo omega phi kappa X Y Z c11 c12 ... c16 c22 ... c66",
 )
-FORMATS = {f.name: f for f in (CAMERAS, PHOTOS, MEASUREMENTS, CONTROL, PRIORS,
-                               PRIOR_COVARIANCES)}
+FORMATS = {f.name: f for f in (CAMERAS, PHOTOS, PHOTOS_MATRIX, MEASUREMENTS, CONTROL,
+                               PRIORS, PRIOR_COVARIANCES)}
 
 
 def check_angles(angles):
@@ -515,6 +524,19 @@ def _checks(fmt, arr, rec):
             c.append((np.isnan(v) & ctrl[:, k], lambda i, n=n, k=k: (
                 f"{n} is unknown ('-' or nan) but {what(i)} needs it (column {k + 5}; "
                 f"0 fixes the coordinate)")))
+        return c
+    if fmt is PHOTOS_MATRIX:
+        st = rec["strip"]
+        c = [((st < -1) | (st > np.iinfo(np.int32).max), lambda i: (
+            f"strip must be -1 (unknown) or a flight line number >= 0, found {st[i]} "
+            f"(column 3)"))]
+        c += _finite_checks(fmt, rec, MATRIX_TERMS + ("X", "Y", "Z"))
+        m = np.stack([rec[t] for t in MATRIX_TERMS], axis=1).reshape(-1, 3, 3)
+        err = np.abs(m @ np.transpose(m, (0, 2, 1)) - np.eye(3)).max(axis=(1, 2))
+        bad = ~(err < 1e-6) | ~(np.linalg.det(np.where(np.isfinite(m), m, 0.0)) > 0)
+        c.append((bad, lambda i: (
+            f"the matrix (columns 4-12) is not a rotation: |M M' - I| = {_num(err[i])}, "
+            f"expected below 1e-6 and det M = +1")))
         return c
     if fmt is PRIORS:
         c = _finite_checks(fmt, rec, PRIOR_PARAMETERS)
