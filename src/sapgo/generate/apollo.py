@@ -2,7 +2,7 @@
 
 The Apollo 15 metric camera (f = 76.2 mm, 114.3 mm format, image sigma 20 um) photographed
 from about 110 km; each revolution's ground track is a great circle of inclination 25 deg,
-and successive revolutions' tracks (ascending nodes 8.4 deg apart, 40 % sidelap at the
+and successive revolutions' tracks (ascending nodes 6 deg apart, about 50 % sidelap at the
 equator) converge at both ends of the block, where points appear on up to 20 photos. The
 block spans 200 deg of longitude (argument of latitude -100 .. +100 deg) and about 50 deg of
 latitude. There is no ground control: every photo has a prior (orbit and attitude data) and
@@ -26,6 +26,8 @@ from .terrain import Terrain
 ARCSEC = math.pi / (180 * 3600)
 INCLINATION = math.radians(25.0)
 ALTITUDE = 110_000.0
+#: degrees between the ascending nodes of neighbouring revolutions
+NODE_STEP = 6.0
 FOCAL, FORMAT = 76.2, 114.3
 
 #: data set -> (photos per orbit, pass points, sigma of the centre orbit's height in m)
@@ -56,7 +58,7 @@ def apollo15(data_set, seed=1):
     cams = np.zeros(1, CAMERA_DTYPE)
     cams[0] = (1, FOCAL, 0.0, 0.0, FORMAT, FORMAT, 0.020, 0, 0, 0, 0, 0)
     n_orb = len(per_orbit)
-    step = math.radians(8.4)
+    step = math.radians(NODE_STEP)
     pos, vel, strip = [], [], []
     for k, n in enumerate(per_orbit):
         p, v = _orbit(n, (k - (n_orb - 1) / 2) * step, ALTITUDE, rng)
