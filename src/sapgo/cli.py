@@ -165,6 +165,7 @@ def cmd_info(args):
             "points_by_kind": kinds,
             "observations": p.n_observations,
             "station_priors": p.n_priors,
+            "frame": p.frame().describe(),
             "ordered": p.ordered,
             "ordering": p.attr("ordering"),
             "band_width": p.band_width,
