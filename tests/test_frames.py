@@ -113,6 +113,24 @@ def write_in_crs(src_dir, dst_dir, frame_o, crs, orientation):
             f.write(" ".join([r[0]] + [repr(float(v)) for v in p] + r[4:]) + "\n")
 
 
+def block_in_crs(block_cache, tmp_path, name="small", crs="EPSG:4979",
+                 orientation="tangent", **params):
+    """A generated local block (``name``, ``params`` for the generator) and the same block
+    imported from text written in ``crs``: (local path, imported path, text directory)."""
+    params = params or dict(strips=2, photos_per_strip=6, control_points=6)
+    src = tmp_path / "local.h5"
+    shutil.copy(block_cache(name, **params), src)
+    d = tmp_path / "txt"
+    export_text(src, d)
+    dd = tmp_path / "geo"
+    write_in_crs(d, dd, None, crs, orientation)
+    out = tmp_path / "geo.h5"
+    import_text(out, cameras=dd / "cameras.txt", photos=dd / "photos.txt",
+                measurements=dd / "measurements.txt", control=dd / "control.txt", crs=crs,
+                orientation=orientation)
+    return src, out, dd
+
+
 def adjusted_ecef(path):
     with Project(path) as p:
         pt = p.read("points")
@@ -159,16 +177,7 @@ def test_adjusted_results_in_the_users_crs(block_cache, tmp_path, capsys):
     """export --adjusted writes the adjusted block back in the CRS it was given in."""
     from conftest import run_cli
 
-    src = tmp_path / "local.h5"
-    shutil.copy(block_cache("small", strips=2, photos_per_strip=6, control_points=6), src)
-    d = tmp_path / "txt"
-    export_text(src, d)
-    dd = tmp_path / "geo"
-    write_in_crs(d, dd, None, "EPSG:4979", "tangent")
-    out = tmp_path / "geo.h5"
-    import_text(out, cameras=dd / "cameras.txt", photos=dd / "photos.txt",
-                measurements=dd / "measurements.txt", control=dd / "control.txt",
-                crs="EPSG:4979")
+    _, out, _ = block_in_crs(block_cache, tmp_path)
     code, text, err = run_cli(capsys, "adjust", out, "--no-progress")
     assert code == 0 and "frame: local tangent (east, north, up at 48.1" in text, err
     code, text, err = run_cli(capsys, "export", out, tmp_path / "res", "--adjusted")
@@ -218,3 +227,65 @@ def test_orientation_as_rotation_matrices(block_cache, tmp_path, capsys):
     code, _, err = run_cli(capsys, "import", tmp_path / "c.h5", "--photos-matrix",
                            d / "pm.txt", *[f"--{k}={v}" for k, v in files.items()])
     assert_one_line_error(code, err, "pm.txt:2", "is not a rotation")
+
+
+def test_strip_comparison_of_a_block_in_a_crs_equals_its_local_twin(block_cache, tmp_path):
+    """In a tangent frame the differences are turned into east, north, up at each point: the
+    same as the local twin's X, Y, Z (its axes are east, north, up at the origin)."""
+    src, out, _ = block_in_crs(block_cache, tmp_path, "strips3", strips=3, photos_per_strip=6,
+                               control_points=8)
+    opts = sapgo.Options(progress=False)
+    a = sapgo.adjust(src, opts).strip_comparison
+    b = sapgo.adjust(out, opts).strip_comparison
+    assert a["axes"] == ["X", "Y", "Z"] and b["axes"] == ["east", "north", "up"]
+    np.testing.assert_allclose(b["weighted_average"]["sigma_m"],
+                               a["weighted_average"]["sigma_m"], rtol=0.02)
+
+
+@pytest.mark.parametrize("line, words", [
+    ("17 11.5 48.1 - 0.1 0.1 - horizontal", ("c.txt:1", "horizontal control", "--crs")),
+    ("17 - - 500 - - 0.1 vertical", ("c.txt:1", "vertical control")),
+])
+def test_partial_control_in_a_crs_is_refused(exported_geo, tmp_path, line, words):
+    d = exported_geo
+    (d / "c.txt").write_text(line + "\n")
+    with pytest.raises(DataError) as exc:
+        import_text(tmp_path / "x.h5", cameras=d / "cameras.txt", photos=d / "photos.txt",
+                    measurements=d / "measurements.txt", control=d / "c.txt",
+                    crs="EPSG:4979")
+    for w in words:
+        assert w in str(exc.value)
+
+
+def test_anisotropic_sigmas_in_a_geocentric_crs_are_refused(exported_geo, tmp_path):
+    d = exported_geo
+    dd = tmp_path / "ecef"
+    write_in_crs(d.parent / "txt", dd, None, "EPSG:4978", "geocentric")
+    rows = (dd / "control.txt").read_text().splitlines()
+    t = rows[0].split()
+    t[4:7] = ["0.1", "0.1", "0.3"]
+    rows[0] = " ".join(t)
+    (dd / "control.txt").write_text("\n".join(rows) + "\n")
+    with pytest.raises(DataError, match="control.txt:1: point .* sigmas must be equal"):
+        import_text(tmp_path / "x.h5", cameras=dd / "cameras.txt", photos=dd / "photos.txt",
+                    measurements=dd / "measurements.txt", control=dd / "control.txt",
+                    crs="EPSG:4978", orientation="geocentric")
+
+
+@pytest.fixture
+def exported_geo(block_cache, tmp_path):
+    return block_in_crs(block_cache, tmp_path)[2]
+
+
+def test_gimbal_lock_ballpark_transformations_and_orientation_names():
+    from sapgo.frames import opk_of, rotation_matrices
+
+    for phi in (np.pi / 2, -np.pi / 2):
+        m = np.round(rotation_matrices(np.array([[0.3, phi, 0.5]]))[0], 9)
+        np.testing.assert_allclose(rotation_matrices(opk_of(m))[0], m, atol=1e-8)
+    f = Frame(TANGENT, parse_crs("EPSG:32632+5773").to_wkt(), ORIGIN)
+    with pytest.raises(DataError, match="no accurate transformation"):
+        f.from_user(np.array([[690000.0, 5333000.0, 500.0]]))
+    g = Frame(TANGENT, parse_crs("EPSG:4979").to_wkt(), ORIGIN)
+    with pytest.raises(ParameterError, match="orientation 'Tangent'"):
+        g.opk_to_user(np.zeros((1, 3)), np.zeros((1, 3)), "Tangent")

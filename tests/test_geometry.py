@@ -174,3 +174,21 @@ def test_3x3_cholesky_solve_against_numpy(rng):
         _solve3(lo, b, x)
         np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-10)
     assert not _chol3(np.diag([1.0, 1.0, 0.0]), np.zeros((3, 3)))
+
+
+def test_a_distortion_folding_beyond_the_format_is_caught():
+    """Barrel distortion whose fold lies outside the format can still cover it: undistort
+    must not return the mirrored root, and the camera check must refuse it."""
+    from sapgo.project import CAMERA_DTYPE
+    from sapgo.validate import _distortion_fold
+
+    c = camera(152.0, 0.0, 0.0, (-1 / (3 * 170.0 ** 2), 0.0, 0.0, 0.0, 0.0))
+    xi, yi, ok = undistort(110.0, 50.0, c)
+    assert not ok or (xi * 110.0 + yi * 50.0 > 0)
+    rec = np.zeros(1, CAMERA_DTYPE)[0]
+    rec["focal_length"], rec["format_x"], rec["format_y"] = 152.0, 230.0, 230.0
+    rec["k1"] = c[3]
+    assert _distortion_fold(rec) is not None
+    # a mild distortion passes
+    rec["k1"] = DIST[0]
+    assert _distortion_fold(rec) is None

@@ -75,7 +75,10 @@ def undistort(x, y, c):
         xi -= sx
         yi -= sy
         if abs(sx) + abs(sy) <= 1e-13 * (1.0 + abs(xi) + abs(yi)):
-            return xi, yi, True
+            # the root on the branch of the measured point, where the mapping is one-to-one
+            _, _, j00, j01, j11 = distortion(xi, yi, c)
+            ok = j00 * j11 - j01 * j01 > 0.0 and xi * xd + yi * yd >= 0.0
+            return xi, yi, ok
     return xi, yi, False
 
 
@@ -226,9 +229,12 @@ def linearize(eo, xyz, c, a, b):
 @njit(cache=True)
 def _add_ray(eo, x, y, c, a, r):
     """Add the ray from station ``eo`` through image point (x, y) of camera row ``c`` to the
-    normal system (the image point freed of distortion first)."""
+    normal system (the image point freed of distortion first); False (nothing added) when
+    the distortion cannot be inverted there."""
     m = _rot9(eo[0], eo[1], eo[2])
-    i0, i1, _ = undistort(x, y, c)
+    i0, i1, ok = undistort(x, y, c)
+    if not ok:
+        return False
     i2 = -c[0]
     d0 = m[0] * i0 + m[3] * i1 + m[6] * i2
     d1 = m[1] * i0 + m[4] * i1 + m[7] * i2
@@ -240,6 +246,7 @@ def _add_ray(eo, x, y, c, a, r):
             p = (1.0 if k == j else 0.0) - d[k] * d[j]
             a[k, j] += p
             r[k] += p * eo[3 + j]
+    return True
 
 
 @njit(cache=True)
@@ -286,9 +293,10 @@ def intersect(eo_rays, xy_rays, cam_rays):
     a = np.zeros((3, 3))
     r = np.zeros(3)
     out = np.zeros(3)
+    good = True
     for i in range(n):
-        _add_ray(eo_rays[i], xy_rays[i, 0], xy_rays[i, 1], cam_rays[i], a, r)
-    if n < 2 or not _solve_sym3(a, r, out):
+        good &= _add_ray(eo_rays[i], xy_rays[i, 0], xy_rays[i, 1], cam_rays[i], a, r)
+    if n < 2 or not good or not _solve_sym3(a, r, out):
         return np.zeros(3), False
     return out, True
 
@@ -303,11 +311,12 @@ def intersect_points(obs_start, n_obs, obs_station, obs_xy, eo, cam_of_station, 
     for j in range(obs_start.shape[0]):
         a[:, :] = 0.0
         r[:] = 0.0
+        good = True
         for i in range(obs_start[j], obs_start[j] + n_obs[j]):
             st = obs_station[i]
             c = cam_of_station[st]
-            _add_ray(eo[st], obs_xy[i, 0], obs_xy[i, 1], cams[c], a, r)
-        good = n_obs[j] >= 2 and _solve_sym3(a, r, p)
+            good &= _add_ray(eo[st], obs_xy[i, 0], obs_xy[i, 1], cams[c], a, r)
+        good = good and n_obs[j] >= 2 and _solve_sym3(a, r, p)
         ok[j] = good
         for k in range(3):
             out[j, k] = p[k] if good else 0.0

@@ -51,12 +51,21 @@ from .formats.text import (
     parse_chunk,
     read_chunks,
 )
-from .frames import LOCAL, ORIENTATIONS, Frame, opk_of, parse_crs
+from .frames import (
+    LOCAL,
+    MOON_RADIUS,
+    ORIENTATIONS,
+    SELENOCENTRIC,
+    Frame,
+    opk_of,
+    parse_crs,
+)
 from .geometry import camera_array, intersect_points, undistort_points
 from .project import (
     CAMERA_DTYPE,
     CONTROL_MASK,
     KIND_CHECK,
+    KIND_CONTROL,
     KIND_NAMES,
     KIND_PASS,
     KIND_VERTICAL,
@@ -156,18 +165,25 @@ def _rotations(eo):
     return r3 @ r2 @ r1
 
 
-def ray_points(eo, xy, f, height, distance):
+def ray_points(eo, xy, f, height, distance, sphere=None):
     """A point on each image ray (``xy``: ideal image coordinates from the principal point,
-    :func:`~sapgo.geometry.undistort_points`): where it meets the plane ``Z = height`` in
-    front of the camera, else at ``distance`` metres from the projection centre (all
-    finite)."""
+    :func:`~sapgo.geometry.undistort_points`): where it meets the plane ``Z = height`` (or,
+    for a selenocentric frame, the sphere of radius ``sphere``) in front of the camera, else
+    at ``distance`` metres from the projection centre (all finite)."""
     m = _rotations(eo)
-    img = np.stack([xy[:, 0], xy[:, 1], -f], axis=1)
+    img = np.stack([np.nan_to_num(xy[:, 0]), np.nan_to_num(xy[:, 1]), -f], axis=1)
     d = np.einsum("nji,nj->ni", m, img)
     d /= np.linalg.norm(d, axis=1)[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = (height - eo[:, 5]) / d[:, 2]
-    use = np.isfinite(t) & (t > 0) & (d[:, 2] < -1e-6) & (t <= 1000.0 * distance)
+        if sphere:  # |P + t d| = R, the nearer root
+            pd = np.einsum("ni,ni->n", eo[:, 3:], d)
+            disc = pd * pd - (np.einsum("ni,ni->n", eo[:, 3:], eo[:, 3:]) - sphere * sphere)
+            t = -pd - np.sqrt(disc)
+            down = disc >= 0
+        else:
+            t = (height - eo[:, 5]) / d[:, 2]
+            down = d[:, 2] < -1e-6
+    use = np.isfinite(t) & (t > 0) & down & (t <= 1000.0 * distance)
     t = np.where(use, t, distance)
     return eo[:, 3:] + t[:, None] * d
 
@@ -345,26 +361,29 @@ class _Import:
             self.frame = Frame.for_crs(self.crs, file_xyz)
 
     def _control_to_frame(self, rec, r, loc):
-        """Control coordinates (and sigmas) of a file in ``--crs`` into the frame."""
+        """Control coordinates of a file in ``--crs`` into the frame. Only full control and
+        check points (all three coordinates known) are accepted; sigmas are kept per frame
+        axis, so they must be equal in all three where the frame's axes are far from east,
+        north, up (a geocentric CRS, a lunar block)."""
         if self.crs is None:
             return
-        known = np.isfinite(r["control"]).all(axis=1)
-        if not known.all():
-            i = int(np.flatnonzero(~known)[0])
-            raise DataError(f"{self.src.where(loc[i])}: point {rec['id'][i]} has unknown "
-                            f"coordinates ('-'); with --crs every control and check point "
-                            f"needs X, Y and Z (horizontal or vertical control in a CRS is "
-                            f"not supported yet)")
-        if self.crs.is_geocentric:
+        def refuse(bad, message):
+            if bad.any():
+                j = int(np.flatnonzero(bad)[0])
+                raise DataError(f"{self.src.where(loc[j])}: point {rec['id'][j]}"
+                                + message(j))
+
+        refuse((r["kind"] != KIND_CONTROL) & (r["kind"] != KIND_CHECK), lambda j: (
+            f" is {KIND_NAMES[int(r['kind'][j])]} control; with --crs only full control and "
+            f"check points are supported yet (horizontal or vertical control needs all three "
+            f"coordinates in a CRS)"))
+        if self.crs.is_geocentric or self.frame.kind == SELENOCENTRIC:
             sig = r["sigma"]
             ctrl = CONTROL_MASK[r["kind"]].astype(bool)
-            aniso = ctrl.any(axis=1) & ~((sig[:, 0] == sig[:, 1]) & (sig[:, 1] == sig[:, 2]))
-            if aniso.any():
-                i = int(np.flatnonzero(aniso)[0])
-                raise DataError(f"{self.src.where(loc[i])}: point {rec['id'][i]}: control "
-                                f"sigmas in a geocentric CRS must be equal in X, Y and Z (they "
-                                f"are not rotated into the frame); give them in a geographic "
-                                f"or projected CRS as east, north, up")
+            refuse(ctrl.any(axis=1) & ~((sig[:, 0] == sig[:, 1]) & (sig[:, 1] == sig[:, 2])),
+                   lambda j: (": control sigmas must be equal in all three coordinates here "
+                              "(they are taken along the frame's axes, which are far from "
+                              "east, north, up in a geocentric CRS or a lunar block)"))
         r["control"] = self.frame.from_user(r["control"], self.crs)
 
     # -- station priors (in core: at most one per photo) ----------------------------------
@@ -746,7 +765,7 @@ class _Import:
             ideal = np.empty((len(ray), 2))
             undistort_points(np.ascontiguousarray(xy[first_obs]), c, self.cams, ideal)
             xyz[ray] = ray_points(self.eo[s], ideal, self.cams[c, 0], height,
-                                  self.ray_distance)
+                                  self.ray_distance, self.sphere)
         none = counts == 0
         xyz[none] = self.no_ray_xyz
         # known components replace the approximations (no rays: check points too)
@@ -828,6 +847,13 @@ class _Import:
             ground = self.ground if self.ground is not None else z_st - self.ray_distance
             self.no_ray_xyz = np.array([float(np.mean(st["eo"][:, 3])),
                                         float(np.mean(st["eo"][:, 4])), ground])
+            self.sphere = MOON_RADIUS if self.frame.kind == SELENOCENTRIC else None
+            if self.sphere:  # points without rays: on the sphere below the stations' mean
+                c = np.mean(st["eo"][:, 3:], axis=0)
+                n = float(np.linalg.norm(c))
+                self.no_ray_xyz = c * (MOON_RADIUS / n) if n > 0 else np.zeros(3)
+                self.ray_distance = max(float(np.mean(np.linalg.norm(st["eo"][:, 3:], axis=1)))
+                                        - MOON_RADIUS, 1.0)
             self.obs_per_station = np.zeros(len(st), np.int64)
 
             with ProjectWriter(self.out, attrs) as w:

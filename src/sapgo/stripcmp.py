@@ -72,15 +72,16 @@ def _strip_points(pt_start, pt_nobs, pt_active, obs_station, obs_xy, obs_active,
             r[:] = 0.0
             photos = 0
             last = -1
+            good = True
             for i2 in range(i, o1):
                 st = obs_station[i2]
                 if obs_active[i2] and st_strip[st] == s:
-                    _add_ray(eo[st], obs_xy[i2, 0], obs_xy[i2, 1], cams[cam_of_station[st]],
-                             a, r)
+                    good &= _add_ray(eo[st], obs_xy[i2, 0], obs_xy[i2, 1],
+                                     cams[cam_of_station[st]], a, r)
                     if st != last:
                         photos += 1
                         last = st
-            if photos >= 2 and _solve_sym3(a, r, x):
+            if good and photos >= 2 and _solve_sym3(a, r, x):
                 strips[k] = s
                 for c in range(3):
                     xyz[k, c] = x[c]
@@ -126,8 +127,10 @@ class StripComparison:
                           pair, diff, pos)
         if not m:
             return
-        if self.frame is not None:
-            diff[:m] = np.einsum("nij,nj->ni", self.frame._station_rotations(pos[:m]), diff[:m])
+        if self.frame is not None:  # frame axes -> body-fixed -> east, north, up at the point
+            r, _ = self.frame._frame_rotation()
+            rot = self.frame._station_rotations(pos[:m]) @ r.T
+            diff[:m] = np.einsum("nij,nj->ni", rot, diff[:m])
         key, inv = np.unique(pair[:m], axis=0, return_inverse=True)
         n = np.bincount(inv.ravel(), minlength=len(key))
         sq = np.zeros((len(key), 3))

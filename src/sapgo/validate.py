@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import DataError
-from .geometry import camera_array, distortion
+from .geometry import camera_array, distortion, undistort
 from .project import (
     CONTROL_MASK,
     KIND_CHECK,
@@ -198,5 +198,10 @@ def _distortion_fold(cam):
         for y in np.linspace(-hy, hy, 41):
             _, _, j00, j01, j11 = distortion(x, y, row)
             if not j00 * j11 - j01 * j01 > 0.0:
+                return x, y
+            # every measured point of the format must map back to an ideal point on its own
+            # branch (a barrel distortion can fold beyond the format and still cover it)
+            _, _, ok = undistort(row[1] + x, row[2] + y, row)
+            if not ok:
                 return x, y
     return None

@@ -688,7 +688,7 @@ def export_adjusted(project_path, out_dir, angles="deg", orientation="tangent",
                     chunk=CHUNK_RECORDS):
     """Write the adjusted photos and points of an adjusted project in the user's CRS:
     ``adjusted_photos.txt`` (``id camera strip omega phi kappa X Y Z``) and
-    ``adjusted_points.txt`` (``id X Y Z kind n_rays``; excluded points are left out).
+    ``adjusted_points.txt`` (``id X Y Z kind n_obs``; excluded points are left out).
 
     For a project imported with a CRS the coordinates are converted back into it (a
     geographic CRS: longitude, latitude in degrees, ellipsoidal height) and the angles are
@@ -707,12 +707,22 @@ def export_adjusted(project_path, out_dir, angles="deg", orientation="tangent",
             raise DataError(f"{project_path}: the project has no adjusted solution: run "
                             f"'sapgo adjust' first")
         frame = p.frame()
-        where = "" if frame.kind == "local space rectangular" else \
-            f"; {frame.crs.name}, angles {orientation}"
+        if frame.kind == "local space rectangular":
+            where, axes = "", "frame X, Y, Z in m"
+        else:
+            crs = frame.crs
+            if crs.is_geocentric:
+                axes = "geocentric X, Y, Z in m"
+            elif crs.is_geographic:
+                axes = "longitude, latitude in degrees, ellipsoidal height in m"
+            else:
+                unit = crs.axis_info[0].unit_name
+                axes = f"easting, northing in {unit}, ellipsoidal height in m"
+            where = f"; {crs.name}; angles {orientation}"
         cam_ids = p.cameras()["id"]
         with open(paths["photos"], "w") as f:
             f.write(f"# adjusted photos: id camera strip omega phi kappa X Y Z  (angles in "
-                    f"{angles}{where})\n")
+                    f"{angles}; X Y Z: {axes}{where})\n")
             for a, b in p.chunks("stations", chunk):
                 st = p.read("stations", a, b)
                 eo = st["eo"] + p.solution("station_corr", a, b)
@@ -728,7 +738,7 @@ def export_adjusted(project_path, out_dir, angles="deg", orientation="tangent",
                                      + [repr(float(v)) for v in xyz[i]]) + "\n")
                 counts["photos"] += int(act.sum())
         with open(paths["points"], "w") as f:
-            f.write(f"# adjusted points: id X Y Z kind n_rays  (m{where.split(',')[0]})\n")
+            f.write(f"# adjusted points: id X Y Z kind n_obs  (X Y Z: {axes}{where})\n")
             for a, b in p.chunks("points", chunk):
                 pts = p.read("points", a, b)
                 xyz = frame.to_user(pts["xyz"] + p.solution("point_corr", a, b))

@@ -75,7 +75,7 @@ def apollo15(data_set, seed=1):
     v_enu = np.einsum("nij,nj->ni", r_st, vel)
     heading = np.arctan2(v_enu[:, 1], v_enu[:, 0])
     tilt = math.radians(0.3)
-    opk_t = np.column_stack([rng.normal(0, tilt, n_st), rng.normal(0, tilt, n_st), -heading])
+    opk_t = np.column_stack([rng.normal(0, tilt, n_st), rng.normal(0, tilt, n_st), heading])
     eo = np.column_stack([frame.opk_from_user(opk_t, pos, "tangent"), pos])
     # priors: the orbit data (true values perturbed by their sigmas) and their weights
     centre = strip == 4 + 6 * (n_orb // 2)

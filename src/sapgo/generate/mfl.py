@@ -90,7 +90,7 @@ def _strip(rng, start, direction, n, base, height, camera, number, tilt_deg=1.0)
     e = np.column_stack([
         np.clip(rng.normal(0, tilt, n), -3 * tilt, 3 * tilt),
         np.clip(rng.normal(0, tilt, n), -3 * tilt, 3 * tilt),
-        -heading + rng.normal(0, math.radians(1.0), n),
+        heading + rng.normal(0, math.radians(1.0), n),
         start[0] + t * direction[0], start[1] + t * direction[1],
         height + rng.normal(0, 10.0, n)])
     return e, np.full(n, camera), np.full(n, number)

@@ -205,6 +205,9 @@ def pass_points(scene, vis):
         if hi / lo < 1.0001:
             break
     pts = tied(lo)
+    if len(pts) < scene.n_points:
+        raise ValueError(f"the scene's photos see only {len(pts)} points on two photos or more "
+                         f"at any grid spacing, {scene.n_points} wanted")
     rng = np.random.default_rng([scene.seed, 31])
     keep = np.sort(rng.choice(len(pts), scene.n_points, replace=False))
     return pts[keep]
@@ -221,7 +224,7 @@ def _choose_control(scene, xyz, rng):
         idx = np.flatnonzero(free)
         if cc.where in ("north", "east"):
             axis = 1 if cc.where == "north" else 0
-            edge = idx[np.argsort(-xyz[idx, axis])][:max(cc.n * 4, cc.n)]
+            edge = idx[np.argsort(-xyz[idx, axis], kind="stable")][:4 * cc.n]
             other = 1 - axis
             edge = edge[np.argsort(xyz[edge, other])]
             pick = edge[np.round(np.linspace(0, len(edge) - 1, cc.n)).astype(int)]
