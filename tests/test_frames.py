@@ -242,19 +242,93 @@ def test_strip_comparison_of_a_block_in_a_crs_equals_its_local_twin(block_cache,
                                a["weighted_average"]["sigma_m"], rtol=0.02)
 
 
-@pytest.mark.parametrize("line, words", [
-    ("17 11.5 48.1 - 0.1 0.1 - horizontal", ("c.txt:1", "horizontal control", "--crs")),
-    ("17 - - 500 - - 0.1 vertical", ("c.txt:1", "vertical control")),
-])
-def test_partial_control_in_a_crs_is_refused(exported_geo, tmp_path, line, words):
-    d = exported_geo
-    (d / "c.txt").write_text(line + "\n")
-    with pytest.raises(DataError) as exc:
-        import_text(tmp_path / "x.h5", cameras=d / "cameras.txt", photos=d / "photos.txt",
-                    measurements=d / "measurements.txt", control=d / "c.txt",
-                    crs="EPSG:4979")
-    for w in words:
-        assert w in str(exc.value)
+def test_horizontal_and_vertical_control_in_a_crs(block_cache, tmp_path):
+    """Horizontal and vertical control given in EPSG:4979 (sigmas along east, north, up at
+    the point) adjust to the ground points of the local twin, whose control sigmas lie along
+    its axes (east, north, up at the origin): equal to the millimetre."""
+    from conftest import rewrite
+
+    src = tmp_path / "local.h5"
+    shutil.copy(block_cache("small", strips=2, photos_per_strip=6, control_points=6), src)
+    rec = read_records(src)
+    ctrl = np.flatnonzero(rec["points"]["kind"] == 1)
+    rec["points"]["kind"][ctrl[:2]] = 2                  # horizontal
+    rec["points"]["control_sigma"][ctrl[:2]] = [0.02, 0.02, 0.0]
+    rec["points"]["kind"][ctrl[2:4]] = 3                 # vertical
+    rec["points"]["control_sigma"][ctrl[2:4]] = [0.0, 0.0, 0.03]
+    rec["points"]["control_sigma"][ctrl[4:]] = [0.01, 0.02, 0.03]  # anisotropic full
+    rewrite(src, rec)
+    d = tmp_path / "txt"
+    export_text(src, d)
+    dd = tmp_path / "geo"
+    truth = dict(zip(rec["truth"]["points"]["id"].tolist(), rec["truth"]["points"]["xyz"]))
+    write_in_crs_partial(d, dd, truth)
+    out = tmp_path / "geo.h5"
+    import_text(out, cameras=dd / "cameras.txt", photos=dd / "photos.txt",
+                measurements=dd / "measurements.txt", control=dd / "control.txt",
+                crs="EPSG:4979")
+    with Project(out) as p:
+        kinds = p.read("points")["kind"]
+    assert (kinds == 2).sum() == 2 and (kinds == 3).sum() == 2
+    opts = sapgo.Options(progress=False, tol_position=1e-7, tol_angle=1e-9,
+                         max_iterations=20)
+    local = tmp_path / "l.h5"
+    import_text(local, cameras=d / "cameras.txt", photos=d / "photos.txt",
+                measurements=d / "measurements.txt", control=d / "control.txt")
+    s1, s2 = sapgo.adjust(local, opts), sapgo.adjust(out, opts)
+    assert s1.converged and s2.converged
+    # the local twin's horizontal control lets the point move along the vertical at the
+    # origin, the CRS one along its own vertical (1e-3 rad apart here): a few millimetres
+    ref, got = adjusted_ecef(local), adjusted_ecef(out)
+    worst = max(np.abs(got[k] - ref[k]).max() for k in ref)
+    assert worst < 5e-3, worst
+    assert s2.sigma0 == pytest.approx(s1.sigma0, rel=1e-3)
+    # the residuals along east, north, up at the point are the geodetic differences: a
+    # horizontal point's adjusted longitude and latitude against its control's, in metres
+    from sapgo.normals import control_rotations
+
+    with Project(out) as p:
+        pt = p.read("points")
+        adj = pt["xyz"] + p.solution("point_corr")
+        frame = p.frame()
+    lines = {int(ln.split()[0]): ln.split() for ln in open(dd / "control.txt")}
+    rot = control_rotations(pt["kind"], pt["control"], frame)
+    for j in np.flatnonzero(pt["kind"] == 2):
+        lon, lat, _ = frame.to_user(adj[j][None])[0]
+        c_lon, c_lat = float(lines[int(pt["id"][j])][1]), float(lines[int(pt["id"][j])][2])
+        de = np.radians(lon - c_lon) * 6378137.0 * np.cos(np.radians(lat))
+        dn = np.radians(lat - c_lat) * 6378137.0
+        v = rot[j] @ (adj[j] - pt["control"][j])
+        np.testing.assert_allclose(v[:2], [de, dn], rtol=0.01, atol=2e-5)
+        assert np.hypot(de, dn) < 0.1
+    for j in np.flatnonzero(pt["kind"] == 3):
+        _, _, h = frame.to_user(adj[j][None])[0]
+        v = rot[j] @ (adj[j] - pt["control"][j])
+        assert v[2] == pytest.approx(h - float(lines[int(pt["id"][j])][3]), abs=1e-5)
+
+
+def write_in_crs_partial(src_dir, dst_dir, truth):
+    """As write_in_crs (EPSG:4979, tangent), keeping '-' for the unknown coordinates of
+    horizontal and vertical control. The same constraints: a horizontal point's longitude
+    and latitude, a vertical point's ellipsoidal height, all taken at the true point (a
+    local vertical control fixes the height above the tangent plane at the origin, which at
+    the point differs from the ellipsoidal height by the Earth's curvature)."""
+    write_in_crs(src_dir, dst_dir, None, "EPSG:4979", "tangent")
+    user = Frame(TANGENT, parse_crs("EPSG:4979").to_wkt(), ORIGIN)
+    src = [ln.split() for ln in open(src_dir / "control.txt") if ln[0] != "#"]
+    out = [ln.split() for ln in open(dst_dir / "control.txt")]
+    for s, o in zip(src, out):
+        unknown = [k for k in range(3) if s[1 + k] == "-"]
+        if not unknown:
+            continue
+        x = np.array(truth[int(s[0])], float)
+        for k in range(3):
+            if k not in unknown:
+                x[k] = float(s[1 + k])
+        g = user.to_user(x[None])[0]
+        for k in range(3):
+            o[1 + k] = "-" if k in unknown else repr(float(g[k]))
+    (dst_dir / "control.txt").write_text("\n".join(" ".join(o) for o in out) + "\n")
 
 
 def test_anisotropic_sigmas_in_a_geocentric_crs_are_refused(exported_geo, tmp_path):
@@ -266,7 +340,7 @@ def test_anisotropic_sigmas_in_a_geocentric_crs_are_refused(exported_geo, tmp_pa
     t[4:7] = ["0.1", "0.1", "0.3"]
     rows[0] = " ".join(t)
     (dd / "control.txt").write_text("\n".join(rows) + "\n")
-    with pytest.raises(DataError, match="control.txt:1: point .* sigmas must be equal"):
+    with pytest.raises(DataError, match="control.txt:1: point .* geocentric CRS must be "):
         import_text(tmp_path / "x.h5", cameras=dd / "cameras.txt", photos=dd / "photos.txt",
                     measurements=dd / "measurements.txt", control=dd / "control.txt",
                     crs="EPSG:4978", orientation="geocentric")

@@ -47,6 +47,7 @@ from .normals import (
     OK,
     PointChunk,
     build_points_parallel,
+    control_rotations,
     update_points,
 )
 from .ordering import order_project
@@ -195,6 +196,7 @@ class _Block:
     cams: np.ndarray  # per camera: the kernels' row (f, x0, y0, k1, k2, k3, p1, p2)
     cam_sigma: np.ndarray  # per camera: sigma_image (mm), for observations with sigma 0
     band_width: int
+    frame: object = None  # sapgo.frames.Frame: control sigmas along east, north, up in a CRS
     n_points: int = 0
     n_rays: int = 0
     n_control: dict = dataclasses.field(default_factory=dict)
@@ -223,6 +225,7 @@ def _load_block(p: Project) -> _Block:
         cams=camera_array(cams),
         cam_sigma=np.ascontiguousarray(cams["sigma_image"]),
         band_width=p.band_width,
+        frame=p.frame(),
     )
     names = {1: "full", 2: "horizontal", 3: "vertical"}
     counts = {v: 0 for v in names.values()}
@@ -363,11 +366,11 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
 
     with _progress(opts.progress, p.n_points, "build") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
-            c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma)
+            c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame)
             j = 0
             while j < len(c.xyz):
                 j, status, bad = build_points_parallel(
-                    j, c.xyz, c.kind, c.ctrl, c.csig, c.pt_start, c.nobs, c.smin, c.smax,
+                    j, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.smin, c.smax,
                     c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
                     blk.camera, blk.cams, CTRL_MASK, band, rhs, base,
                     c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS,
@@ -393,11 +396,11 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0):
     xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
     with _progress(opts.progress, p.n_points, "update") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
-            c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma)
+            c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame)
             xyz_out = np.empty_like(c.xyz)
             res_out = np.zeros((c.o1 - c.o0, 2))
             update_points(
-                c.xyz, c.kind, c.ctrl, c.csig, c.pt_start, c.nobs, c.active, c.obs_station,
+                c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
                 c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
                 blk.cams, CTRL_MASK, c.max_rays, xyz_out, res_out,
                 stats,
@@ -712,7 +715,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         ids = pts["id"][~act]
         n_excluded_points += len(ids)
         excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
-        checks.add(pts[act], adj[act])
+        checks.add(pts[act], adj[act],
+                   control_rotations(pts["kind"][act], pts["control"][act], blk.frame))
         if truth is not None:
             truth.add_points(p_read.read_field("truth/points", "xyz", a, b)[act], adj[act])
     if truth is not None:

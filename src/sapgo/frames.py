@@ -246,14 +246,15 @@ class Frame:
         r, x0 = self._frame_rotation()
         return (ecef - x0) @ r.T
 
-    def to_user(self, xyz):
-        """The user's CRS coordinates of frame coordinates."""
+    def to_user(self, xyz, crs=None):
+        """The user's CRS (or ``crs``) coordinates of frame coordinates."""
         xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
         if self.kind == LOCAL:
             return xyz.copy()
         r, x0 = self._frame_rotation()
         ecef = xyz @ r + x0
-        return _transform(_geocentric(self.body), _as_3d(self.crs), ecef)
+        return _transform(_geocentric(self.body), _as_3d(self.crs if crs is None else crs),
+                          ecef)
 
     def _station_rotations(self, frame_xyz):
         """Rotations body-fixed -> east, north, up at the stations (frame coordinates)."""

@@ -65,7 +65,7 @@ from .project import (
     CAMERA_DTYPE,
     CONTROL_MASK,
     KIND_CHECK,
-    KIND_CONTROL,
+    KIND_HORIZONTAL,
     KIND_NAMES,
     KIND_PASS,
     KIND_VERTICAL,
@@ -85,7 +85,9 @@ MEAS_DTYPE = np.dtype([("point", "<i8"), ("station", "<i8"), ("x", "<f8"), ("y",
                        ("sigma", "<f8"), ("loc", "<i8")])
 #: Control records as they are sorted and kept in the work file.
 CTRL_DTYPE = np.dtype([("id", "<i8"), ("kind", "i1"), ("control", "<f8", (3,)),
-                       ("sigma", "<f8", (3,)), ("loc", "<i8")])
+                       ("sigma", "<f8", (3,)), ("loc", "<i8"), ("raw", "i1")])
+#: ``raw``: horizontal or vertical control still in the user's CRS (converted into the frame
+#: once the point's approximate position is known, in ``_assemble``).
 #: ``loc`` = source number << LOC_BITS | line (or record) number.
 LOC_BITS = 40
 #: Examples listed in a warning.
@@ -361,30 +363,61 @@ class _Import:
             self.frame = Frame.for_crs(self.crs, file_xyz)
 
     def _control_to_frame(self, rec, r, loc):
-        """Control coordinates of a file in ``--crs`` into the frame. Only full control and
-        check points (all three coordinates known) are accepted; sigmas are kept per frame
-        axis, so they must be equal in all three where the frame's axes are far from east,
-        north, up (a geocentric CRS, a lunar block)."""
+        """Control of a file in ``--crs`` into the frame. Full control and check points are
+        converted at once; horizontal and vertical control keep their CRS values (``raw``)
+        until the point's approximate position supplies the unknown coordinates
+        (:meth:`_partial_control`). Sigmas are along east, north, up at the point (the
+        adjustment rotates them, ``normals.control_rotations``); in a geocentric CRS they
+        must be equal in all three coordinates, and horizontal or vertical control needs a
+        geographic or projected CRS. A CRS point is fixed in all three coordinates or in
+        none."""
         if self.crs is None:
             return
+
         def refuse(bad, message):
             if bad.any():
                 j = int(np.flatnonzero(bad)[0])
                 raise DataError(f"{self.src.where(loc[j])}: point {rec['id'][j]}"
                                 + message(j))
 
-        refuse((r["kind"] != KIND_CONTROL) & (r["kind"] != KIND_CHECK), lambda j: (
-            f" is {KIND_NAMES[int(r['kind'][j])]} control; with --crs only full control and "
-            f"check points are supported yet (horizontal or vertical control needs all three "
-            f"coordinates in a CRS)"))
-        if self.crs.is_geocentric or self.frame.kind == SELENOCENTRIC:
-            sig = r["sigma"]
-            ctrl = CONTROL_MASK[r["kind"]].astype(bool)
+        kind = r["kind"]
+        partial = (kind == KIND_HORIZONTAL) | (kind == KIND_VERTICAL)
+        sig = r["sigma"]
+        ctrl = CONTROL_MASK[kind].astype(bool)
+        if self.crs.is_geocentric:
+            refuse(partial, lambda j: (
+                f" is {KIND_NAMES[int(kind[j])]} control, which needs a geographic or "
+                f"projected CRS (east, north, up are not the axes of a geocentric CRS)"))
             refuse(ctrl.any(axis=1) & ~((sig[:, 0] == sig[:, 1]) & (sig[:, 1] == sig[:, 2])),
-                   lambda j: (": control sigmas must be equal in all three coordinates here "
-                              "(they are taken along the frame's axes, which are far from "
-                              "east, north, up in a geocentric CRS or a lunar block)"))
-        r["control"] = self.frame.from_user(r["control"], self.crs)
+                   lambda j: (": control sigmas in a geocentric CRS must be equal in X, Y "
+                              "and Z (give east, north, up sigmas in a geographic or "
+                              "projected CRS)"))
+        fixed = ctrl & (sig == 0)
+        refuse(fixed.any(axis=1) & (~fixed.all(axis=1) | partial), lambda j: (
+            ": with --crs a control point is fixed (sigma 0) in all three coordinates or "
+            "in none; give horizontal and vertical control sigmas > 0"))
+        full = ~partial
+        if full.any():
+            r["control"][full] = self.frame.from_user(r["control"][full], self.crs)
+        r["raw"] = partial
+
+    def _partial_control(self, control, kind, raw, approx):
+        """Frame coordinates of horizontal and vertical control given in the CRS (``raw``):
+        the unknown coordinates (height, or position) taken from the approximate point, so
+        that the reference lies on the point's vertical (horizontal control: any height is
+        on that line) or on its height surface near the point (vertical control: the
+        surface's curvature over the approximation's error is below a micrometre)."""
+        rows = np.flatnonzero(raw)
+        if not len(rows):
+            return control
+        user = self.frame.to_user(approx[rows], self.crs)
+        given = control[rows].copy()
+        vert = kind[rows] == KIND_VERTICAL
+        given[~vert, 2] = user[~vert, 2]
+        given[vert, :2] = user[vert, :2]
+        out = control.copy()
+        out[rows] = self.frame.from_user(given, self.crs)
+        return out
 
     # -- station priors (in core: at most one per photo) ----------------------------------
     def read_priors(self, p, st):
@@ -735,11 +768,13 @@ class _Import:
         np.cumsum(counts[:-1], out=starts[1:])
         pts["obs_start"] = starts
         kind = np.zeros(n, np.int8)
+        raw = np.zeros(n, bool)
         if len(ctl):
             at_c = np.searchsorted(ids, ctl["id"])
             kind[at_c] = ctl["kind"]
             pts["control"][at_c] = ctl["control"]
             pts["control_sigma"][at_c] = ctl["sigma"]
+            raw[at_c] = ctl["raw"] != 0
         pts["kind"] = kind
         control = pts["control"]
 
@@ -760,7 +795,7 @@ class _Import:
             s = station[first_obs]
             c = self.cam_of_station[s]
             height = np.full(len(ray), np.nan if self.ground is None else self.ground)
-            vert = kind[ray] == KIND_VERTICAL
+            vert = (kind[ray] == KIND_VERTICAL) & ~raw[ray]
             height[vert] = control[ray[vert], 2]
             ideal = np.empty((len(ray), 2))
             undistort_points(np.ascontiguousarray(xy[first_obs]), c, self.cams, ideal)
@@ -768,9 +803,15 @@ class _Import:
                                   self.ray_distance, self.sphere)
         none = counts == 0
         xyz[none] = self.no_ray_xyz
-        # known components replace the approximations (no rays: check points too)
+        # known components replace the approximations (no rays: check points too); control
+        # given in a CRS as horizontal or vertical: into the frame at the approximate point
+        bad = ~np.isfinite(xyz).all(axis=1)
+        xyz[bad] = self.no_ray_xyz
+        if raw.any():
+            control = pts["control"] = self._partial_control(control, kind, raw, xyz)
         known = CONTROL_MASK[kind].astype(bool)
         known[none] = NEEDED[kind[none]]
+        known[raw] = False
         xyz = np.where(known, control, xyz)
         bad = ~np.isfinite(xyz).all(axis=1)
         xyz[bad] = self.no_ray_xyz

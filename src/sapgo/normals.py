@@ -35,8 +35,8 @@ BAD_LAYOUT = 3  # the records do not follow the logical order the band width was
 
 
 @njit(cache=True)
-def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, obs_station,
-                  obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
+def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
+                  obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                   ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc):
     """Linearise point ``j``: fill its rays' A, l, p, Nbar and its 3x3 system nn, cc.
 
@@ -81,11 +81,16 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, obs_s
     for c in range(3):
         if ctrl_mask[kind, c]:
             sig = pt_csig[j, c]
-            if sig > 0.0:
+            if sig > 0.0:  # along row c of the control rotation (east, north, up in a CRS)
                 wc = 1.0 / (sig * sig)
-                nn[c, c] += wc
-                cc[c] += wc * (pt_ctrl[j, c] - xyz[c])
-            else:  # fixed component: eliminated
+                d = 0.0
+                for q in range(3):
+                    d += pt_rot[j, c, q] * (pt_ctrl[j, q] - xyz[q])
+                for r in range(3):
+                    for q in range(3):
+                        nn[r, q] += wc * pt_rot[j, c, r] * pt_rot[j, c, q]
+                    cc[r] += wc * pt_rot[j, c, r] * d
+            else:  # fixed component (frame axis; a CRS point is fixed in all three or none)
                 for r in range(3):
                     nn[r, c] = 0.0
                     nn[c, r] = 0.0
@@ -137,8 +142,8 @@ def _workspace(max_rays):
 
 
 @njit(cache=True, nogil=True)
-def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_smax,
-                 pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
+def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
+                 pt_smax, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                  cams, ctrl_mask, band, rhs, base, max_rays, split, ovf_band,
                  ovf_rhs):
     """Add points ``j0 .. j_stop-1`` of a chunk into the band-row window.
@@ -161,7 +166,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nob
             continue
         if pt_smax[j] >= base + cap:
             return j, OK, -1
-        k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs,
+        k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
                           st_all, nn, cc)
@@ -216,9 +221,9 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nob
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_smin,
-                          pt_smax, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
-                          cam_of_station, cams, ctrl_mask, band, rhs, base,
+def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
+                          pt_smin, pt_smax, pt_active, obs_station, obs_xy, obs_sigma,
+                          obs_active, eo, cam_of_station, cams, ctrl_mask, band, rhs, base,
                           max_rays, ovf_band, ovf_rhs, min_points):
     """:func:`build_points` for the points from ``j0`` that fit the window, on
     ``len(ovf_band)`` threads over station ranges.
@@ -240,8 +245,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_no
     empty_b = ovf_band[0, :0]
     empty_r = ovf_rhs[0, :0]
     if nthreads < 2 or j_end - j0 < max(1, min_points) * nthreads:
-        j, status, bad = build_points(j0, j_end, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start,
-                                      pt_nobs, pt_smax, pt_active, obs_station, obs_xy,
+        j, status, bad = build_points(j0, j_end, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot,
+                                      pt_start, pt_nobs, pt_smax, pt_active, obs_station, obs_xy,
                                       obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays, cap,
                                       empty_b, empty_r)
@@ -261,7 +266,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_no
         ob = ovf_band[t] if t < nthreads - 1 else empty_b
         orr = ovf_rhs[t] if t < nthreads - 1 else empty_r
         j, status, bad = build_points(cut[t], cut[t + 1], pt_xyz, pt_kind, pt_ctrl, pt_csig,
-                                      pt_start, pt_nobs, pt_smax, pt_active, obs_station,
+                                      pt_rot, pt_start, pt_nobs, pt_smax, pt_active, obs_station,
                                       obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays,
                                       split[t], ob, orr)
@@ -284,8 +289,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_no
 
 
 @njit(cache=True)
-def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_active, obs_station,
-                  obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cams,
+def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
+                  obs_station, obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cams,
                   ctrl_mask, max_rays, xyz_out, resid_out, stats):
     """Back-solve point corrections and compute residuals for a chunk of points.
 
@@ -303,7 +308,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_activ
         if pt_active[j] != 0:
             xyz_out[j] = pt_xyz[j]
             continue
-        k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs,
+        k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
                           st_all, nn, cc)
@@ -324,8 +329,11 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_activ
             xyz_out[j, c] = xyz[c] + eps[c]
             if abs(eps[c]) > stats[5]:
                 stats[5] = abs(eps[c])
+        for c in range(3):
             if ctrl_mask[kind, c] and pt_csig[j, c] > 0.0:
-                v = xyz_out[j, c] - pt_ctrl[j, c]
+                v = 0.0
+                for q in range(3):
+                    v += pt_rot[j, c, q] * (xyz_out[j, q] - pt_ctrl[j, q])
                 stats[1] += v * v / (pt_csig[j, c] * pt_csig[j, c])
                 stats[6] += 1
         for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
@@ -352,11 +360,11 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_start, pt_nobs, pt_activ
 class PointChunk:
     """The arrays of a chunk of points and their observations, ready for the kernels."""
 
-    __slots__ = ("start", "stop", "o0", "o1", "xyz", "kind", "ctrl", "csig", "pt_start",
+    __slots__ = ("start", "stop", "o0", "o1", "xyz", "kind", "ctrl", "csig", "rot", "pt_start",
                  "nobs", "smax", "smin", "active", "obs_station", "obs_xy", "obs_sigma",
                  "obs_active", "max_rays")
 
-    def __init__(self, project, start, stop, xyz, camera, cam_sigma):
+    def __init__(self, project, start, stop, xyz, camera, cam_sigma, frame=None):
         pts = project.read("points", start, stop)
         self.start, self.stop = start, stop
         self.o0 = int(pts["obs_start"][0]) if len(pts) else 0
@@ -367,6 +375,7 @@ class PointChunk:
         self.kind = c(pts["kind"], dtype=np.int64)
         self.ctrl = c(pts["control"])
         self.csig = c(pts["control_sigma"])
+        self.rot = control_rotations(pts["kind"], pts["control"], frame)
         self.pt_start = c(pts["obs_start"] - self.o0)
         self.nobs = c(pts["n_obs"], dtype=np.int64)
         self.smax = c(pts["station_max"])
@@ -379,6 +388,20 @@ class PointChunk:
                                     cam_sigma[camera[obs["station"]]]))
         self.obs_active = c(obs["status"] == STATUS_ACTIVE)
         self.max_rays = int(max(1, self.nobs.max() if len(self.nobs) else 1))
+
+
+def control_rotations(kind, control, frame=None):
+    """Per point, the rotation from the frame's axes to the axes its control sigmas (and
+    check-point errors) are along (n x 3 x 3): the identity in a local frame, east, north, up
+    at the point in a frame with a CRS (docs/theory.md section 1a)."""
+    rot = np.zeros((len(kind), 3, 3))
+    rot[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    if frame is not None and frame.kind != "local space rectangular":
+        ctrl = np.flatnonzero((kind >= 1) & (kind <= 4))
+        if len(ctrl):
+            r, _ = frame._frame_rotation()
+            rot[ctrl] = frame._station_rotations(control[ctrl]) @ r.T
+    return np.ascontiguousarray(rot)
 
 
 #: Points a thread at least, for the build to run on several threads.

@@ -58,11 +58,16 @@ class check_point_statistics:
         self.ctrl_n = np.zeros(3, np.int64)
         self.ctrl_ss = np.zeros(3)
 
-    def add(self, points, adjusted):
+    def add(self, points, adjusted, rot=None):
+        """``rot``: per point, the rotation to the axes of the control sigmas
+        (``normals.control_rotations``; east, north, up in a CRS), default the frame's."""
+        diff = adjusted - points["control"]
+        if rot is not None:
+            diff = np.einsum("nij,nj->ni", rot, diff)
         chk = points["kind"] == KIND_CHECK
-        self.check.add(adjusted[chk] - points["control"][chk])
+        self.check.add(diff[chk])
         mask = CONTROL_MASK[points["kind"]].astype(bool) & (points["control_sigma"] > 0)
-        d = np.where(mask, adjusted - points["control"], 0.0)
+        d = np.where(mask, diff, 0.0)
         self.ctrl_n += mask.sum(axis=0)
         self.ctrl_ss += (d * d).sum(axis=0)
 
