@@ -363,3 +363,21 @@ def test_gimbal_lock_ballpark_transformations_and_orientation_names():
     g = Frame(TANGENT, parse_crs("EPSG:4979").to_wkt(), ORIGIN)
     with pytest.raises(ParameterError, match="orientation 'Tangent'"):
         g.opk_to_user(np.zeros((1, 3)), np.zeros((1, 3)), "Tangent")
+
+
+def test_appending_data_of_another_body_is_refused(exported_geo, tmp_path):
+    """Control of the Moon appended to an Earth block: a clear error, the project kept."""
+    from conftest import digest
+
+    d = exported_geo
+    out = tmp_path / "earth.h5"
+    import_text(out, cameras=d / "cameras.txt", photos=d / "photos.txt",
+                measurements=d / "measurements.txt", control=d / "control.txt",
+                crs="EPSG:4979")
+    before = digest(out)
+    (d / "moon.txt").write_text("9001 10.0 5.0 0.0 1 1 1 full\n")
+    with pytest.raises(DataError, match="the appended data is given in .*Moon.*earth block"):
+        import_text(out, control=d / "moon.txt", crs="IAU_2015:30100", append=True)
+    with pytest.raises(ParameterError, match="must be given in a CRS"):
+        import_text(out, control=d / "control.txt", append=True)
+    assert digest(out) == before
