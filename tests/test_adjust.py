@@ -156,3 +156,26 @@ def test_an_unfinished_new_solution_leaves_the_old_one(small_block):
     sapgo.adjust(small_block, sapgo.Options(progress=False))
     with Project(small_block) as p:
         assert "solution.new" not in p.file
+
+
+def test_station_precision_equals_the_dense_inverse(small_block):
+    """The stations' a-posteriori standard deviations (selected inversion of the band
+    factor) equal sigma0 times the square roots of the diagonal of the inverse of the full
+    normal matrix's station part, computed densely (1e-8 relative)."""
+    summary = sapgo.adjust(small_block, TIGHT)
+    assert summary.converged
+    rec = read_records(small_block)
+    with Project(small_block) as p:
+        eo = rec["stations"]["eo"] + p.solution("station_corr")
+        xyz = rec["points"]["xyz"] + p.solution("point_corr")
+        sigma = p.solution("station_sigma")
+    pt, ob = rec["points"], rec["observations"]
+    mask = CONTROL_MASK[pt["kind"]].astype(bool)
+    m, _ = naive.reduced_normals_dense(
+        eo, xyz, rec["cameras"]["focal_length"][0], ob["station"], ob["point"],
+        np.column_stack([ob["x"], ob["y"]]), ob["sigma"], mask, pt["control"],
+        pt["control_sigma"])
+    ref = summary.sigma0 * np.sqrt(np.diag(np.linalg.inv(m))).reshape(-1, 6)
+    np.testing.assert_allclose(sigma, ref, rtol=1e-8)
+    s = summary.precision["stations"]
+    assert s["X_m"]["max"] == pytest.approx(ref[:, 3].max(), rel=1e-8)

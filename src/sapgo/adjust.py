@@ -37,7 +37,7 @@ import numba
 import numpy as np
 
 from . import normals
-from .bandsolve import PIVOT_TOLERANCE, BandSolver, PivotError
+from .bandsolve import PIVOT_TOLERANCE, BandSolver, PivotError, covariance_blocks
 from .errors import DatumDefectError, SapgoError, SingularNormalsError
 from .geometry import camera_array
 from .normals import (
@@ -59,7 +59,7 @@ from .project import (
     STATUS_ACTIVE,
     Project,
 )
-from .report import Summary, check_point_statistics, truth_statistics
+from .report import Summary, check_point_statistics, precision_summary, truth_statistics
 from .stripcmp import StripComparison
 from .frames import frame_info
 from .validate import check_values
@@ -701,6 +701,19 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     t_commit = time.perf_counter()
     last = log[-1]
     xyz_ds, res_ds = work.xyz_current, work.res_current
+    # a-posteriori precision of the stations: the diagonal blocks of the inverse of the
+    # reduced normals (the last iteration's factor), Takahashi's recurrence streamed backwards;
+    # the blocks go to the work directory, the variances stay in core (48 bytes a station)
+    t_prec = time.perf_counter()
+    cov = RawArray(work.dir / "cov.bin", (len(blk.station_ids), 6, 6), mode="w")
+    try:
+        var = covariance_blocks(work.factor, len(blk.station_ids), blk.band_width,
+                                opts.chunk_rows, out=cov)
+    finally:
+        cov.close()
+    station_sigma = last["sigma0"] * np.sqrt(np.maximum(var, 0.0))
+    station_sigma[~blk.station_active] = 0.0
+    timings["precision"] = time.perf_counter() - t_prec
     checks = check_point_statistics()
     truth = truth_statistics() if p_read.has_truth else None
     strips = StripComparison(p_read.read_field("stations", "strip"), blk.station_active,
@@ -760,6 +773,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         resumed_from_iteration=resumed_from,
         strip_comparison=strips.result(),
         frame=frame_info(p_read.frame()),
+        precision=precision_summary(station_sigma[blk.station_active]),
     )
     its = max(1, len(log))
     summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}
@@ -777,6 +791,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
                 g["point_corr"][a:b] = xyz_ds[a:b] - q.read_field("points", "xyz", a, b)
             for a, b in q.chunks("observations", opts.chunk_points):
                 g["residuals"][a:b] = res_ds[a:b]
+            for a, b in q.chunks("stations", opts.chunk_points):
+                g["station_sigma"][a:b] = station_sigma[a:b]
             g.attrs["state"] = "adjusted"
             g.attrs["iterations"] = len(log)
             g.attrs["converged"] = converged

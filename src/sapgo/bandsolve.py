@@ -520,6 +520,93 @@ def _back_substitute(band_ds, rhs_ds, n_st, step):
     return x.reshape(n_st, 6)
 
 
+@njit(cache=True, nogil=True)
+def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, v, y):
+    """Takahashi's recurrence for the scalar rows of stations ``i0 ..`` (in reverse) of the
+    diagonal-first factor rows ``fac``: ``Z = M^-1 = U^-1 U'^-1`` inside the band,
+
+        Z[h, h+1:h+u+1] = -(1/U[h,h]) Z[h+1:h+u+1, h+1:h+u+1] U[h, h+1:h+u+1]'     (dgemv)
+        Z[h, h] = 1/U[h,h]^2 - (1/U[h,h]) U[h, h+1:] Z[h+1:, h]
+
+    ``zb`` (B x B, B >= 2u + 2) holds ``Z`` of the scalar rows and columns ``base ..
+    base + B`` (``state[0] = base``), shifted down when the rows reach its start, so that
+    the block a row needs is contiguous; ``out_blocks[i - i0]`` receives the 6x6 diagonal
+    block of station ``i``."""
+    width = fac.shape[2]
+    u = width - 1
+    bsz = zb.shape[0]
+    flat = zb.reshape(-1)
+    for ii in range(fac.shape[0] - 1, -1, -1):
+        for r in range(5, -1, -1):
+            h = 6 * (i0 + ii) + r
+            base = state[0]
+            if h < base:  # shift the window: rows h+1 .. h+u to the top part of the buffer
+                nb = max(0, h + u + 1 - bsz)
+                top_old = min(u, n - 1 - h)
+                for a in range(top_old - 1, -1, -1):  # moving down: last row first
+                    for b in range(top_old):
+                        y[b] = zb[h + 1 + a - base, h + 1 + b - base]
+                    for b in range(top_old):
+                        zb[h + 1 + a - nb, h + 1 + b - nb] = y[b]
+                state[0] = nb
+                base = nb
+            top = min(u, n - 1 - h)
+            u0 = fac[ii, r, 0]
+            p = h - base
+            if top > 0:
+                for d in range(top):
+                    v[d] = fac[ii, r, d + 1]
+                gemv(fns.dgemv, N, top, top, -1.0 / u0, flat[(p + 1) * bsz + p + 1:], bsz,
+                     v, 0.0, y)
+                s = 0.0
+                for d in range(top):
+                    zb[p, p + 1 + d] = y[d]
+                    zb[p + 1 + d, p] = y[d]
+                    s += v[d] * y[d]
+                zb[p, p] = 1.0 / (u0 * u0) - s / u0
+            else:
+                zb[p, p] = 1.0 / (u0 * u0)
+        i = i0 + ii
+        q = 6 * i - state[0]
+        for a in range(6):
+            for b in range(6):
+                out_blocks[ii, a, b] = zb[q + a, q + b]
+
+
+def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None):
+    """The 6x6 diagonal blocks of ``M^-1`` (the stations' cofactor matrices) from the factor
+    rows of :class:`BandSolver` (diagonal-first, ``factor_ds`` n x 6 x 6b), by Takahashi's
+    recurrence streamed backwards ``step`` stations at a time, a dgemv per scalar row: in core
+    ``Z`` of a window of ``4 (6b) + 6`` scalar rows and columns (``(24 b)^2`` doubles) and one
+    block of factor rows. Returns the
+    blocks (n x 6 x 6), or writes them to ``out`` (a direct-access file, dataset or array)
+    block by block and returns the variances (n x 6) only."""
+    width = 6 * band_width
+    n = 6 * n_st
+    bsz = 4 * width + 6
+    zb = np.zeros((bsz, bsz))
+    state = np.array([max(0, n - bsz)], np.int64)
+    v = np.empty(bsz)
+    y = np.empty(bsz)
+    keep = out is None
+    blocks_all = np.empty((n_st, 6, 6)) if keep else None
+    var = np.empty((n_st, 6))
+    stop = n_st
+    while stop > 0:
+        start = max(0, stop - step)
+        fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
+        blocks = np.empty((stop - start, 6, 6))
+        with blas_limits(1):
+            _inverse_rows(FNS, fac, start, n, zb, state, blocks, v, y)
+        var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
+        if keep:
+            blocks_all[start:stop] = blocks
+        else:
+            out[start:stop] = blocks
+        stop = start
+    return blocks_all if keep else var
+
+
 def solve_in_core(band, rhs, pivot_tol=PIVOT_TOLERANCE, panel=None, threads=None):
     """Factor band rows ``band`` (n x 6 x 6b) and solve; returns ``(factor, delta)``.
 

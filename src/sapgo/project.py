@@ -141,7 +141,10 @@ SOLUTION_LAYOUT = {
     "station_corr": ("stations", (6,)),  # total corrections to eo
     "point_corr": ("points", (3,)),  # total corrections to xyz
     "residuals": ("observations", (2,)),  # vx, vy (mm), adjusted minus observed
+    "station_sigma": ("stations", (6,)),  # a-posteriori standard deviations (rad x3, m x3)
 }
+#: Solution datasets that files of older versions may lack (read as zeros).
+SOLUTION_OPTIONAL = {"station_sigma"}
 
 
 def _now():
@@ -350,6 +353,8 @@ class Project:
         if "solution" in f:
             for name, (parent, shape) in SOLUTION_LAYOUT.items():
                 ds = f["solution"].get(name)
+                if ds is None and name in SOLUTION_OPTIONAL:
+                    continue
                 if ds is None or ds.shape != (len(f[parent]),) + shape:
                     raise ProjectFormatError(
                         f"{self.path}: /solution/{name} is missing or does not match /{parent}"
@@ -458,7 +463,7 @@ class Project:
         parent, shape = SOLUTION_LAYOUT[name]
         n = self.__len_of(parent)
         stop = n if stop is None else stop
-        if not self.has_solution:
+        if not self.has_solution or name not in self.file["solution"]:
             return np.zeros((stop - start,) + shape)
         return self.file["solution"][name][start:stop]
 

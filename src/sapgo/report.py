@@ -80,6 +80,18 @@ class check_point_statistics:
                 "n_z": int(self.ctrl_n[2]), "rms_x": rms[0], "rms_y": rms[1], "rms_z": rms[2]}
 
 
+def precision_summary(station_sigma):
+    """Mean and maximum a-posteriori standard deviation of each station parameter
+    (angles in arc seconds, positions in m) over the active stations."""
+    if not len(station_sigma):
+        return None
+    names = ("omega_arcsec", "phi_arcsec", "kappa_arcsec", "X_m", "Y_m", "Z_m")
+    scale = [1.0 / (math.pi / (180 * 3600))] * 3 + [1.0] * 3
+    return {"stations": {n: {"mean": float(np.mean(station_sigma[:, k]) * scale[k]),
+                             "max": float(np.max(station_sigma[:, k]) * scale[k])}
+                         for k, n in enumerate(names)}}
+
+
 class truth_statistics:
     """Errors against the generator's true values (points and stations)."""
 
@@ -149,6 +161,8 @@ class Summary:
     strip_comparison: dict | None = None
     #: The computation frame and the user's CRS (:func:`sapgo.frames.frame_info`).
     frame: dict | None = None
+    #: A-posteriori standard deviations of the station parameters (:func:`precision_summary`).
+    precision: dict | None = None
 
     def to_dict(self):
         return dataclasses.asdict(self)
@@ -223,6 +237,11 @@ class Summary:
                          f"{tp['sxy']:.3f} m sZ {tp['sz']:.3f} m; {ts['n']} stations "
                          f"position RMS {ts['position_rms_m']:.3f} m, angles RMS "
                          f"{ts['angle_rms_arcsec']:.2f}\"")
+        if self.precision:
+            s = self.precision["stations"]
+            L.append("  station precision (mean / max): "
+                     + ", ".join(f"{n.split('_')[0]} {s[n]['mean']:.2f} / {s[n]['max']:.2f}"
+                                 + (chr(34) if "arcsec" in n else " m") for n in s))
         L.extend(format_strip_comparison(self.strip_comparison))
         t = self.timings_s
         if t:
