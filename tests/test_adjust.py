@@ -179,3 +179,40 @@ def test_station_precision_equals_the_dense_inverse(small_block):
     np.testing.assert_allclose(sigma, ref, rtol=1e-8)
     s = summary.precision["stations"]
     assert s["X_m"]["max"] == pytest.approx(ref[:, 3].max(), rel=1e-8)
+
+
+def test_planted_blunders_are_recorded_and_survive_ordering(tmp_path):
+    path = tmp_path / "b.h5"
+    info = sapgo.generate_block(path, strips=2, photos_per_strip=8, control_points=6,
+                                blunders=4)
+    assert info["blunders"] == 4
+    clean = tmp_path / "c.h5"
+    sapgo.generate_block(clean, strips=2, photos_per_strip=8, control_points=6)
+    a, b = read_records(path), read_records(clean)
+    with Project(path) as p:
+        bl = p.read("truth/blunders")
+    moved = np.flatnonzero((a["observations"]["x"] != b["observations"]["x"])
+                           | (a["observations"]["y"] != b["observations"]["y"]))
+    assert len(bl) == 4 and len(moved) == 4
+    ob = a["observations"][moved]
+    got = sorted(zip(a["stations"]["id"][ob["station"]].tolist(),
+                     a["points"]["id"][ob["point"]].tolist()))
+    assert got == sorted(zip(bl["station_id"].tolist(), bl["point_id"].tolist()))
+    size = np.hypot(bl["dx"], bl["dy"])
+    assert ((size >= 0.030) & (size <= 0.100)).all()
+    sapgo.order_project(path)
+    with Project(path) as p:
+        assert p.read("truth/blunders").tobytes() == bl.tobytes()
+
+
+def test_robust_weights():
+    from sapgo.adjust import robust_weights
+
+    res = np.array([[0.005, 0.0], [0.0, 0.030], [0.06, 0.08]])  # 5, 30, 100 um
+    np.testing.assert_allclose(robust_weights(res, sapgo.Options()), 1.0)
+    h = robust_weights(res, sapgo.Options(robust="huber", robust_threshold_um=10.0))
+    np.testing.assert_allclose(h, [1.0, 10 / 30, 0.1])
+    c = robust_weights(res, sapgo.Options(robust="cauchy", robust_threshold_um=10.0))
+    np.testing.assert_allclose(c, [1 / 1.25, 1 / 10, 1 / 101])
+    with pytest.raises(sapgo.SapgoError, match="huber or cauchy"):
+        sapgo.Options(robust="tukey").check()

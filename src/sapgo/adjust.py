@@ -98,6 +98,11 @@ class Options:
     memory: int | str | None = None
     #: Progress bars: True, False, or None for "when stderr is a terminal".
     progress: bool | None = None
+    #: Robust estimation of the image observations: None, "huber" or "cauchy" (iteratively
+    #: reweighted from the previous iteration's residuals; control and priors never are).
+    robust: str | None = None
+    #: Threshold of the robust weight function, um of image residual (length of (vx, vy)).
+    robust_threshold_um: float = 15.0
 
     def check(self):
         if self.max_iterations < 1:
@@ -110,6 +115,10 @@ class Options:
             raise SapgoError("pivot_tolerance must be in [0, 1)")
         if self.memory is not None:
             parse_memory(self.memory)  # a bad size is refused before anything runs
+        if self.robust not in (None, "huber", "cauchy"):
+            raise SapgoError(f"robust {self.robust!r}: choose huber or cauchy")
+        if not self.robust_threshold_um > 0:
+            raise SapgoError("the robust threshold must be positive (um)")
         return self
 
 
@@ -324,6 +333,29 @@ def _point_error(p, chunk, j, status, blk):
     )
 
 
+def robust_weights(residuals_mm, opts: Options):
+    """Weights of the image observations from their previous residuals (n x 2, mm): Huber
+    ``min(1, k / r)`` or Cauchy ``1 / (1 + (r / k)^2)``, ``r`` the residual's length in um,
+    ``k`` the threshold; all ones without robust estimation (or before the first
+    iteration's residuals exist)."""
+    if opts.robust is None or not len(residuals_mm):
+        return np.ones(len(residuals_mm))
+    r = 1000.0 * np.hypot(residuals_mm[:, 0], residuals_mm[:, 1])
+    k = opts.robust_threshold_um
+    if opts.robust == "huber":
+        return np.where(r <= k, 1.0, k / np.maximum(r, 1e-300))
+    return 1.0 / (1.0 + (r / k) ** 2)
+
+
+def _reweight(c, work, opts):
+    """Robust estimation: the chunk's observation sigmas divided by sqrt(weight)."""
+    if opts.robust is not None and c.o1 > c.o0:
+        w = robust_weights(work.res_current[c.o0:c.o1], opts)
+        c.obs_sigma = np.ascontiguousarray(c.obs_sigma / np.sqrt(np.maximum(w, 1e-12)))
+        return w
+    return None
+
+
 def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, sink=None):
     """Stream the points and hand over the reduced normal band rows as they are completed.
 
@@ -367,6 +399,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     with _progress(opts.progress, p.n_points, "build") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
             c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame)
+            _reweight(c, work, opts)
             j = 0
             while j < len(c.xyz):
                 j, status, bad = build_points_parallel(
@@ -393,10 +426,15 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0):
     residuals to the other buffer (``work.xyz_next``, ``work.res_next``).
     """
     stats = np.zeros(9)
+    stats_robust = [0, 0]  # observations downweighted, and to below a tenth
     xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
     with _progress(opts.progress, p.n_points, "update") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
             c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame)
+            w = _reweight(c, work, opts)
+            if w is not None:
+                stats_robust[0] += int((w < 1.0).sum())
+                stats_robust[1] += int((w < 0.1).sum())
             xyz_out = np.empty_like(c.xyz)
             res_out = np.zeros((c.o1 - c.o0, 2))
             update_points(
@@ -427,6 +465,8 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0):
         "rms_y_um": 1000 * math.sqrt(stats[3] / max(stats[4], 1)),
         "image_rms_um": 1000 * math.sqrt((stats[2] + stats[3]) / max(2 * stats[4], 1)),
         "max_point_corr": stats[5],
+        "downweighted": stats_robust[0],
+        "downweighted_below_tenth": stats_robust[1],
     }
 
 
@@ -587,6 +627,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             "max_station_position_corr_m": d_pos,
             "max_station_angle_corr_arcsec": d_ang / ARCSEC,
             "max_point_corr_m": st["max_point_corr"],
+            "robust_downweighted": st["downweighted"],
             "build_s": t1 - t0,
             "solve_s": t2 - t1,
             "update_s": t3 - t2,

@@ -55,7 +55,7 @@ def cmd_generate(args):
         station_position_perturbation=args.station_position_perturbation,
         station_angle_perturbation=angle, control_perturbation=args.control_perturbation,
         terrain_relief=args.terrain_relief, seed=args.seed,
-        distortion=args.distortion,
+        distortion=args.distortion, blunders=args.blunders,
     )
     print(f"generated {info['path']}: {info['photos']} photos in {info['strips']} strips, "
           f"{info['points']} points ({info['control_points']} control, "
@@ -105,6 +105,8 @@ def cmd_adjust(args):
         resume=args.resume,
         memory=args.memory,
         progress=False if args.no_progress else None,
+        robust=args.robust,
+        robust_threshold_um=args.robust_threshold,
     )
     with Project(args.project) as p:
         ordered = p.ordered
@@ -214,6 +216,9 @@ def build_parser():
                         "mm^-1), applied to the simulated image coordinates; write it with "
                         "'=' when it starts with a minus: --distortion=-2e-8,0,0,1e-6,0 "
                         "(default none)")
+    g.add_argument("--blunders", type=int, metavar="N",
+                   help="plant N blunders of 30 to 100 um in random image observations (listed "
+                        "in /truth/blunders; default 0)")
     g.add_argument("--seed", type=int, help="random seed (default 1)")
     g.set_defaults(func=cmd_generate)
 
@@ -285,6 +290,11 @@ def build_parser():
     a.add_argument("--tol-sigma0", type=float, default=1e-3,
                    help="convergence: relative change of sigma0 below this (default 1e-3)")
     a.add_argument("--ordering", default="best", help="ordering when the project is unordered")
+    a.add_argument("--robust", choices=("huber", "cauchy"),
+                   help="robust estimation of the image observations: reweighted every "
+                        "iteration from the previous residuals (control and priors are not)")
+    a.add_argument("--robust-threshold", type=float, default=15.0, metavar="UM",
+                   help="threshold of the robust weights, um of image residual (default 15)")
     a.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its last completed iteration")
     a.add_argument("--memory", default=None, metavar="SIZE",

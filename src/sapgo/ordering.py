@@ -606,6 +606,8 @@ def _order(p, work, method, memory, chunk):
         w.append("station_priors", priors)
         if has_truth:
             w.append("truth/stations", p.read("truth/stations")[perm])
+            if "truth/blunders" in p.file:  # keyed by ids: unchanged by the order
+                w.append("truth/blunders", p.read("truth/blunders"))
         if has_solution:
             w.file.move("solution.new", "solution")
         w.finish()  # replaces the project (still open here for reading: POSIX keeps it)

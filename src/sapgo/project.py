@@ -134,7 +134,14 @@ RECORD_DTYPES = {
     "points": POINT_DTYPE,
     "observations": OBSERVATION_DTYPE,
 }
-TRUTH_DTYPES = {"truth/stations": TRUTH_STATION_DTYPE, "truth/points": TRUTH_POINT_DTYPE}
+#: A planted blunder: the observation of point ``point_id`` on photo ``station_id`` (ids,
+#: stable across ordering) moved by (dx, dy) mm.
+TRUTH_BLUNDER_DTYPE = np.dtype([("station_id", "<i8"), ("point_id", "<i8"), ("dx", "<f8"),
+                                ("dy", "<f8")])
+TRUTH_DTYPES = {"truth/stations": TRUTH_STATION_DTYPE, "truth/points": TRUTH_POINT_DTYPE,
+                "truth/blunders": TRUTH_BLUNDER_DTYPE}
+#: Truth datasets that files of older versions may lack.
+TRUTH_OPTIONAL = {"truth/blunders"}
 
 #: Result datasets in ``/solution`` (shape per record, dtype).
 SOLUTION_LAYOUT = {
@@ -334,6 +341,8 @@ class Project:
             list(TRUTH_DTYPES.items()) if "truth" in f else []
         ):
             if name not in f:
+                if name in TRUTH_OPTIONAL:
+                    continue
                 raise ProjectFormatError(f"{self.path}: dataset /{name} is missing")
             ds = f[name]
             if not isinstance(ds, h5py.Dataset) or ds.ndim != 1:

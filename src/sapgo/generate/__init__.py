@@ -8,7 +8,9 @@ import sys
 from pathlib import Path
 
 from ..errors import ParameterError
-from ..project import ProjectWriter, append_history
+import numpy as np
+
+from ..project import TRUTH_BLUNDER_DTYPE, ProjectWriter, append_history
 from .apollo import SCENES as _APOLLO
 from .mfl import SCENES as _MFL
 from .sapgo_p import BlockSpec, write_block
@@ -65,6 +67,7 @@ def generate_block(path, preset=None, progress=None, **overrides):
             tqdm(total=spec.n_cols, desc="generate", unit="col", leave=False,
                  disable=not enabled, dynamic_ncols=True) as bar:
         counts = write_block(spec, w, progress=bar.update)
+        counts["blunders"] = plant_blunders(w, spec.blunders, spec.blunder_size, spec.seed)
         w.finish()
     return {
         "path": str(path),
@@ -75,6 +78,7 @@ def generate_block(path, preset=None, progress=None, **overrides):
         "control_points": counts["control"],
         "check_points": counts["points"] - counts["control"],
         "observations": counts["observations"],
+        "blunders": counts["blunders"],
     }
 
 
@@ -97,3 +101,37 @@ def _generate_scene(path, preset, seed=None, **overrides):
             "control_points": counts["control"],
             "check_points": 0, "observations": counts["observations"],
             "cameras": counts["cameras"]}
+
+
+def plant_blunders(writer, n, size, seed):
+    """Move ``n`` observations (chosen at random, one per point at most) by ``size[0]`` to
+    ``size[1]`` mm in a random direction, in the file being written; the planted blunders go
+    to ``/truth/blunders`` (photo and point ids, dx, dy). Returns ``n``."""
+    if n <= 0:
+        return 0
+    f = writer.file
+    obs, pts, st = f["observations"], f["points"], f["stations"]
+    n_obs = obs.shape[0]
+    if n > n_obs // 10:
+        raise ParameterError(f"{n} blunders in {n_obs} observations: at most one in ten")
+    rng = np.random.default_rng([seed, 91])
+    picked, used = [], set()
+    while len(picked) < n:
+        i = int(rng.integers(n_obs))
+        point = int(obs[i]["point"])
+        if point not in used:
+            used.add(point)
+            picked.append(i)
+    picked.sort()
+    rec = np.zeros(n, TRUTH_BLUNDER_DTYPE)
+    for k, i in enumerate(picked):
+        o = obs[i]
+        size_mm = rng.uniform(size[0], size[1])
+        angle = rng.uniform(0.0, 2.0 * np.pi)
+        dx, dy = size_mm * np.cos(angle), size_mm * np.sin(angle)
+        o["x"] += dx
+        o["y"] += dy
+        obs[i] = o
+        rec[k] = (int(st[int(o["station"])]["id"]), int(pts[int(o["point"])]["id"]), dx, dy)
+    writer.append("truth/blunders", rec)
+    return n

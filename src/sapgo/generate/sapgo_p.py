@@ -63,6 +63,10 @@ class BlockSpec:
     #: the camera's lens distortion (Brown: k1 mm^-2, k2 mm^-4, k3 mm^-6, p1, p2 mm^-1),
     #: applied to the simulated image coordinates and stored with the camera
     distortion: tuple = (0.0, 0.0, 0.0, 0.0, 0.0)
+    #: planted blunders: this many image observations moved by 30 to 100 um (``blunder_size``,
+    #: mm), listed in /truth/blunders
+    blunders: int = 0
+    blunder_size: tuple = (0.030, 0.100)
     seed: int = 1
 
     def check(self):
