@@ -216,3 +216,34 @@ def test_robust_weights():
     np.testing.assert_allclose(c, [1 / 1.25, 1 / 10, 1 / 101])
     with pytest.raises(sapgo.SapgoError, match="huber or cauchy"):
         sapgo.Options(robust="tukey").check()
+
+
+def test_point_precision_equals_the_dense_inverse(small_block):
+    """The points' a-posteriori standard deviations equal sigma0 times the square roots of
+    the diagonal of the inverse of the full normal matrix (stations and points), computed
+    densely (1e-8 relative)."""
+    summary = sapgo.adjust(small_block, TIGHT)
+    rec = read_records(small_block)
+    with Project(small_block) as p:
+        eo = rec["stations"]["eo"] + p.solution("station_corr")
+        xyz = rec["points"]["xyz"] + p.solution("point_corr")
+        psig = p.solution("point_sigma")
+    st, pt, ob = rec["stations"], rec["points"], rec["observations"]
+    f = rec["cameras"]["focal_length"][0]
+    ns, npnt = len(st), len(pt)
+    nu = 6 * ns + 3 * npnt
+    n = np.zeros((nu, nu))
+    for i in range(len(ob)):
+        s, j = ob["station"][i], ob["point"][i]
+        a, b = naive.jacobian_complex_step(eo[s], xyz[j], f)
+        row = np.zeros((2, nu))
+        row[:, 6 * s:6 * s + 6] = a
+        row[:, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b
+        n += row.T @ row / ob["sigma"][i] ** 2
+    mask = CONTROL_MASK[pt["kind"]].astype(bool)
+    for j, k in zip(*np.nonzero(mask)):
+        n[6 * ns + 3 * j + k, 6 * ns + 3 * j + k] += 1.0 / pt["control_sigma"][j, k] ** 2
+    ref = summary.sigma0 * np.sqrt(np.diag(np.linalg.inv(n))[6 * ns:]).reshape(-1, 3)
+    np.testing.assert_allclose(psig, ref, rtol=1e-8)
+    assert summary.precision["points"]["Z_m"]["max"] == pytest.approx(ref[:, 2].max(),
+                                                                       rel=1e-8)

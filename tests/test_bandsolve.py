@@ -216,3 +216,25 @@ def test_covariance_blocks_equal_the_dense_inverse(step, n, bw):
     var = covariance_blocks(fac, n, bw, step=step, out=out)
     np.testing.assert_array_equal(out, blocks)
     np.testing.assert_array_equal(var, np.diagonal(blocks, axis1=1, axis2=2))
+
+
+def test_covariance_window_holds_the_band_of_the_inverse_for_each_block():
+    from sapgo.bandsolve import covariance_blocks
+
+    n, bw = 40, 4
+    a = random_block_banded(n, bw, seed=12)
+    fac = dense_to_band(a, bw)
+    solve_out_of_core(fac, np.zeros((n, 6)), bw, chunk_rows=3)
+    inv = np.linalg.inv(a)
+    seen = []
+
+    def check(start, stop, zb, base):
+        lo, hi = 6 * start, min(6 * n, 6 * stop + 6 * bw - 1)
+        for k in range(lo, hi):
+            for j in range(max(lo, k - 6 * bw + 1), min(hi, k + 6 * bw)):
+                assert zb[k - base, j - base] == pytest.approx(inv[k, j], rel=1e-9,
+                                                              abs=1e-12 * abs(inv).max())
+        seen.append((start, stop))
+
+    covariance_blocks(fac, n, bw, step=100, on_block=check)
+    assert seen[0][1] == n and seen[-1][0] == 0 and all(b - a <= bw for a, b in seen)

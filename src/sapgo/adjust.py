@@ -48,6 +48,7 @@ from .normals import (
     PointChunk,
     build_points_parallel,
     control_rotations,
+    point_sigmas,
     update_points,
 )
 from .ordering import order_project
@@ -746,10 +747,33 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     # reduced normals (the last iteration's factor), Takahashi's recurrence streamed backwards;
     # the blocks go to the work directory, the variances stay in core (48 bytes a station)
     t_prec = time.perf_counter()
-    cov = RawArray(work.dir / "cov.bin", (len(blk.station_ids), 6, 6), mode="w")
+    n_st = len(blk.station_ids)
+    # the points' precision in step with the backward sweep: the points whose first station
+    # is in the block just finished (points are sorted by it, excluded ones last)
+    first = np.zeros(n_st + 1, np.int64)
+    for a, b in p_read.chunks("points", opts.chunk_points):
+        sm = p_read.read_field("points", "station_min", a, b)
+        act = p_read.read_field("points", "status", a, b) == STATUS_ACTIVE
+        first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
+    np.cumsum(first, out=first)
+    psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
+
+    def points_of(start, stop, zb, base):
+        p0, p1 = int(first[start]), int(first[stop])
+        for a in range(p0, p1, opts.chunk_points):
+            b = min(p1, a + opts.chunk_points)
+            c = PointChunk(p_read, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame)
+            _reweight(c, work, opts)
+            out = np.empty((b - a, 3))
+            point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
+                         c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
+                         blk.camera, blk.cams, CTRL_MASK, c.max_rays, zb, base, out)
+            psig[a:b] = last["sigma0"] * out
+
+    cov = RawArray(work.dir / "cov.bin", (n_st, 6, 6), mode="w")
     try:
-        var = covariance_blocks(work.factor, len(blk.station_ids), blk.band_width,
-                                opts.chunk_rows, out=cov)
+        var = covariance_blocks(work.factor, n_st, blk.band_width, opts.chunk_rows, out=cov,
+                                on_block=points_of)
     finally:
         cov.close()
     station_sigma = last["sigma0"] * np.sqrt(np.maximum(var, 0.0))
@@ -814,7 +838,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         resumed_from_iteration=resumed_from,
         strip_comparison=strips.result(),
         frame=frame_info(p_read.frame()),
-        precision=precision_summary(station_sigma[blk.station_active]),
+        precision=precision_summary(station_sigma[blk.station_active], psig, p_read,
+                                    opts.chunk_points),
     )
     its = max(1, len(log))
     summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}
@@ -834,6 +859,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
                 g["residuals"][a:b] = res_ds[a:b]
             for a, b in q.chunks("stations", opts.chunk_points):
                 g["station_sigma"][a:b] = station_sigma[a:b]
+            for a, b in q.chunks("points", opts.chunk_points):
+                g["point_sigma"][a:b] = psig[a:b]
             g.attrs["state"] = "adjusted"
             g.attrs["iterations"] = len(log)
             g.attrs["converged"] = converged

@@ -521,7 +521,7 @@ def _back_substitute(band_ds, rhs_ds, n_st, step):
 
 
 @njit(cache=True, nogil=True)
-def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, v, y):
+def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, v, y, margin):
     """Takahashi's recurrence for the scalar rows of stations ``i0 ..`` (in reverse) of the
     diagonal-first factor rows ``fac``: ``Z = M^-1 = U^-1 U'^-1`` inside the band,
 
@@ -540,9 +540,9 @@ def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, v, y):
         for r in range(5, -1, -1):
             h = 6 * (i0 + ii) + r
             base = state[0]
-            if h < base:  # shift the window: rows h+1 .. h+u to the top part of the buffer
-                nb = max(0, h + u + 1 - bsz)
-                top_old = min(u, n - 1 - h)
+            if h < base:  # shift the window: rows h+1 .. h+u+margin to its top part
+                nb = max(0, h + u + margin + 1 - bsz)
+                top_old = min(u + margin, n - 1 - h, base + bsz - 1 - h)
                 for a in range(top_old - 1, -1, -1):  # moving down: last row first
                     for b in range(top_old):
                         y[b] = zb[h + 1 + a - base, h + 1 + b - base]
@@ -573,17 +573,26 @@ def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, v, y):
                 out_blocks[ii, a, b] = zb[q + a, q + b]
 
 
-def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None):
+def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=None):
     """The 6x6 diagonal blocks of ``M^-1`` (the stations' cofactor matrices) from the factor
     rows of :class:`BandSolver` (diagonal-first, ``factor_ds`` n x 6 x 6b), by Takahashi's
     recurrence streamed backwards ``step`` stations at a time, a dgemv per scalar row: in core
     ``Z`` of a window of ``4 (6b) + 6`` scalar rows and columns (``(24 b)^2`` doubles) and one
     block of factor rows. Returns the
     blocks (n x 6 x 6), or writes them to ``out`` (a direct-access file, dataset or array)
-    block by block and returns the variances (n x 6) only."""
+    block by block and returns the variances (n x 6) only.
+
+    ``on_block(start, stop, zb, base)`` is called after each block of stations
+    ``start .. stop`` (then at most ``b`` stations): ``zb[k - base, j - base] = Z[k, j]`` for
+    the scalar rows and columns ``k, j`` of those stations and the ``6b - 1`` after them,
+    inside the band (the covariances a point observed from those stations needs)."""
     width = 6 * band_width
     n = 6 * n_st
     bsz = 4 * width + 6
+    margin = 0
+    if on_block is not None:
+        step = max(1, min(step, band_width))
+        margin = 6 * step
     zb = np.zeros((bsz, bsz))
     state = np.array([max(0, n - bsz)], np.int64)
     v = np.empty(bsz)
@@ -597,8 +606,10 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None):
         fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
         blocks = np.empty((stop - start, 6, 6))
         with blas_limits(1):
-            _inverse_rows(FNS, fac, start, n, zb, state, blocks, v, y)
+            _inverse_rows(FNS, fac, start, n, zb, state, blocks, v, y, margin)
         var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
+        if on_block is not None:
+            on_block(start, stop, zb, int(state[0]))
         if keep:
             blocks_all[start:stop] = blocks
         else:

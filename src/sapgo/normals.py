@@ -21,6 +21,8 @@ to the diagonal block when the row enters the window.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit, prange
 
@@ -355,6 +357,64 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             stats[2] += vx * vx
             stats[3] += vy * vy
             stats[4] += 1
+
+
+@njit(cache=True)
+def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
+                 obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
+                 ctrl_mask, max_rays, zb, base, out):
+    """Cofactor standard deviations of the points of a chunk (``out``: n x 3; multiply by
+    sigma0): the point block of the inverse of the full normal matrix,
+
+        Q_pp = N_pp^-1 + N_pp^-1 (sum_q sum_r Nbar_q' Z[s_q, s_r] Nbar_r) N_pp^-1,
+
+    ``Z`` the stations' cofactors inside the band (``zb[k - base, j - base]``, the window of
+    :func:`sapgo.bandsolve.covariance_blocks`). Fixed components get 0, excluded points 0,
+    points whose system is singular nan."""
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
+    g = np.empty((3, 3))
+    t = np.empty((3, 3))
+    e = np.empty(3)
+    col = np.empty(3)
+    for j in range(pt_xyz.shape[0]):
+        for c in range(3):
+            out[j, c] = 0.0
+        if pt_active[j] != 0:
+            continue
+        k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
+                          obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
+                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc)
+        if k < 0 or not _chol3(nn, lo):
+            for c in range(3):
+                out[j, c] = np.nan
+            continue
+        for c in range(3):
+            e[:] = 0.0
+            e[c] = 1.0
+            _solve3(lo, e, col)
+            for r in range(3):
+                g[r, c] = col[r]
+        t[:, :] = 0.0
+        for q in range(k):
+            sq = 6 * st_all[q] - base
+            for r in range(k):
+                sr = 6 * st_all[r] - base
+                for a in range(6):
+                    for b in range(6):
+                        z = zb[sq + a, sr + b]
+                        for c1 in range(3):
+                            za = z * nbar[q, a, c1]
+                            for c2 in range(3):
+                                t[c1, c2] += za * nbar[r, b, c2]
+        kind = pt_kind[j]
+        for c in range(3):
+            if ctrl_mask[kind, c] and pt_csig[j, c] == 0.0:
+                continue  # fixed
+            v = g[c, c]
+            for a in range(3):
+                for b in range(3):
+                    v += g[c, a] * t[a, b] * g[b, c]
+            out[j, c] = math.sqrt(max(v, 0.0))
 
 
 class PointChunk:

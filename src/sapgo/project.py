@@ -149,9 +149,10 @@ SOLUTION_LAYOUT = {
     "point_corr": ("points", (3,)),  # total corrections to xyz
     "residuals": ("observations", (2,)),  # vx, vy (mm), adjusted minus observed
     "station_sigma": ("stations", (6,)),  # a-posteriori standard deviations (rad x3, m x3)
+    "point_sigma": ("points", (3,)),  # a-posteriori standard deviations (m)
 }
 #: Solution datasets that files of older versions may lack (read as zeros).
-SOLUTION_OPTIONAL = {"station_sigma"}
+SOLUTION_OPTIONAL = {"station_sigma", "point_sigma"}
 
 
 def _now():

@@ -80,16 +80,32 @@ class check_point_statistics:
                 "n_z": int(self.ctrl_n[2]), "rms_x": rms[0], "rms_y": rms[1], "rms_z": rms[2]}
 
 
-def precision_summary(station_sigma):
-    """Mean and maximum a-posteriori standard deviation of each station parameter
-    (angles in arc seconds, positions in m) over the active stations."""
+def precision_summary(station_sigma, point_sigma=None, project=None, chunk=65536):
+    """Mean and maximum a-posteriori standard deviation of each station parameter (angles in
+    arc seconds, positions in m) over the active stations, and of each point coordinate over
+    the active points that are not fixed (``point_sigma``: the points' file, read in
+    chunks)."""
     if not len(station_sigma):
         return None
     names = ("omega_arcsec", "phi_arcsec", "kappa_arcsec", "X_m", "Y_m", "Z_m")
     scale = [1.0 / (math.pi / (180 * 3600))] * 3 + [1.0] * 3
-    return {"stations": {n: {"mean": float(np.mean(station_sigma[:, k]) * scale[k]),
-                             "max": float(np.max(station_sigma[:, k]) * scale[k])}
-                         for k, n in enumerate(names)}}
+    out = {"stations": {n: {"mean": float(np.mean(station_sigma[:, k]) * scale[k]),
+                            "max": float(np.max(station_sigma[:, k]) * scale[k])}
+                        for k, n in enumerate(names)}}
+    if point_sigma is not None and project is not None:
+        s, m, n = np.zeros(3), np.zeros(3), np.zeros(3, np.int64)
+        for a in range(0, project.n_points, chunk):
+            b = min(project.n_points, a + chunk)
+            ps = point_sigma[a:b]
+            act = project.read_field("points", "status", a, b) == 0
+            ok = act[:, None] & (ps > 0) & np.isfinite(ps)
+            s += np.where(ok, ps, 0.0).sum(axis=0)
+            m = np.maximum(m, np.where(ok, ps, 0.0).max(axis=0)) if len(ps) else m
+            n += ok.sum(axis=0)
+        out["points"] = {f"{c}_m": {"mean": float(s[k] / n[k]) if n[k] else None,
+                                    "max": float(m[k]) if n[k] else None}
+                         for k, c in enumerate("XYZ")}
+    return out
 
 
 class truth_statistics:
@@ -242,6 +258,11 @@ class Summary:
             L.append("  station precision (mean / max): "
                      + ", ".join(f"{n.split('_')[0]} {s[n]['mean']:.2f} / {s[n]['max']:.2f}"
                                  + (chr(34) if "arcsec" in n else " m") for n in s))
+            pp = self.precision.get("points")
+            if pp and pp["X_m"]["mean"] is not None:
+                L.append("  point precision (mean / max): "
+                         + ", ".join(f"{n[0]} {pp[n]['mean']:.3f} / {pp[n]['max']:.3f} m"
+                                     for n in pp if pp[n]["mean"] is not None))
         L.extend(format_strip_comparison(self.strip_comparison))
         t = self.timings_s
         if t:
