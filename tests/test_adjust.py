@@ -222,12 +222,19 @@ def test_point_precision_equals_the_dense_inverse(small_block):
     """The points' a-posteriori standard deviations equal sigma0 times the square roots of
     the diagonal of the inverse of the full normal matrix (stations and points), computed
     densely (1e-8 relative)."""
-    summary = sapgo.adjust(small_block, TIGHT)
+    import dataclasses
+
+    from sapgo.adjust import work_path
+    from sapgo.rawfile import RawArray
+
+    summary = sapgo.adjust(small_block, dataclasses.replace(TIGHT, keep_scratch=True))
     rec = read_records(small_block)
     with Project(small_block) as p:
         eo = rec["stations"]["eo"] + p.solution("station_corr")
         xyz = rec["points"]["xyz"] + p.solution("point_corr")
         psig = p.solution("point_sigma")
+        res = p.solution("residuals")
+    quality = RawArray(work_path(small_block) / "quality.bin", (len(res), 4), mode="r")[:]
     st, pt, ob = rec["stations"], rec["points"], rec["observations"]
     f = rec["cameras"]["focal_length"][0]
     ns, npnt = len(st), len(pt)
@@ -243,7 +250,21 @@ def test_point_precision_equals_the_dense_inverse(small_block):
     mask = CONTROL_MASK[pt["kind"]].astype(bool)
     for j, k in zip(*np.nonzero(mask)):
         n[6 * ns + 3 * j + k, 6 * ns + 3 * j + k] += 1.0 / pt["control_sigma"][j, k] ** 2
-    ref = summary.sigma0 * np.sqrt(np.diag(np.linalg.inv(n))[6 * ns:]).reshape(-1, 3)
+    q = np.linalg.inv(n)
+    ref = summary.sigma0 * np.sqrt(np.diag(q)[6 * ns:]).reshape(-1, 3)
     np.testing.assert_allclose(psig, ref, rtol=1e-8)
+    # redundancy numbers r = 1 - (J Q J')_ii / sigma^2 and normalised residuals
+    r = np.zeros((len(ob), 2))
+    for i in range(len(ob)):
+        s, j = ob["station"][i], ob["point"][i]
+        a, b = naive.jacobian_complex_step(eo[s], xyz[j], f)
+        jj = np.zeros((2, nu))
+        jj[:, 6 * s:6 * s + 6] = a
+        jj[:, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b
+        r[i] = 1.0 - np.diag(jj @ q @ jj.T) / ob["sigma"][i] ** 2
+    np.testing.assert_allclose(quality[:, :2], r, rtol=1e-6, atol=1e-9)
+    w = res / (summary.sigma0 * ob["sigma"][:, None] * np.sqrt(r))
+    np.testing.assert_allclose(quality[:, 2:], w, rtol=1e-6, atol=1e-9)
+    assert r.sum() == pytest.approx(summary.redundancy, abs=0.01)  # control takes ~0
     assert summary.precision["points"]["Z_m"]["max"] == pytest.approx(ref[:, 2].max(),
                                                                        rel=1e-8)

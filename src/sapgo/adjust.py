@@ -757,6 +757,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
     np.cumsum(first, out=first)
     psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
+    # per observation: redundancy numbers r_x, r_y and normalised residuals w_x, w_y
+    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, 4), mode="w")
 
     def points_of(start, stop, zb, base):
         p0, p1 = int(first[start]), int(first[stop])
@@ -765,10 +767,14 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
             c = PointChunk(p_read, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame)
             _reweight(c, work, opts)
             out = np.empty((b - a, 3))
+            out_r = np.empty((c.o1 - c.o0, 2))
+            out_w = np.empty((c.o1 - c.o0, 2))
             point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
                          c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
-                         blk.camera, blk.cams, CTRL_MASK, c.max_rays, zb, base, out)
+                         blk.camera, blk.cams, CTRL_MASK, c.max_rays, zb, base,
+                         np.ascontiguousarray(res_ds[c.o0:c.o1]), out, out_r, out_w)
             psig[a:b] = last["sigma0"] * out
+            quality[c.o0:c.o1] = np.concatenate([out_r, out_w / last["sigma0"]], axis=1)
 
     cov = RawArray(work.dir / "cov.bin", (n_st, 6, 6), mode="w")
     try:

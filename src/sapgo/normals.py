@@ -362,20 +362,34 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
 @njit(cache=True)
 def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                  obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
-                 ctrl_mask, max_rays, zb, base, out):
-    """Cofactor standard deviations of the points of a chunk (``out``: n x 3; multiply by
-    sigma0): the point block of the inverse of the full normal matrix,
+                 ctrl_mask, max_rays, zb, base, res, out, out_r, out_w):
+    """Precision of the points of a chunk and the quality of their observations.
 
-        Q_pp = N_pp^-1 + N_pp^-1 (sum_q sum_r Nbar_q' Z[s_q, s_r] Nbar_r) N_pp^-1,
+    ``out`` (n x 3): the points' cofactor standard deviations (multiply by sigma0), the point
+    block of the inverse of the full normal matrix,
+
+        Q_pp = G + G (sum_q sum_r Nbar_q' Z[s_q, s_r] Nbar_r) G,    G = N_pp^-1,
 
     ``Z`` the stations' cofactors inside the band (``zb[k - base, j - base]``, the window of
-    :func:`sapgo.bandsolve.covariance_blocks`). Fixed components get 0, excluded points 0,
-    points whose system is singular nan."""
+    :func:`sapgo.bandsolve.covariance_blocks`); fixed components and excluded points 0,
+    singular points nan. ``out_r`` (observations x 2): redundancy numbers ``r = q_vv / sigma^2``
+    of x and y, with ``Q_vv = sigma^2 I - [A B] Q [A B]'`` (``Q_sp = -sum_t Z[s, t] Nbar_t G``);
+    ``out_w``: normalised residuals ``v / (sigma sqrt(r))`` of the residuals ``res`` (divide by
+    sigma0); inactive observations 0."""
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
     g = np.empty((3, 3))
     t = np.empty((3, 3))
+    qpp = np.empty((3, 3))
+    qsp = np.empty((6, 3))
+    zn = np.empty((6, 3))
     e = np.empty(3)
     col = np.empty(3)
+    a = np.empty((2, 6))
+    b = np.empty((2, 3))
+    for i in range(out_r.shape[0]):
+        for c in range(2):
+            out_r[i, c] = 0.0
+            out_w[i, c] = 0.0
     for j in range(pt_xyz.shape[0]):
         for c in range(3):
             out[j, c] = 0.0
@@ -399,22 +413,62 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
             sq = 6 * st_all[q] - base
             for r in range(k):
                 sr = 6 * st_all[r] - base
-                for a in range(6):
-                    for b in range(6):
-                        z = zb[sq + a, sr + b]
+                for a6 in range(6):
+                    for b6 in range(6):
+                        z = zb[sq + a6, sr + b6]
                         for c1 in range(3):
-                            za = z * nbar[q, a, c1]
+                            za = z * nbar[q, a6, c1]
                             for c2 in range(3):
-                                t[c1, c2] += za * nbar[r, b, c2]
+                                t[c1, c2] += za * nbar[r, b6, c2]
+        for c1 in range(3):
+            for c2 in range(3):
+                v = g[c1, c2]
+                for p1 in range(3):
+                    for p2 in range(3):
+                        v += g[c1, p1] * t[p1, p2] * g[p2, c2]
+                qpp[c1, c2] = v
         kind = pt_kind[j]
         for c in range(3):
-            if ctrl_mask[kind, c] and pt_csig[j, c] == 0.0:
-                continue  # fixed
-            v = g[c, c]
-            for a in range(3):
-                for b in range(3):
-                    v += g[c, a] * t[a, b] * g[b, c]
-            out[j, c] = math.sqrt(max(v, 0.0))
+            if not (ctrl_mask[kind, c] and pt_csig[j, c] == 0.0):
+                out[j, c] = math.sqrt(max(qpp[c, c], 0.0))
+        # the observations: the k-th active ray of the point is the k-th active observation
+        q = 0
+        for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+            if not obs_active[i]:
+                continue
+            s = obs_station[i]
+            linearize(eo[s], xyz, cams[cam_of_station[s]], a, b)
+            sq = 6 * s - base
+            # Q_sp = -(sum_r Z[s, s_r] Nbar_r) G
+            zn[:, :] = 0.0
+            for r in range(k):
+                sr = 6 * st_all[r] - base
+                for a6 in range(6):
+                    for b6 in range(6):
+                        z = zb[sq + a6, sr + b6]
+                        for c in range(3):
+                            zn[a6, c] += z * nbar[r, b6, c]
+            for a6 in range(6):
+                for c in range(3):
+                    v = 0.0
+                    for p1 in range(3):
+                        v -= zn[a6, p1] * g[p1, c]
+                    qsp[a6, c] = v
+            sig2 = obs_sigma[i] * obs_sigma[i]
+            for m in range(2):
+                cmm = 0.0
+                for a6 in range(6):
+                    for b6 in range(6):
+                        cmm += a[m, a6] * zb[sq + a6, sq + b6] * a[m, b6]
+                    for c in range(3):
+                        cmm += 2.0 * a[m, a6] * qsp[a6, c] * b[m, c]
+                for c1 in range(3):
+                    for c2 in range(3):
+                        cmm += b[m, c1] * qpp[c1, c2] * b[m, c2]
+                qvv = sig2 - cmm
+                out_r[i, m] = qvv / sig2
+                out_w[i, m] = res[i, m] / math.sqrt(qvv) if qvv > 0.0 else 0.0
+            q += 1
 
 
 class PointChunk:
