@@ -268,3 +268,27 @@ def test_point_precision_equals_the_dense_inverse(small_block):
     assert r.sum() == pytest.approx(summary.redundancy, abs=0.01)  # control takes ~0
     assert summary.precision["points"]["Z_m"]["max"] == pytest.approx(ref[:, 2].max(),
                                                                        rel=1e-8)
+
+
+def test_data_snooping_flags_planted_blunders(tmp_path):
+    """Snooping rejects observations until no normalised residual exceeds the critical value;
+    the rejected ones are flagged in the project (not deleted) and checked against the
+    planted blunders."""
+    from sapgo.project import STATUS_REJECTED
+
+    path = tmp_path / "b.h5"
+    sapgo.generate_block(path, strips=3, photos_per_strip=10, control_points=8, blunders=3,
+                         blunder_size=(0.08, 0.1))
+    n_obs = len(read_records(path)["observations"])
+    s = sapgo.adjust(path, sapgo.Options(progress=False, snooping=True))
+    assert s.converged and s.rejected and s.blunder_check["planted"] == 3
+    assert s.blunder_check["found"] >= 2
+    with Project(path) as p:
+        ob = p.read("observations")
+        st_ids, pt_ids = p.read_field("stations", "id"), p.read_field("points", "id")
+    assert len(ob) == n_obs  # nothing deleted
+    flagged = {(int(st_ids[o["station"]]), int(pt_ids[o["point"]]))
+               for o in ob[ob["status"] == STATUS_REJECTED]}
+    assert flagged == {(r["photo_id"], r["point_id"]) for r in s.rejected}
+    assert all(r["w"] > 3.29 for r in s.rejected)
+    assert 0.8 < s.sigma0 < 1.2

@@ -55,6 +55,7 @@ from .ordering import order_project
 from .extsort import parse_memory
 from .rawfile import RawArray
 from .project import (
+    STATUS_REJECTED,
     CONTROL_MASK,
     EO_NAMES,
     STATUS_ACTIVE,
@@ -104,6 +105,12 @@ class Options:
     robust: str | None = None
     #: Threshold of the robust weight function, um of image residual (length of (vx, vy)).
     robust_threshold_um: float = 15.0
+    #: Baarda's data snooping after convergence: reject the observation with the largest
+    #: normalised residual above the critical value of ``snooping_alpha`` and iterate again.
+    snooping: bool = False
+    snooping_alpha: float = 0.001
+    #: Data snooping rejects at most this many observations.
+    max_rejections: int = 1000
 
     def check(self):
         if self.max_iterations < 1:
@@ -207,6 +214,13 @@ class _Block:
     cam_sigma: np.ndarray  # per camera: sigma_image (mm), for observations with sigma 0
     band_width: int
     frame: object = None  # sapgo.frames.Frame: control sigmas along east, north, up in a CRS
+    #: observations rejected by data snooping in this run (record numbers, sorted) and the
+    #: normalised residuals they were rejected with
+    rejected: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
+    rejected_w: list = dataclasses.field(default_factory=list)
+    #: points left undeterminable by those rejections (excluded for the rest of the run)
+    rejected_points: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros(0, np.int64))
     n_points: int = 0
     n_rays: int = 0
     n_control: dict = dataclasses.field(default_factory=dict)
@@ -399,7 +413,8 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
 
     with _progress(opts.progress, p.n_points, "build") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
-            c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame)
+            c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
+                           blk.rejected_points)
             _reweight(c, work, opts)
             j = 0
             while j < len(c.xyz):
@@ -431,7 +446,8 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0):
     xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
     with _progress(opts.progress, p.n_points, "update") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
-            c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame)
+            c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
+                           blk.rejected_points)
             w = _reweight(c, work, opts)
             if w is not None:
                 stats_robust[0] += int((w < 1.0).sum())
@@ -589,11 +605,13 @@ def _identity(p: Project, band_width):
             "points": p.n_points, "observations": p.n_observations, "band_width": band_width}
 
 
-def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, run):
-    """Gauss-Newton iterations from the work's state; appends to ``log``; returns converged."""
+def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, run,
+             limit=None):
+    """Gauss-Newton iterations from the work's state up to iteration ``limit`` (default
+    ``max_iterations``); appends to ``log``; returns converged."""
     n = len(blk.station_ids)
     bw = blk.band_width
-    for it in range(work.state + 1, opts.max_iterations + 1):
+    for it in range(work.state + 1, (limit or opts.max_iterations) + 1):
         t0 = time.perf_counter()
         # The factorisation runs inside the build: every segment of band rows is factored as
         # soon as the build has completed it, so the band rows never go to disk. Its time is
@@ -704,6 +722,14 @@ def adjust(path, options: Options | None = None) -> Summary:
             else:
                 run = {"run": checkpoint["run"], "identity": ident}
                 blk.eo = np.ascontiguousarray(checkpoint["eo"], dtype=np.float64)
+                blk.rejected = np.array(checkpoint.get("rejected", []), np.int64)
+                blk.rejected_w = list(checkpoint.get("rejected_w", []))
+                blk.n_rays -= len(blk.rejected)
+                blk.rejected_points = np.array(checkpoint.get("rejected_points", []), np.int64)
+                blk.n_points -= len(blk.rejected_points)
+                run["rejected"] = blk.rejected.tolist()
+                run["rejected_w"] = blk.rejected_w
+                run["rejected_points"] = blk.rejected_points.tolist()
                 log = checkpoint["log"]
                 for k, v in checkpoint["timings"].items():
                     timings[k] = v + (timings[k] if k == "order" else 0.0)
@@ -712,6 +738,8 @@ def adjust(path, options: Options | None = None) -> Summary:
                 resumed_from = work.state
             if not converged:
                 converged = _iterate(p, work, blk, opts, timings, log, run)
+            if opts.snooping and log:
+                converged = _snoop(p, work, blk, opts, timings, log, run, converged)
             if not log:
                 raise SapgoError(f"{path}: no iteration was run (max_iterations "
                                  f"{opts.max_iterations} and a checkpoint at iteration "
@@ -732,6 +760,123 @@ def adjust(path, options: Options | None = None) -> Summary:
     return summary
 
 
+def _quality_sweep(p_read, work, blk, opts, sigma0):
+    """Precision and observation quality from the last iteration's factor.
+
+    The stations' cofactor blocks by Takahashi's recurrence streamed backwards (the blocks to
+    ``cov.bin``; ``station_sigma`` in core, 48 bytes a station), and, in step with it, the
+    points whose first station is in the block just finished (points are sorted by it,
+    excluded ones last): their standard deviations (``point_sigma.bin``) and their
+    observations' redundancy numbers and normalised residuals (``quality.bin``: r_x, r_y,
+    w_x, w_y). Returns ``(station_sigma, point_sigma file, quality file)``."""
+    xyz_ds, res_ds = work.xyz_current, work.res_current
+    n_st = len(blk.station_ids)
+    first = np.zeros(n_st + 1, np.int64)
+    for a, b in p_read.chunks("points", opts.chunk_points):
+        sm = p_read.read_field("points", "station_min", a, b)
+        act = p_read.read_field("points", "status", a, b) == STATUS_ACTIVE
+        first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
+    np.cumsum(first, out=first)
+    psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
+    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, 4), mode="w")
+
+    def points_of(start, stop, zb, base):
+        p0, p1 = int(first[start]), int(first[stop])
+        for a in range(p0, p1, opts.chunk_points):
+            b = min(p1, a + opts.chunk_points)
+            c = PointChunk(p_read, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame,
+                           blk.rejected)
+            _reweight(c, work, opts)
+            out = np.empty((b - a, 3))
+            out_r = np.empty((c.o1 - c.o0, 2))
+            out_w = np.empty((c.o1 - c.o0, 2))
+            point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
+                         c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
+                         blk.camera, blk.cams, CTRL_MASK, c.max_rays, zb, base,
+                         np.ascontiguousarray(res_ds[c.o0:c.o1]), out, out_r, out_w)
+            psig[a:b] = sigma0 * out
+            quality[c.o0:c.o1] = np.concatenate([out_r, out_w / sigma0], axis=1)
+
+    cov = RawArray(work.dir / "cov.bin", (n_st, 6, 6), mode="w")
+    try:
+        var = covariance_blocks(work.factor, n_st, blk.band_width, opts.chunk_rows, out=cov,
+                                on_block=points_of)
+    finally:
+        cov.close()
+    station_sigma = sigma0 * np.sqrt(np.maximum(var, 0.0))
+    station_sigma[~blk.station_active] = 0.0
+    return station_sigma, psig, quality
+
+
+def _snoop(p, work, blk, opts, timings, log, run, converged):
+    """Baarda's data snooping: while the largest normalised residual of an active image
+    observation exceeds the critical value of ``opts.snooping_alpha`` (two-sided normal),
+    reject that observation (flagged, never deleted) and iterate again. Returns converged."""
+    from scipy.stats import norm
+
+    crit = float(norm.isf(opts.snooping_alpha / 2.0))
+    while len(blk.rejected) < opts.max_rejections:
+        t0 = time.perf_counter()
+        _, _, quality = _quality_sweep(p, work, blk, opts, log[-1]["sigma0"])
+        best, worst = 0.0, -1
+        for a, b in p.chunks("observations", opts.chunk_points):
+            q = quality[a:b]
+            act = p.read_field("observations", "status", a, b) == STATUS_ACTIVE
+            if len(blk.rejected):
+                act &= ~np.isin(np.arange(a, b), blk.rejected)
+            w = np.where(act, np.abs(q[:, 2:]).max(axis=1), 0.0)
+            i = int(np.argmax(w)) if len(w) else 0
+            if len(w) and w[i] > best:
+                best, worst = float(w[i]), a + i
+        timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t0
+        if best <= crit or worst < 0:
+            break
+        # a point left with fewer than two rays cannot be determined: all its rays go (the
+        # blunder cannot be told from the other ray of a two-ray point)
+        j = int(p.read("observations", worst, worst + 1)[0]["point"])
+        pt = p.read("points", j, j + 1)[0]
+        o0, o1 = int(pt["obs_start"]), int(pt["obs_start"] + pt["n_obs"])
+        live = np.arange(o0, o1)[p.read_field("observations", "status", o0, o1)
+                                 == STATUS_ACTIVE]
+        live = live[~np.isin(live, blk.rejected)]
+        drop = live if len(live) - 1 < 2 else np.array([worst])
+        blk.rejected = np.sort(np.concatenate([blk.rejected, drop]))
+        blk.rejected_w.extend([best] * len(drop))
+        blk.n_rays -= len(drop)
+        if len(drop) > 1:
+            blk.rejected_points = np.sort(np.append(blk.rejected_points, j))
+            blk.n_points -= 1
+        run["rejected"] = blk.rejected.tolist()
+        run["rejected_w"] = blk.rejected_w
+        run["rejected_points"] = blk.rejected_points.tolist()
+        converged = _iterate(p, work, blk, opts, timings, log, run,
+                             limit=work.state + opts.max_iterations)
+    return converged
+
+
+def _rejected_list(p, blk):
+    """The observations data snooping rejected: photo and point ids, normalised residual."""
+    out = []
+    for i, w in zip(blk.rejected.tolist(), blk.rejected_w):
+        o = p.read("observations", i, i + 1)[0]
+        out.append({"observation": i, "photo_id": int(blk.station_ids[o["station"]]),
+                    "point_id": int(p.read("points", int(o["point"]), int(o["point"]) + 1)[0]
+                                    ["id"]),
+                    "w": w})
+    return out
+
+
+def _blunder_check(p, blk):
+    """Planted blunders (``/truth/blunders``) against the rejected observations."""
+    if not (p.has_truth and "truth/blunders" in p.file) or not len(p.read("truth/blunders")):
+        return None
+    bl = p.read("truth/blunders")
+    planted = set(zip(bl["station_id"].tolist(), bl["point_id"].tolist()))
+    got = {(r["photo_id"], r["point_id"]) for r in _rejected_list(p, blk)}
+    return {"planted": len(planted), "found": len(planted & got),
+            "false_rejections": len(got - planted)}
+
+
 def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts, order_info,
             run, timings, t_start, resumed_from):
     """Write the adjusted values and the report into a copy of the project, then replace it.
@@ -743,48 +888,9 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     t_commit = time.perf_counter()
     last = log[-1]
     xyz_ds, res_ds = work.xyz_current, work.res_current
-    # a-posteriori precision of the stations: the diagonal blocks of the inverse of the
-    # reduced normals (the last iteration's factor), Takahashi's recurrence streamed backwards;
-    # the blocks go to the work directory, the variances stay in core (48 bytes a station)
     t_prec = time.perf_counter()
-    n_st = len(blk.station_ids)
-    # the points' precision in step with the backward sweep: the points whose first station
-    # is in the block just finished (points are sorted by it, excluded ones last)
-    first = np.zeros(n_st + 1, np.int64)
-    for a, b in p_read.chunks("points", opts.chunk_points):
-        sm = p_read.read_field("points", "station_min", a, b)
-        act = p_read.read_field("points", "status", a, b) == STATUS_ACTIVE
-        first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
-    np.cumsum(first, out=first)
-    psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
-    # per observation: redundancy numbers r_x, r_y and normalised residuals w_x, w_y
-    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, 4), mode="w")
-
-    def points_of(start, stop, zb, base):
-        p0, p1 = int(first[start]), int(first[stop])
-        for a in range(p0, p1, opts.chunk_points):
-            b = min(p1, a + opts.chunk_points)
-            c = PointChunk(p_read, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame)
-            _reweight(c, work, opts)
-            out = np.empty((b - a, 3))
-            out_r = np.empty((c.o1 - c.o0, 2))
-            out_w = np.empty((c.o1 - c.o0, 2))
-            point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
-                         c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
-                         blk.camera, blk.cams, CTRL_MASK, c.max_rays, zb, base,
-                         np.ascontiguousarray(res_ds[c.o0:c.o1]), out, out_r, out_w)
-            psig[a:b] = last["sigma0"] * out
-            quality[c.o0:c.o1] = np.concatenate([out_r, out_w / last["sigma0"]], axis=1)
-
-    cov = RawArray(work.dir / "cov.bin", (n_st, 6, 6), mode="w")
-    try:
-        var = covariance_blocks(work.factor, n_st, blk.band_width, opts.chunk_rows, out=cov,
-                                on_block=points_of)
-    finally:
-        cov.close()
-    station_sigma = last["sigma0"] * np.sqrt(np.maximum(var, 0.0))
-    station_sigma[~blk.station_active] = 0.0
-    timings["precision"] = time.perf_counter() - t_prec
+    station_sigma, psig, quality = _quality_sweep(p_read, work, blk, opts, last["sigma0"])
+    timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t_prec
     checks = check_point_statistics()
     truth = truth_statistics() if p_read.has_truth else None
     strips = StripComparison(p_read.read_field("stations", "strip"), blk.station_active,
@@ -793,8 +899,9 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     for a, b in p_read.chunks("points", opts.chunk_points):
         pts = p_read.read("points", a, b)
         adj = xyz_ds[a:b]
-        strips.add(PointChunk(p_read, a, b, adj, blk.camera, blk.cam_sigma), blk.eo,
-                   blk.camera, blk.cams)
+        strips.add(PointChunk(p_read, a, b, adj, blk.camera, blk.cam_sigma, None,
+                              blk.rejected, blk.rejected_points), blk.eo, blk.camera,
+                   blk.cams)
         act = pts["status"] == STATUS_ACTIVE
         ids = pts["id"][~act]
         n_excluded_points += len(ids)
@@ -846,6 +953,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         frame=frame_info(p_read.frame()),
         precision=precision_summary(station_sigma[blk.station_active], psig, p_read,
                                     opts.chunk_points),
+        rejected=_rejected_list(p_read, blk),
+        blunder_check=_blunder_check(p_read, blk),
     )
     its = max(1, len(log))
     summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}
@@ -867,6 +976,12 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
                 g["station_sigma"][a:b] = station_sigma[a:b]
             for a, b in q.chunks("points", opts.chunk_points):
                 g["point_sigma"][a:b] = psig[a:b]
+            if len(blk.rejected):  # flagged, never deleted
+                obs_ds = q.file["observations"]
+                for i in blk.rejected.tolist():
+                    rec = obs_ds[i]
+                    rec["status"] = STATUS_REJECTED
+                    obs_ds[i] = rec
             g.attrs["state"] = "adjusted"
             g.attrs["iterations"] = len(log)
             g.attrs["converged"] = converged

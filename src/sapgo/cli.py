@@ -107,6 +107,8 @@ def cmd_adjust(args):
         progress=False if args.no_progress else None,
         robust=args.robust,
         robust_threshold_um=args.robust_threshold,
+        snooping=args.snooping,
+        snooping_alpha=args.alpha,
     )
     with Project(args.project) as p:
         ordered = p.ordered
@@ -295,6 +297,12 @@ def build_parser():
                         "iteration from the previous residuals (control and priors are not)")
     a.add_argument("--robust-threshold", type=float, default=15.0, metavar="UM",
                    help="threshold of the robust weights, um of image residual (default 15)")
+    a.add_argument("--snooping", action="store_true",
+                   help="Baarda's data snooping: reject the observation with the largest "
+                        "normalised residual above the critical value and adjust again, until "
+                        "none is left (rejected observations are flagged, not deleted)")
+    a.add_argument("--alpha", type=float, default=0.001,
+                   help="significance level of data snooping (default 0.001: |w| > 3.29)")
     a.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its last completed iteration")
     a.add_argument("--memory", default=None, metavar="SIZE",

@@ -478,7 +478,8 @@ class PointChunk:
                  "nobs", "smax", "smin", "active", "obs_station", "obs_xy", "obs_sigma",
                  "obs_active", "max_rays")
 
-    def __init__(self, project, start, stop, xyz, camera, cam_sigma, frame=None):
+    def __init__(self, project, start, stop, xyz, camera, cam_sigma, frame=None, rejected=None,
+                 rejected_points=None):
         pts = project.read("points", start, stop)
         self.start, self.stop = start, stop
         self.o0 = int(pts["obs_start"][0]) if len(pts) else 0
@@ -501,6 +502,12 @@ class PointChunk:
         self.obs_sigma = c(np.where(obs["sigma"] > 0, obs["sigma"],
                                     cam_sigma[camera[obs["station"]]]))
         self.obs_active = c(obs["status"] == STATUS_ACTIVE)
+        if rejected is not None and len(rejected):  # rejected in this run (data snooping)
+            lo, hi = np.searchsorted(rejected, [self.o0, self.o1])
+            self.obs_active[rejected[lo:hi] - self.o0] = False
+        if rejected_points is not None and len(rejected_points):
+            lo, hi = np.searchsorted(rejected_points, [start, stop])
+            self.active[rejected_points[lo:hi] - start] = 1
         self.max_rays = int(max(1, self.nobs.max() if len(self.nobs) else 1))
 
 

@@ -179,6 +179,10 @@ class Summary:
     frame: dict | None = None
     #: A-posteriori standard deviations of the station parameters (:func:`precision_summary`).
     precision: dict | None = None
+    #: Observations rejected by data snooping (photo and point ids, normalised residual).
+    rejected: list = dataclasses.field(default_factory=list)
+    #: Planted blunders against the rejections: ``{"planted", "found", "false_rejections"}``.
+    blunder_check: dict | None = None
 
     def to_dict(self):
         return dataclasses.asdict(self)
@@ -263,6 +267,16 @@ class Summary:
                 L.append("  point precision (mean / max): "
                          + ", ".join(f"{n[0]} {pp[n]['mean']:.3f} / {pp[n]['max']:.3f} m"
                                      for n in pp if pp[n]["mean"] is not None))
+        if self.rejected:
+            shown = ", ".join(f"photo {r['photo_id']} point {r['point_id']} (w {r['w']:.1f})"
+                              for r in self.rejected[:10])
+            more = ", ..." if len(self.rejected) > 10 else ""
+            L.append(f"  data snooping rejected {len(self.rejected)} observation(s): "
+                     f"{shown}{more}")
+        if self.blunder_check:
+            b = self.blunder_check
+            L.append(f"  planted blunders: {b['found']} of {b['planted']} found, "
+                     f"{b['false_rejections']} false rejection(s)")
         L.extend(format_strip_comparison(self.strip_comparison))
         t = self.timings_s
         if t:
