@@ -234,7 +234,7 @@ def test_point_precision_equals_the_dense_inverse(small_block):
         xyz = rec["points"]["xyz"] + p.solution("point_corr")
         psig = p.solution("point_sigma")
         res = p.solution("residuals")
-    quality = RawArray(work_path(small_block) / "quality.bin", (len(res), 4), mode="r")[:]
+    quality = RawArray(work_path(small_block) / "quality.bin", (len(res), 5), mode="r")[:]
     st, pt, ob = rec["stations"], rec["points"], rec["observations"]
     f = rec["cameras"]["focal_length"][0]
     ns, npnt = len(st), len(pt)
@@ -255,16 +255,20 @@ def test_point_precision_equals_the_dense_inverse(small_block):
     np.testing.assert_allclose(psig, ref, rtol=1e-8)
     # redundancy numbers r = 1 - (J Q J')_ii / sigma^2 and normalised residuals
     r = np.zeros((len(ob), 2))
+    t2 = np.zeros(len(ob))
     for i in range(len(ob)):
         s, j = ob["station"][i], ob["point"][i]
         a, b = naive.jacobian_complex_step(eo[s], xyz[j], f)
         jj = np.zeros((2, nu))
         jj[:, 6 * s:6 * s + 6] = a
         jj[:, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b
-        r[i] = 1.0 - np.diag(jj @ q @ jj.T) / ob["sigma"][i] ** 2
+        qvv = ob["sigma"][i] ** 2 * np.eye(2) - jj @ q @ jj.T
+        r[i] = np.diag(qvv) / ob["sigma"][i] ** 2
+        t2[i] = np.sqrt(res[i] @ np.linalg.pinv(qvv, rcond=1e-4) @ res[i]) / summary.sigma0
     np.testing.assert_allclose(quality[:, :2], r, rtol=1e-6, atol=1e-9)
     w = res / (summary.sigma0 * ob["sigma"][:, None] * np.sqrt(r))
-    np.testing.assert_allclose(quality[:, 2:], w, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(quality[:, 2:4], w, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(quality[:, 4], t2, rtol=1e-6, atol=1e-9)
     assert r.sum() == pytest.approx(summary.redundancy, abs=0.01)  # control takes ~0
     assert summary.precision["points"]["Z_m"]["max"] == pytest.approx(ref[:, 2].max(),
                                                                        rel=1e-8)
@@ -290,5 +294,5 @@ def test_data_snooping_flags_planted_blunders(tmp_path):
     flagged = {(int(st_ids[o["station"]]), int(pt_ids[o["point"]]))
                for o in ob[ob["status"] == STATUS_REJECTED]}
     assert flagged == {(r["photo_id"], r["point_id"]) for r in s.rejected}
-    assert all(r["w"] > 3.29 for r in s.rejected)
+    assert all(r["w"] > 3.71 for r in s.rejected)  # sqrt of chi2(2) at 0.001
     assert 0.8 < s.sigma0 < 1.2

@@ -768,7 +768,8 @@ def _quality_sweep(p_read, work, blk, opts, sigma0):
     points whose first station is in the block just finished (points are sorted by it,
     excluded ones last): their standard deviations (``point_sigma.bin``) and their
     observations' redundancy numbers and normalised residuals (``quality.bin``: r_x, r_y,
-    w_x, w_y). Returns ``(station_sigma, point_sigma file, quality file)``."""
+    w_x, w_y and the 2-D statistic ``t = sqrt(v' Q_vv^+ v) / sigma0``). Returns
+    ``(station_sigma, point_sigma file, quality file)``."""
     xyz_ds, res_ds = work.xyz_current, work.res_current
     n_st = len(blk.station_ids)
     first = np.zeros(n_st + 1, np.int64)
@@ -778,7 +779,7 @@ def _quality_sweep(p_read, work, blk, opts, sigma0):
         first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
     np.cumsum(first, out=first)
     psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
-    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, 4), mode="w")
+    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, 5), mode="w")
 
     def points_of(start, stop, zb, base):
         p0, p1 = int(first[start]), int(first[stop])
@@ -789,7 +790,7 @@ def _quality_sweep(p_read, work, blk, opts, sigma0):
             _reweight(c, work, opts)
             out = np.empty((b - a, 3))
             out_r = np.empty((c.o1 - c.o0, 2))
-            out_w = np.empty((c.o1 - c.o0, 2))
+            out_w = np.empty((c.o1 - c.o0, 3))
             point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
                          c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
                          blk.camera, blk.cams, CTRL_MASK, c.max_rays, zb, base,
@@ -809,12 +810,13 @@ def _quality_sweep(p_read, work, blk, opts, sigma0):
 
 
 def _snoop(p, work, blk, opts, timings, log, run, converged):
-    """Baarda's data snooping: while the largest normalised residual of an active image
-    observation exceeds the critical value of ``opts.snooping_alpha`` (two-sided normal),
+    """Baarda's data snooping: while the largest test statistic of an active image
+    observation, ``t = sqrt(v' Q_vv^-1 v) / sigma0`` (its two coordinates together), exceeds
+    the critical value of ``opts.snooping_alpha`` (chi-square with 2 degrees of freedom),
     reject that observation (flagged, never deleted) and iterate again. Returns converged."""
-    from scipy.stats import norm
+    from scipy.stats import chi2
 
-    crit = float(norm.isf(opts.snooping_alpha / 2.0))
+    crit = float(np.sqrt(chi2.isf(opts.snooping_alpha, 2)))
     while len(blk.rejected) < opts.max_rejections:
         t0 = time.perf_counter()
         _, _, quality = _quality_sweep(p, work, blk, opts, log[-1]["sigma0"])
@@ -824,7 +826,7 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
             act = p.read_field("observations", "status", a, b) == STATUS_ACTIVE
             if len(blk.rejected):
                 act &= ~np.isin(np.arange(a, b), blk.rejected)
-            w = np.where(act, np.abs(q[:, 2:]).max(axis=1), 0.0)
+            w = np.where(act, q[:, 4], 0.0)
             i = int(np.argmax(w)) if len(w) else 0
             if len(w) and w[i] > best:
                 best, worst = float(w[i]), a + i

@@ -374,8 +374,9 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     :func:`sapgo.bandsolve.covariance_blocks`); fixed components and excluded points 0,
     singular points nan. ``out_r`` (observations x 2): redundancy numbers ``r = q_vv / sigma^2``
     of x and y, with ``Q_vv = sigma^2 I - [A B] Q [A B]'`` (``Q_sp = -sum_t Z[s, t] Nbar_t G``);
-    ``out_w``: normalised residuals ``v / (sigma sqrt(r))`` of the residuals ``res`` (divide by
-    sigma0); inactive observations 0."""
+    ``out_w`` (observations x 3): normalised residuals ``v / (sigma sqrt(r))`` of the residuals
+    ``res`` and the observation's 2-D statistic ``sqrt(v' Q_vv^+ v)`` (divide by sigma0);
+    inactive observations 0."""
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
     g = np.empty((3, 3))
     t = np.empty((3, 3))
@@ -386,9 +387,11 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     col = np.empty(3)
     a = np.empty((2, 6))
     b = np.empty((2, 3))
+    qv = np.empty((2, 2))
     for i in range(out_r.shape[0]):
         for c in range(2):
             out_r[i, c] = 0.0
+        for c in range(out_w.shape[1]):
             out_w[i, c] = 0.0
     for j in range(pt_xyz.shape[0]):
         for c in range(3):
@@ -456,18 +459,34 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                     qsp[a6, c] = v
             sig2 = obs_sigma[i] * obs_sigma[i]
             for m in range(2):
-                cmm = 0.0
-                for a6 in range(6):
-                    for b6 in range(6):
-                        cmm += a[m, a6] * zb[sq + a6, sq + b6] * a[m, b6]
-                    for c in range(3):
-                        cmm += 2.0 * a[m, a6] * qsp[a6, c] * b[m, c]
-                for c1 in range(3):
-                    for c2 in range(3):
-                        cmm += b[m, c1] * qpp[c1, c2] * b[m, c2]
-                qvv = sig2 - cmm
+                for m2 in range(m, 2):
+                    cmm = 0.0
+                    for a6 in range(6):
+                        for b6 in range(6):
+                            cmm += a[m, a6] * zb[sq + a6, sq + b6] * a[m2, b6]
+                        for c in range(3):
+                            cmm += a[m, a6] * qsp[a6, c] * b[m2, c]
+                            cmm += a[m2, a6] * qsp[a6, c] * b[m, c]
+                    for c1 in range(3):
+                        for c2 in range(3):
+                            cmm += b[m, c1] * qpp[c1, c2] * b[m2, c2]
+                    qv[m, m2] = (sig2 if m == m2 else 0.0) - cmm
+                qvv = qv[m, m]
                 out_r[i, m] = qvv / sig2
                 out_w[i, m] = res[i, m] / math.sqrt(qvv) if qvv > 0.0 else 0.0
+            # the observation's 2-D test: sqrt(v' Q_vv^+ v) (pseudo-inverse: a two-ray point
+            # leaves its observations one degree of freedom, Q_vv of rank 1)
+            vx, vy = res[i, 0], res[i, 1]
+            det = qv[0, 0] * qv[1, 1] - qv[0, 1] * qv[0, 1]
+            tr = qv[0, 0] + qv[1, 1]
+            if det > 1e-8 * tr * tr:
+                t2 = (qv[1, 1] * vx * vx - 2.0 * qv[0, 1] * vx * vy + qv[0, 0] * vy * vy) / det
+            elif tr > 0.0:
+                t2 = (qv[0, 0] * vx * vx + 2.0 * qv[0, 1] * vx * vy + qv[1, 1] * vy * vy) / (
+                    tr * tr)
+            else:
+                t2 = 0.0
+            out_w[i, 2] = math.sqrt(max(t2, 0.0))
             q += 1
 
 
