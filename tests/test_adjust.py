@@ -234,7 +234,9 @@ def test_point_precision_equals_the_dense_inverse(small_block):
         xyz = rec["points"]["xyz"] + p.solution("point_corr")
         psig = p.solution("point_sigma")
         res = p.solution("residuals")
-    quality = RawArray(work_path(small_block) / "quality.bin", (len(res), 5), mode="r")[:]
+        stored = p.solution("obs_quality")
+    quality = RawArray(work_path(small_block) / "quality.bin", (len(res), 7), mode="r")[:]
+    np.testing.assert_allclose(stored, quality, rtol=1e-6, atol=1e-6)  # single precision
     st, pt, ob = rec["stations"], rec["points"], rec["observations"]
     f = rec["cameras"]["focal_length"][0]
     ns, npnt = len(st), len(pt)
@@ -253,8 +255,26 @@ def test_point_precision_equals_the_dense_inverse(small_block):
     q = np.linalg.inv(n)
     ref = summary.sigma0 * np.sqrt(np.diag(q)[6 * ns:]).reshape(-1, 3)
     np.testing.assert_allclose(psig, ref, rtol=1e-8)
+    # the correlations listed: every station and point pair above the threshold, the largest
+    c = summary.correlations
+    dq = np.sqrt(np.diag(q))
+    rho = q / np.outer(dq, dq)
+    big = []
+    for s in range(ns):
+        for i in range(6):
+            for k in range(i + 1, 6):
+                big.append((abs(rho[6 * s + i, 6 * s + k]), "st", s))
+    for j in range(npnt):
+        for i in range(3):
+            for k in range(i + 1, 3):
+                a, b = 6 * ns + 3 * j + i, 6 * ns + 3 * j + k
+                if dq[a] > 0 and dq[b] > 0 and np.isfinite(rho[a, b]):
+                    big.append((abs(rho[a, b]), "pt", j))
+    big = sorted(x for x in big if x[0] > 0.9)
+    assert sum(sum(v.values()) for v in c["counts"].values()) == len(big)
+    assert abs(c["largest"][0]["rho"]) == pytest.approx(big[-1][0], rel=1e-8)
     # redundancy numbers r = 1 - (J Q J')_ii / sigma^2 and normalised residuals
-    r = np.zeros((len(ob), 2))
+    r = np.zeros((len(ob), 3))
     t2 = np.zeros(len(ob))
     for i in range(len(ob)):
         s, j = ob["station"][i], ob["point"][i]
@@ -263,13 +283,16 @@ def test_point_precision_equals_the_dense_inverse(small_block):
         jj[:, 6 * s:6 * s + 6] = a
         jj[:, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b
         qvv = ob["sigma"][i] ** 2 * np.eye(2) - jj @ q @ jj.T
-        r[i] = np.diag(qvv) / ob["sigma"][i] ** 2
+        r[i] = [qvv[0, 0], qvv[1, 1], qvv[0, 1]] / ob["sigma"][i] ** 2
         t2[i] = np.sqrt(res[i] @ np.linalg.pinv(qvv, rcond=1e-4) @ res[i]) / summary.sigma0
-    np.testing.assert_allclose(quality[:, :2], r, rtol=1e-6, atol=1e-9)
-    w = res / (summary.sigma0 * ob["sigma"][:, None] * np.sqrt(r))
-    np.testing.assert_allclose(quality[:, 2:4], w, rtol=1e-6, atol=1e-9)
-    np.testing.assert_allclose(quality[:, 4], t2, rtol=1e-6, atol=1e-9)
-    assert r.sum() == pytest.approx(summary.redundancy, abs=0.01)  # control takes ~0
+    np.testing.assert_allclose(quality[:, :3], r, rtol=1e-6, atol=1e-9)
+    w = res / (summary.sigma0 * ob["sigma"][:, None] * np.sqrt(r[:, :2]))
+    np.testing.assert_allclose(quality[:, 3:5], w, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(quality[:, 5], t2, rtol=1e-6, atol=1e-9)
+    np.testing.assert_array_equal(quality[:, 6], 1.0)  # no robust weights
+    assert r[:, :2].sum() == pytest.approx(summary.redundancy, abs=0.01)  # control takes ~0
+    rel = summary.reliability
+    assert rel["mean_redundancy_number"] == pytest.approx(r[:, :2].mean(), rel=1e-6)
     assert summary.precision["points"]["Z_m"]["max"] == pytest.approx(ref[:, 2].max(),
                                                                        rel=1e-8)
 
@@ -296,3 +319,26 @@ def test_data_snooping_flags_planted_blunders(tmp_path):
     assert flagged == {(r["photo_id"], r["point_id"]) for r in s.rejected}
     assert all(r["w"] > 3.71 for r in s.rejected)  # sqrt of chi2(2) at 0.001
     assert 0.8 < s.sigma0 < 1.2
+
+
+def test_reliability_formulas():
+    """Baarda's non-centrality bound (17.07 for alpha 0.001, power 80 %, one dimension), the
+    weakest redundancy of an observation's 2 x 2 block and its minimal detectable blunder."""
+    from sapgo.report import minimal_detectable_blunder, noncentrality, weakest_redundancy
+
+    assert noncentrality(0.001, 0.8, dof=1) == pytest.approx(17.07, abs=0.02)
+    lam2 = noncentrality(0.001)
+    assert lam2 > 17.07
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        m = rng.normal(size=(2, 2))
+        r = m @ m.T
+        got = weakest_redundancy(r[0, 0], r[1, 1], r[0, 1])
+        assert got == pytest.approx(np.linalg.eigvalsh(r)[0], abs=1e-12)
+    # a blunder of exactly the MDB along the weakest direction has non-centrality lam2
+    r = np.array([[0.4, 0.15], [0.15, 0.3]])
+    ev, vec = np.linalg.eigh(r)
+    mdb = minimal_detectable_blunder(0.006, ev[0], lam2)
+    d = mdb * vec[:, 0]
+    assert d @ r @ d / 0.006 ** 2 == pytest.approx(lam2)
+    assert minimal_detectable_blunder(0.006, 0.0, lam2) == np.inf

@@ -61,12 +61,23 @@ from .project import (
     STATUS_ACTIVE,
     Project,
 )
-from .report import Summary, check_point_statistics, precision_summary, truth_statistics
+from .report import (
+    HighCorrelations,
+    Summary,
+    check_point_statistics,
+    precision_summary,
+    noncentrality,
+    reliability_statistics,
+    station_correlations,
+    truth_statistics,
+)
 from .stripcmp import StripComparison
 from .frames import frame_info
 from .validate import check_values
 
 ARCSEC = math.pi / (180 * 3600)
+#: Columns of the observations' quality (work file ``quality.bin``, ``/solution/obs_quality``).
+QUALITY_COLUMNS = ("r_x", "r_y", "r_xy", "w_x", "w_y", "t", "weight")
 #: At most this many ids of excluded points or stations are listed in a report.
 LISTED_IDS = 1000
 
@@ -111,6 +122,8 @@ class Options:
     snooping_alpha: float = 0.001
     #: Data snooping rejects at most this many observations.
     max_rejections: int = 1000
+    #: Correlations of a station's or a point's parameters above this are listed.
+    correlation_threshold: float = 0.9
 
     def check(self):
         if self.max_iterations < 1:
@@ -214,10 +227,14 @@ class _Block:
     cam_sigma: np.ndarray  # per camera: sigma_image (mm), for observations with sigma 0
     band_width: int
     frame: object = None  # sapgo.frames.Frame: control sigmas along east, north, up in a CRS
-    #: observations rejected by data snooping in this run (record numbers, sorted) and the
-    #: normalised residuals they were rejected with
+    #: observations rejected by data snooping in this run (record numbers, sorted) and, in the
+    #: order of rejection, ``{"observation", "w", "by"}``: the test statistic it was rejected
+    #: with, "test" or "point" (the other rays of a point left with fewer than two)
     rejected: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
-    rejected_w: list = dataclasses.field(default_factory=list)
+    rejections: list = dataclasses.field(default_factory=list)
+    #: planted blunders (generated blocks): their observations and non-centrality parameters
+    #: in the adjustment with every observation (None: not computed yet)
+    planted: dict | None = None
     #: points left undeterminable by those rejections (excluded for the rest of the run)
     rejected_points: np.ndarray = dataclasses.field(
         default_factory=lambda: np.zeros(0, np.int64))
@@ -722,13 +739,15 @@ def adjust(path, options: Options | None = None) -> Summary:
             else:
                 run = {"run": checkpoint["run"], "identity": ident}
                 blk.eo = np.ascontiguousarray(checkpoint["eo"], dtype=np.float64)
-                blk.rejected = np.array(checkpoint.get("rejected", []), np.int64)
-                blk.rejected_w = list(checkpoint.get("rejected_w", []))
+                blk.rejections = list(checkpoint.get("rejections", []))
+                blk.rejected = np.sort(np.array([r["observation"] for r in blk.rejections],
+                                                np.int64))
+                blk.planted = checkpoint.get("planted")
                 blk.n_rays -= len(blk.rejected)
                 blk.rejected_points = np.array(checkpoint.get("rejected_points", []), np.int64)
                 blk.n_points -= len(blk.rejected_points)
-                run["rejected"] = blk.rejected.tolist()
-                run["rejected_w"] = blk.rejected_w
+                run["rejections"] = blk.rejections
+                run["planted"] = blk.planted
                 run["rejected_points"] = blk.rejected_points.tolist()
                 log = checkpoint["log"]
                 for k, v in checkpoint["timings"].items():
@@ -760,15 +779,18 @@ def adjust(path, options: Options | None = None) -> Summary:
     return summary
 
 
-def _quality_sweep(p_read, work, blk, opts, sigma0):
+def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     """Precision and observation quality from the last iteration's factor.
 
     The stations' cofactor blocks by Takahashi's recurrence streamed backwards (the blocks to
     ``cov.bin``; ``station_sigma`` in core, 48 bytes a station), and, in step with it, the
     points whose first station is in the block just finished (points are sorted by it,
     excluded ones last): their standard deviations (``point_sigma.bin``) and their
-    observations' redundancy numbers and normalised residuals (``quality.bin``: r_x, r_y,
-    w_x, w_y and the 2-D statistic ``t = sqrt(v' Q_vv^+ v) / sigma0``). Returns
+    observations' redundancy numbers and normalised residuals (``quality.bin``, columns
+    ``QUALITY_COLUMNS``: r_x, r_y and r_xy of the observation's block of the redundancy
+    matrix, w_x, w_y, the 2-D statistic ``t = sqrt(v' Q_vv^+ v) / sigma0`` and the robust
+    weight). Correlations of a station's or a point's parameters above the threshold go to
+    ``correlations`` (a :class:`~sapgo.report.HighCorrelations`) when given. Returns
     ``(station_sigma, point_sigma file, quality file)``."""
     xyz_ds, res_ds = work.xyz_current, work.res_current
     n_st = len(blk.station_ids)
@@ -779,7 +801,8 @@ def _quality_sweep(p_read, work, blk, opts, sigma0):
         first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
     np.cumsum(first, out=first)
     psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
-    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, 5), mode="w")
+    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
+                       mode="w")
 
     def points_of(start, stop, zb, base):
         p0, p1 = int(first[start]), int(first[stop])
@@ -787,21 +810,33 @@ def _quality_sweep(p_read, work, blk, opts, sigma0):
             b = min(p1, a + opts.chunk_points)
             c = PointChunk(p_read, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame,
                            blk.rejected)
-            _reweight(c, work, opts)
-            out = np.empty((b - a, 3))
-            out_r = np.empty((c.o1 - c.o0, 2))
+            weight = _reweight(c, work, opts)
+            out = np.empty((b - a, 6))
+            out_r = np.empty((c.o1 - c.o0, 3))
             out_w = np.empty((c.o1 - c.o0, 3))
             point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
                          c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
                          blk.camera, blk.cams, CTRL_MASK, c.max_rays, zb, base,
                          np.ascontiguousarray(res_ds[c.o0:c.o1]), out, out_r, out_w)
-            psig[a:b] = sigma0 * out
-            quality[c.o0:c.o1] = np.concatenate([out_r, out_w / sigma0], axis=1)
+            psig[a:b] = sigma0 * out[:, :3]
+            if weight is None:
+                weight = np.ones(c.o1 - c.o0)
+            quality[c.o0:c.o1] = np.concatenate(
+                [out_r, out_w / sigma0, np.where(c.obs_active, weight, 0.0)[:, None]], axis=1)
+            if correlations is not None:
+                rho = np.where((c.active == 0)[:, None], out[:, 3:], np.nan)
+                correlations.add("points", p_read.read_field("points", "id", a, b), rho)
 
     cov = RawArray(work.dir / "cov.bin", (n_st, 6, 6), mode="w")
     try:
         var = covariance_blocks(work.factor, n_st, blk.band_width, opts.chunk_rows, out=cov,
                                 on_block=points_of)
+        if correlations is not None:
+            for a in range(0, n_st, opts.chunk_points):
+                b = min(n_st, a + opts.chunk_points)
+                rho = station_correlations(cov[a:b])
+                rho[~blk.station_active[a:b]] = np.nan
+                correlations.add("stations", blk.station_ids[a:b], rho)
     finally:
         cov.close()
     station_sigma = sigma0 * np.sqrt(np.maximum(var, 0.0))
@@ -820,13 +855,14 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
     while len(blk.rejected) < opts.max_rejections:
         t0 = time.perf_counter()
         _, _, quality = _quality_sweep(p, work, blk, opts, log[-1]["sigma0"])
+        _note_planted(p, blk, quality, run)
         best, worst = 0.0, -1
         for a, b in p.chunks("observations", opts.chunk_points):
             q = quality[a:b]
             act = p.read_field("observations", "status", a, b) == STATUS_ACTIVE
             if len(blk.rejected):
                 act &= ~np.isin(np.arange(a, b), blk.rejected)
-            w = np.where(act, q[:, 4], 0.0)
+            w = np.where(act, q[:, 5], 0.0)
             i = int(np.argmax(w)) if len(w) else 0
             if len(w) and w[i] > best:
                 best, worst = float(w[i]), a + i
@@ -841,42 +877,100 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
         live = np.arange(o0, o1)[p.read_field("observations", "status", o0, o1)
                                  == STATUS_ACTIVE]
         live = live[~np.isin(live, blk.rejected)]
-        drop = live if len(live) - 1 < 2 else np.array([worst])
-        blk.rejected = np.sort(np.concatenate([blk.rejected, drop]))
-        blk.rejected_w.extend([best] * len(drop))
-        blk.n_rays -= len(drop)
-        if len(drop) > 1:
+        blk.rejections.append({"observation": worst, "w": best, "by": "test"})
+        drop = [worst]
+        if len(live) - 1 < 2:
+            drop = live.tolist()
+            blk.rejections.extend({"observation": int(i), "w": best, "by": "point"}
+                                  for i in live.tolist() if i != worst)
             blk.rejected_points = np.sort(np.append(blk.rejected_points, j))
             blk.n_points -= 1
-        run["rejected"] = blk.rejected.tolist()
-        run["rejected_w"] = blk.rejected_w
+        blk.rejected = np.sort(np.concatenate([blk.rejected, np.array(drop, np.int64)]))
+        blk.n_rays -= len(drop)
+        run["rejections"] = blk.rejections
         run["rejected_points"] = blk.rejected_points.tolist()
         converged = _iterate(p, work, blk, opts, timings, log, run,
                              limit=work.state + opts.max_iterations)
     return converged
 
 
-def _rejected_list(p, blk):
-    """The observations data snooping rejected: photo and point ids, normalised residual."""
+def _note_planted(p, blk, quality, run):
+    """Once, with every observation still in: for each planted blunder (``/truth/blunders``)
+    its observation and non-centrality ``lambda = d' R d / sigma^2`` (``d`` the blunder,
+    ``R`` the observation's 2 x 2 block of the redundancy matrix): the blunder is detectable
+    with 80 % power when lambda reaches :func:`~sapgo.report.noncentrality`."""
+    if blk.planted is not None or not (p.has_truth and "truth/blunders" in p.file):
+        return
+    bl = p.read("truth/blunders")
+    st_index = {int(i): k for k, i in enumerate(blk.station_ids.tolist())}
+    want = {int(pid) for pid in bl["point_id"]}
+    where = {}
+    for a, b in p.chunks("points"):
+        ids = p.read_field("points", "id", a, b)
+        for k in np.flatnonzero(np.isin(ids, list(want))):
+            where[int(ids[k])] = a + int(k)
     out = []
-    for i, w in zip(blk.rejected.tolist(), blk.rejected_w):
+    for rec in bl:
+        j = where.get(int(rec["point_id"]))
+        s = st_index.get(int(rec["station_id"]))
+        if j is None or s is None:
+            continue
+        pt = p.read("points", j, j + 1)[0]
+        o0 = int(pt["obs_start"])
+        obs = p.read("observations", o0, o0 + int(pt["n_obs"]))
+        hit = np.flatnonzero(obs["station"] == s)
+        if not len(hit):
+            continue
+        i = o0 + int(hit[0])
+        q = quality[i]
+        sig = obs["sigma"][hit[0]] if obs["sigma"][hit[0]] > 0 else blk.cam_sigma[
+            blk.camera[s]]
+        d = np.array([rec["dx"], rec["dy"]])
+        r = np.array([[q[0], q[2]], [q[2], q[1]]])
+        out.append({"observation": i, "photo_id": int(rec["station_id"]),
+                    "point_id": int(rec["point_id"]), "lambda": float(d @ r @ d / sig ** 2)})
+    blk.planted = {"blunders": out}
+    run["planted"] = blk.planted
+
+
+def _rejected_list(p, blk):
+    """The observations data snooping rejected, in the order of rejection: photo and point
+    ids, the test statistic and whether the test chose it or it went with its point."""
+    out = []
+    for r in blk.rejections:
+        i = int(r["observation"])
         o = p.read("observations", i, i + 1)[0]
         out.append({"observation": i, "photo_id": int(blk.station_ids[o["station"]]),
                     "point_id": int(p.read("points", int(o["point"]), int(o["point"]) + 1)[0]
                                     ["id"]),
-                    "w": w})
+                    "w": float(r["w"]), "by": r["by"]})
     return out
 
 
-def _blunder_check(p, blk):
-    """Planted blunders (``/truth/blunders``) against the rejected observations."""
+def _blunder_check(p, blk, alpha):
+    """Planted blunders (``/truth/blunders``) against the rejected observations.
+
+    ``false_rejections`` counts observations the test rejected that hold no planted blunder;
+    the other rays of a point left undeterminable go with it (``rejected_with_point``).
+    ``detectable``: planted blunders whose non-centrality reaches Baarda's bound for
+    ``alpha`` and 80 % power, i.e. the ones the block's geometry lets the test find."""
     if not (p.has_truth and "truth/blunders" in p.file) or not len(p.read("truth/blunders")):
         return None
     bl = p.read("truth/blunders")
     planted = set(zip(bl["station_id"].tolist(), bl["point_id"].tolist()))
-    got = {(r["photo_id"], r["point_id"]) for r in _rejected_list(p, blk)}
-    return {"planted": len(planted), "found": len(planted & got),
-            "false_rejections": len(got - planted)}
+    rej = _rejected_list(p, blk)
+    got = {(r["photo_id"], r["point_id"]) for r in rej}
+    tested = {(r["photo_id"], r["point_id"]) for r in rej if r["by"] == "test"}
+    out = {"planted": len(planted), "found": len(planted & got),
+           "false_rejections": len(tested - planted),
+           "rejected_with_point": len(got - tested - planted)}
+    if blk.planted is not None:
+        lam0 = noncentrality(alpha)
+        det = {(b["photo_id"], b["point_id"]) for b in blk.planted["blunders"]
+               if b["lambda"] >= lam0}
+        out.update(alpha=alpha, power=0.8, lambda0=lam0, detectable=len(det),
+                   found_detectable=len(det & got))
+    return out
 
 
 def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts, order_info,
@@ -891,7 +985,18 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     last = log[-1]
     xyz_ds, res_ds = work.xyz_current, work.res_current
     t_prec = time.perf_counter()
-    station_sigma, psig, quality = _quality_sweep(p_read, work, blk, opts, last["sigma0"])
+    correlations = HighCorrelations(opts.correlation_threshold)
+    station_sigma, psig, quality = _quality_sweep(p_read, work, blk, opts, last["sigma0"],
+                                                  correlations)
+    _note_planted(p_read, blk, quality, run)
+    reliability = reliability_statistics(opts.snooping_alpha)
+    for a, b in p_read.chunks("observations", opts.chunk_points):
+        ob = p_read.read("observations", a, b)
+        act = ob["status"] == STATUS_ACTIVE
+        if len(blk.rejected):
+            act &= ~np.isin(np.arange(a, b), blk.rejected)
+        sig = np.where(ob["sigma"] > 0, ob["sigma"], blk.cam_sigma[blk.camera[ob["station"]]])
+        reliability.add(quality[a:b], sig, act)
     timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t_prec
     checks = check_point_statistics()
     truth = truth_statistics() if p_read.has_truth else None
@@ -955,8 +1060,10 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         frame=frame_info(p_read.frame()),
         precision=precision_summary(station_sigma[blk.station_active], psig, p_read,
                                     opts.chunk_points),
+        correlations=correlations.result(),
+        reliability=reliability.result(),
         rejected=_rejected_list(p_read, blk),
-        blunder_check=_blunder_check(p_read, blk),
+        blunder_check=_blunder_check(p_read, blk, opts.snooping_alpha),
     )
     its = max(1, len(log))
     summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}
@@ -978,6 +1085,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
                 g["station_sigma"][a:b] = station_sigma[a:b]
             for a, b in q.chunks("points", opts.chunk_points):
                 g["point_sigma"][a:b] = psig[a:b]
+            for a, b in q.chunks("observations", opts.chunk_points):
+                g["obs_quality"][a:b] = quality[a:b]
             if len(blk.rejected):  # flagged, never deleted
                 obs_ds = q.file["observations"]
                 for i in blk.rejected.tolist():

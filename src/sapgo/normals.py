@@ -365,15 +365,18 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                  ctrl_mask, max_rays, zb, base, res, out, out_r, out_w):
     """Precision of the points of a chunk and the quality of their observations.
 
-    ``out`` (n x 3): the points' cofactor standard deviations (multiply by sigma0), the point
-    block of the inverse of the full normal matrix,
+    ``out`` (n x 6): the points' cofactor standard deviations (multiply by sigma0) and the
+    correlations of X-Y, X-Z and Y-Z, from the point block of the inverse of the full normal
+    matrix,
 
         Q_pp = G + G (sum_q sum_r Nbar_q' Z[s_q, s_r] Nbar_r) G,    G = N_pp^-1,
 
     ``Z`` the stations' cofactors inside the band (``zb[k - base, j - base]``, the window of
     :func:`sapgo.bandsolve.covariance_blocks`); fixed components and excluded points 0,
-    singular points nan. ``out_r`` (observations x 2): redundancy numbers ``r = q_vv / sigma^2``
-    of x and y, with ``Q_vv = sigma^2 I - [A B] Q [A B]'`` (``Q_sp = -sum_t Z[s, t] Nbar_t G``);
+    singular points nan. ``out_r`` (observations x 3): redundancy numbers ``r = q_vv / sigma^2``
+    of x and y and the off-diagonal ``q_xy / sigma^2`` of the observation's 2 x 2 block of the
+    redundancy matrix, with ``Q_vv = sigma^2 I - [A B] Q [A B]'``
+    (``Q_sp = -sum_t Z[s, t] Nbar_t G``);
     ``out_w`` (observations x 3): normalised residuals ``v / (sigma sqrt(r))`` of the residuals
     ``res`` and the observation's 2-D statistic ``sqrt(v' Q_vv^+ v)`` (divide by sigma0);
     inactive observations 0."""
@@ -389,12 +392,12 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     b = np.empty((2, 3))
     qv = np.empty((2, 2))
     for i in range(out_r.shape[0]):
-        for c in range(2):
+        for c in range(out_r.shape[1]):
             out_r[i, c] = 0.0
         for c in range(out_w.shape[1]):
             out_w[i, c] = 0.0
     for j in range(pt_xyz.shape[0]):
-        for c in range(3):
+        for c in range(out.shape[1]):
             out[j, c] = 0.0
         if pt_active[j] != 0:
             continue
@@ -402,7 +405,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc)
         if k < 0 or not _chol3(nn, lo):
-            for c in range(3):
+            for c in range(out.shape[1]):
                 out[j, c] = np.nan
             continue
         for c in range(3):
@@ -434,6 +437,10 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
         for c in range(3):
             if not (ctrl_mask[kind, c] and pt_csig[j, c] == 0.0):
                 out[j, c] = math.sqrt(max(qpp[c, c], 0.0))
+        for m in range(3):
+            c1, c2 = (0, 0, 1)[m], (1, 2, 2)[m]
+            d = qpp[c1, c1] * qpp[c2, c2]
+            out[j, 3 + m] = qpp[c1, c2] / math.sqrt(d) if d > 0.0 else 0.0
         # the observations: the k-th active ray of the point is the k-th active observation
         q = 0
         for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
@@ -473,6 +480,9 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                     qv[m, m2] = (sig2 if m == m2 else 0.0) - cmm
                 qvv = qv[m, m]
                 out_r[i, m] = qvv / sig2
+            out_r[i, 2] = qv[0, 1] / sig2
+            for m in range(2):
+                qvv = qv[m, m]
                 out_w[i, m] = res[i, m] / math.sqrt(qvv) if qvv > 0.0 else 0.0
             # the observation's 2-D test: sqrt(v' Q_vv^+ v) (pseudo-inverse: a two-ray point
             # leaves its observations one degree of freedom, Q_vv of rank 1)

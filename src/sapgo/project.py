@@ -150,9 +150,13 @@ SOLUTION_LAYOUT = {
     "residuals": ("observations", (2,)),  # vx, vy (mm), adjusted minus observed
     "station_sigma": ("stations", (6,)),  # a-posteriori standard deviations (rad x3, m x3)
     "point_sigma": ("points", (3,)),  # a-posteriori standard deviations (m)
+    # per observation r_x, r_y, r_xy, w_x, w_y, t, robust weight (adjust.QUALITY_COLUMNS)
+    "obs_quality": ("observations", (7,)),
 }
 #: Solution datasets that files of older versions may lack (read as zeros).
-SOLUTION_OPTIONAL = {"station_sigma", "point_sigma"}
+SOLUTION_OPTIONAL = {"station_sigma", "point_sigma", "obs_quality"}
+#: Solution datasets stored in single precision (the rest in double).
+SOLUTION_SINGLE = {"obs_quality"}
 
 
 def _now():
@@ -490,7 +494,7 @@ class Project:
         for name, (parent, shape) in SOLUTION_LAYOUT.items():
             n = len(f[parent])
             g.create_dataset(
-                name, shape=(n,) + shape, dtype="<f8",
+                name, shape=(n,) + shape, dtype="<f4" if name in SOLUTION_SINGLE else "<f8",
                 chunks=(max(1, min(n, CHUNK_RECORDS)),) + shape, fillvalue=0.0,
             )
         g.attrs["state"] = "initial"

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from .project import CONTROL_MASK, KIND_CHECK
+from .project import CONTROL_MASK, EO_NAMES as EO, KIND_CHECK
 from .stripcmp import format_strip_comparison
 
 ARCSEC = math.pi / (180 * 3600)
@@ -108,6 +108,117 @@ def precision_summary(station_sigma, point_sigma=None, project=None, chunk=65536
     return out
 
 
+#: Names of the correlations of a station's parameters (upper triangle of its 6 x 6 block).
+STATION_PAIRS = [(i, k) for i in range(6) for k in range(i + 1, 6)]
+STATION_PAIR_NAMES = [f"{EO[i]}-{EO[k]}" for i, k in STATION_PAIRS]
+POINT_PAIR_NAMES = ["X-Y", "X-Z", "Y-Z"]
+
+
+class HighCorrelations:
+    """Correlations above ``threshold`` (absolute) between the parameters of one station or
+    of one point: how many of each pair, and the ``listed`` largest with their ids."""
+
+    def __init__(self, threshold=0.9, listed=50):
+        self.threshold = threshold
+        self.listed = listed
+        self.counts = {"stations": dict.fromkeys(STATION_PAIR_NAMES, 0),
+                       "points": dict.fromkeys(POINT_PAIR_NAMES, 0)}
+        self.largest = []
+
+    def add(self, what, ids, rho):
+        """``rho``: n x pairs correlations of the stations or points ``ids`` (``what`` is
+        "stations" or "points"); nan for excluded ones."""
+        names = STATION_PAIR_NAMES if what == "stations" else POINT_PAIR_NAMES
+        big = np.abs(np.nan_to_num(rho)) > self.threshold
+        for m, name in enumerate(names):
+            self.counts[what][name] += int(big[:, m].sum())
+        rows, cols = np.nonzero(big)
+        key = "photo_id" if what == "stations" else "point_id"
+        self.largest.extend({key: int(ids[r]), "pair": names[c], "rho": float(rho[r, c])}
+                            for r, c in zip(rows.tolist(), cols.tolist()))
+        self.largest.sort(key=lambda e: -abs(e["rho"]))
+        del self.largest[self.listed:]
+
+    def result(self):
+        return {"threshold": self.threshold,
+                "counts": {w: {k: v for k, v in c.items() if v} for w, c in self.counts.items()},
+                "largest": self.largest}
+
+
+def station_correlations(cov):
+    """The 15 correlations of each station's parameters from its 6 x 6 cofactor blocks
+    (n x 6 x 6) as n x 15, in the order of ``STATION_PAIR_NAMES``; nan where a variance is 0."""
+    d = np.sqrt(np.einsum("nii->ni", cov))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.stack([cov[:, i, k] / (d[:, i] * d[:, k]) for i, k in STATION_PAIRS], axis=1)
+
+
+def noncentrality(alpha, power=0.8, dof=2):
+    """Baarda's lower bound of the non-centrality parameter: the lambda at which a test of
+    ``dof`` degrees of freedom at significance ``alpha`` rejects with probability ``power``."""
+    from scipy.optimize import brentq
+    from scipy.stats import chi2, ncx2
+
+    crit = chi2.isf(alpha, dof)
+    return float(brentq(lambda lam: ncx2.sf(crit, dof, lam) - power, 1e-6, 1e4))
+
+
+def weakest_redundancy(r_x, r_y, r_xy):
+    """The smaller eigenvalue of each observation's 2 x 2 block of the redundancy matrix
+    ``[[r_x, r_xy], [r_xy, r_y]]``: the share of a blunder in the worst direction that
+    shows in the residuals (0: a blunder that way cannot be detected)."""
+    h = 0.5 * (r_x + r_y)
+    return np.maximum(h - np.sqrt(0.25 * (r_x - r_y) ** 2 + r_xy ** 2), 0.0)
+
+
+def minimal_detectable_blunder(sigma, r_min, lam0):
+    """Internal reliability: the smallest blunder (same unit as ``sigma``) that the 2-D test
+    detects with the power behind ``lam0`` in the worst direction, ``sigma sqrt(lam0 /
+    r_min)``; inf where ``r_min`` is 0."""
+    with np.errstate(divide="ignore"):
+        return np.where(r_min > 1e-9, sigma * np.sqrt(lam0 / np.maximum(r_min, 1e-300)),
+                        np.inf)
+
+
+class reliability_statistics:
+    """Redundancy numbers and minimal detectable blunders of the active image observations,
+    accumulated by chunk."""
+
+    def __init__(self, alpha, power=0.8):
+        self.alpha, self.power = alpha, power
+        self.lam0 = noncentrality(alpha, power)
+        self.n = 0
+        self.sum_r = 0.0
+        self.uncontrolled = 0
+        self.mdb = []
+
+    def add(self, quality, sigma_mm, active):
+        q = quality[active]
+        if not len(q):
+            return
+        r_min = weakest_redundancy(q[:, 0], q[:, 1], q[:, 2])
+        mdb = 1000.0 * minimal_detectable_blunder(sigma_mm[active], r_min, self.lam0)
+        self.n += len(q)
+        self.sum_r += float(q[:, 0].sum() + q[:, 1].sum())
+        self.uncontrolled += int((r_min < 0.01).sum())
+        fin = mdb[np.isfinite(mdb) & (r_min >= 0.01)]
+        # a bounded sample for the quantiles: every k-th value once there are many
+        step = max(1, self.n // 200000)
+        self.mdb.append(fin[::step].astype(np.float32))
+
+    def result(self):
+        if not self.n:
+            return None
+        m = np.concatenate(self.mdb) if self.mdb else np.zeros(0)
+        q = (lambda v: float(np.quantile(m, v)) if len(m) else None)
+        return {"alpha": self.alpha, "power": self.power, "lambda0": self.lam0,
+                "mean_redundancy_number": self.sum_r / (2 * self.n),
+                "observations": self.n,
+                "uncontrolled": self.uncontrolled,
+                "mdb_um": {"median": q(0.5), "p90": q(0.9),
+                           "max": float(m.max()) if len(m) else None}}
+
+
 class truth_statistics:
     """Errors against the generator's true values (points and stations)."""
 
@@ -179,9 +290,16 @@ class Summary:
     frame: dict | None = None
     #: A-posteriori standard deviations of the station parameters (:func:`precision_summary`).
     precision: dict | None = None
+    #: Correlations above the threshold between one station's or one point's parameters
+    #: (:class:`HighCorrelations`).
+    correlations: dict | None = None
+    #: Internal reliability: redundancy numbers and minimal detectable blunders of the image
+    #: observations (:class:`reliability_statistics`).
+    reliability: dict | None = None
     #: Observations rejected by data snooping (photo and point ids, normalised residual).
     rejected: list = dataclasses.field(default_factory=list)
-    #: Planted blunders against the rejections: ``{"planted", "found", "false_rejections"}``.
+    #: Planted blunders against the rejections: ``{"planted", "found", "false_rejections",
+    #: "rejected_with_point", "detectable", "found_detectable", ...}``.
     blunder_check: dict | None = None
 
     def to_dict(self):
@@ -267,15 +385,35 @@ class Summary:
                 L.append("  point precision (mean / max): "
                          + ", ".join(f"{n[0]} {pp[n]['mean']:.3f} / {pp[n]['max']:.3f} m"
                                      for n in pp if pp[n]["mean"] is not None))
+        if self.correlations and self.correlations["largest"]:
+            c = self.correlations
+            n = sum(sum(v.values()) for v in c["counts"].values())
+            top = ", ".join(
+                f"{'photo ' + str(e['photo_id']) if 'photo_id' in e else 'point ' + str(e['point_id'])}"
+                f" {e['pair']} {e['rho']:+.3f}" for e in c["largest"][:5])
+            L.append(f"  correlations above {c['threshold']}: {n} ({top}"
+                     f"{', ...' if n > 5 else ''})")
+        if self.reliability:
+            r = self.reliability
+            m = r["mdb_um"]
+            mdb = (f"; minimal detectable blunder (alpha {r['alpha']:g}, power "
+                   f"{r['power']:.0%}) median {m['median']:.0f} um, 90 % {m['p90']:.0f} um"
+                   if m["median"] is not None else "")
+            L.append(f"  reliability: mean redundancy number {r['mean_redundancy_number']:.2f}"
+                     f"{mdb}; {r['uncontrolled']} observations uncontrolled in one direction")
         if self.rejected:
-            shown = ", ".join(f"photo {r['photo_id']} point {r['point_id']} (w {r['w']:.1f})"
-                              for r in self.rejected[:10])
-            more = ", ..." if len(self.rejected) > 10 else ""
-            L.append(f"  data snooping rejected {len(self.rejected)} observation(s): "
-                     f"{shown}{more}")
+            tested = [r for r in self.rejected if r.get("by", "test") == "test"]
+            shown = ", ".join(f"photo {r['photo_id']} point {r['point_id']} (t {r['w']:.1f})"
+                              for r in tested[:10])
+            more = ", ..." if len(tested) > 10 else ""
+            extra = len(self.rejected) - len(tested)
+            L.append(f"  data snooping rejected {len(tested)} observation(s): {shown}{more}"
+                     + (f"; {extra} more with their point" if extra else ""))
         if self.blunder_check:
             b = self.blunder_check
-            L.append(f"  planted blunders: {b['found']} of {b['planted']} found, "
+            det = (f" ({b['found_detectable']} of the {b['detectable']} detectable at alpha "
+                   f"{b['alpha']:g})" if "detectable" in b else "")
+            L.append(f"  planted blunders: {b['found']} of {b['planted']} found{det}, "
                      f"{b['false_rejections']} false rejection(s)")
         L.extend(format_strip_comparison(self.strip_comparison))
         t = self.timings_s
