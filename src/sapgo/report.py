@@ -210,7 +210,10 @@ class reliability_statistics:
         if not self.n:
             return None
         m = np.concatenate(self.mdb) if self.mdb else np.zeros(0)
-        q = (lambda v: float(np.quantile(m, v)) if len(m) else None)
+
+        def q(v):
+            return float(np.quantile(m, v)) if len(m) else None
+
         return {"alpha": self.alpha, "power": self.power, "lambda0": self.lam0,
                 "mean_redundancy_number": self.sum_r / (2 * self.n),
                 "observations": self.n,
@@ -389,8 +392,8 @@ class Summary:
             c = self.correlations
             n = sum(sum(v.values()) for v in c["counts"].values())
             top = ", ".join(
-                f"{'photo ' + str(e['photo_id']) if 'photo_id' in e else 'point ' + str(e['point_id'])}"
-                f" {e['pair']} {e['rho']:+.3f}" for e in c["largest"][:5])
+                (f"photo {e['photo_id']}" if "photo_id" in e else f"point {e['point_id']}")
+                + f" {e['pair']} {e['rho']:+.3f}" for e in c["largest"][:5])
             L.append(f"  correlations above {c['threshold']}: {n} ({top}"
                      f"{', ...' if n > 5 else ''})")
         if self.reliability:
