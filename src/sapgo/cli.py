@@ -128,6 +128,43 @@ def cmd_adjust(args):
         Path(args.json).write_text(summary.to_json() + "\n")
     if not args.quiet:
         print(summary.full_report())
+    _outputs(args)
+    return 0
+
+
+def _outputs(args):
+    """The CSV tables and plots asked for by --csv and --plots."""
+    if args.csv:
+        from .tables import write_tables
+
+        r = write_tables(args.project, args.csv)
+        print(f"wrote {', '.join(f'{n} {k}' for k, n in r['counts'].items())} to "
+              f"{args.csv} (CSV)")
+    if args.plots:
+        from .plots import write_plots
+
+        r = write_plots(args.project, args.plots)
+        print(f"wrote {len(r)} plots to {args.plots}: {', '.join(Path(x).name for x in r)}")
+
+
+def cmd_report(args):
+    import dataclasses
+
+    from .errors import DataError
+    from .project import Project
+    from .report import Summary
+
+    with Project(args.project) as p:
+        if not p.has_solution or p.file["solution"].attrs.get("state") != "adjusted":
+            raise DataError(f"{args.project}: the project has no adjusted solution: run "
+                            f"'sapgo adjust' first")
+        data = json.loads(p.file["solution/report"][()])
+    if args.json:
+        print(json.dumps(data, indent=2))
+    elif not args.quiet:
+        names = {f.name for f in dataclasses.fields(Summary)}
+        print(Summary(**{k: v for k, v in data.items() if k in names}).full_report())
+    _outputs(args)
     return 0
 
 
@@ -182,6 +219,16 @@ def cmd_info(args):
         for k, v in info.items():
             print(f"{k:16s} {v}")
     return 0
+
+
+def _output_options(parser):
+    parser.add_argument("--csv", metavar="DIR",
+                        help="write photos.csv, points.csv and observations.csv (residuals, "
+                             "precision, redundancy numbers, flags) into DIR")
+    parser.add_argument("--plots", metavar="DIR",
+                        help="write the plots (block layout, residuals per camera, check-point "
+                             "errors, reduced-matrix pattern) into DIR as PNG; needs "
+                             "matplotlib (pip install 'sapgo[plot]')")
 
 
 def build_parser():
@@ -312,7 +359,16 @@ def build_parser():
                    help="keep the work directory NAME.h5.work (band and factor rows)")
     a.add_argument("--no-progress", action="store_true", help="no progress bars")
     a.add_argument("--quiet", action="store_true", help="do not print the report")
+    _output_options(a)
     a.set_defaults(func=cmd_adjust)
+
+    r = sub.add_parser("report", help="the report of an adjusted project, its CSV tables and "
+                                      "plots")
+    r.add_argument("project")
+    r.add_argument("--json", action="store_true", help="print the report as JSON")
+    r.add_argument("--quiet", action="store_true", help="do not print the report")
+    _output_options(r)
+    r.set_defaults(func=cmd_report)
 
     e = sub.add_parser("export", help="write a project as text files (inputs, or with "
                                       "--adjusted the adjusted photos and points)")

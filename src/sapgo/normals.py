@@ -339,17 +339,20 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                 stats[1] += v * v / (pt_csig[j, c] * pt_csig[j, c])
                 stats[6] += 1
         for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
-            if not obs_active[i]:
-                resid_out[i, 0] = 0.0
-                resid_out[i, 1] = 0.0
-                continue
             s = obs_station[i]
             cam = cam_of_station[s]
             for u in range(6):
                 e_new[u] = eo[s, u] + delta[s, u]
+            # rejected observations get their residual too (how far off they are); only the
+            # active ones count in the statistics
             x, y = project(e_new, xyz_out[j], cams[cam])
             vx = x - obs_xy[i, 0]
             vy = y - obs_xy[i, 1]
+            if not obs_active[i]:
+                ok = math.isfinite(vx) and math.isfinite(vy)
+                resid_out[i, 0] = vx if ok else 0.0
+                resid_out[i, 1] = vy if ok else 0.0
+                continue
             resid_out[i, 0] = vx
             resid_out[i, 1] = vy
             p = 1.0 / (obs_sigma[i] * obs_sigma[i])
