@@ -1,5 +1,7 @@
 """End-to-end adjustments against an independent dense least-squares solution."""
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -342,3 +344,53 @@ def test_reliability_formulas():
     d = mdb * vec[:, 0]
     assert d @ r @ d / 0.006 ** 2 == pytest.approx(lam2)
     assert minimal_detectable_blunder(0.006, 0.0, lam2) == np.inf
+
+
+def test_standardised_residuals_equal_the_pseudo_inverse_form():
+    """sqrt(v' R^+ v) for full-rank and rank-1 redundancy blocks, and robust weights from it."""
+    from sapgo.adjust import robust_weights, standardised_residuals
+
+    rng = np.random.default_rng(5)
+    m = rng.normal(size=(30, 2, 2))
+    r = m @ m.transpose(0, 2, 1) / 4
+    u = rng.normal(size=(10, 2))
+    r[:10] = 0.3 * u[:, :, None] * u[:, None, :]  # rank 1: a two-ray point
+    v = rng.normal(size=(30, 2)) * 0.006
+    red = np.column_stack([r[:, 0, 0], r[:, 1, 1], r[:, 0, 1]])
+    got = standardised_residuals(v, red)
+    ref = [np.sqrt(vi @ np.linalg.pinv(ri, rcond=1e-6) @ vi) for vi, ri in zip(v, r)]
+    np.testing.assert_allclose(got, ref, rtol=1e-9)
+    w = robust_weights(v, sapgo.Options(robust="huber", robust_threshold_um=10.0), red)
+    np.testing.assert_allclose(w, np.minimum(1.0, 10.0 / (1000 * np.array(ref))))
+
+
+def test_robust_estimation_downweights_blunders_and_nears_the_clean_solution(tmp_path):
+    """Least squares first, then Cauchy reweighting from standardised residuals: the planted
+    blunders end with small weights, the result is closer to the clean adjustment than least
+    squares with the blunders, and the run resumes into the robust phase."""
+    kw = dict(strips=3, photos_per_strip=8, control_points=8, seed=4)
+    clean, bad = tmp_path / "c.h5", tmp_path / "b.h5"
+    sapgo.generate_block(clean, **kw)
+    sapgo.generate_block(bad, blunders=3, blunder_size=(0.08, 0.1), **kw)
+    shutil.copy(bad, tmp_path / "ls.h5")
+
+    def points(path, **opts):
+        s = sapgo.adjust(path, sapgo.Options(progress=False, max_iterations=40, **opts))
+        with Project(path) as p:
+            return s, p.read_field("points", "xyz") + p.solution("point_corr"), \
+                p.solution("point_sigma"), p.solution("obs_quality"), p.read("observations")
+
+    _, ref, sig, _, _ = points(clean)
+    _, ls, _, _, _ = points(tmp_path / "ls.h5")
+    s, rob, _, q, ob = points(bad, robust="cauchy")
+    assert s.converged and s.iterations > 3
+    with Project(bad) as p:
+        bl = p.read("truth/blunders")
+        st_ids, pt_ids = p.read_field("stations", "id"), p.read_field("points", "id")
+    keys = set(zip(bl["station_id"].tolist(), bl["point_id"].tolist()))
+    is_bl = np.array([(st_ids[o["station"]], pt_ids[o["point"]]) in keys for o in ob])
+    assert q[is_bl, 6].max() < q[~is_bl, 6].min() or (q[is_bl, 6] < 0.3).sum() >= 2
+    ok = sig > 0
+    dev_ls = np.abs(ls - ref)[ok] / sig[ok]
+    dev_rob = np.abs(rob - ref)[ok] / sig[ok]
+    assert np.sqrt(np.mean(dev_rob ** 2)) < 0.7 * np.sqrt(np.mean(dev_ls ** 2))

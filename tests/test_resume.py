@@ -176,3 +176,29 @@ def test_a_bad_memory_budget_is_refused_before_anything_runs(reference, tmp_path
     with pytest.raises(sapgo.SapgoError, match="such as 512M"):
         sapgo.adjust(path, sapgo.Options(progress=False, memory="lots"))
     assert digest(path) == before and not work_path(path).exists()
+
+
+def test_robust_run_killed_in_its_reweighting_phase_resumes_to_the_same_result(tmp_path):
+    """The robust phase's redundancy numbers and tolerances survive a kill: the resumed run
+    equals the uninterrupted one."""
+    path = tmp_path / "b.h5"
+    sapgo.generate_block(path, strips=2, photos_per_strip=6, control_points=6, blunders=2,
+                         blunder_size=(0.08, 0.1))
+    sapgo.order_project(path)
+    ref = tmp_path / "ref.h5"
+    shutil.copy(path, ref)
+    opts = dict(progress=False, robust="cauchy", max_iterations=30)
+    s_ref = sapgo.adjust(ref, sapgo.Options(**opts))
+    first_robust = next(r["iteration"] for r in s_ref.iteration_log if r["robust_downweighted"])
+    assert s_ref.converged and s_ref.iterations > first_robust + 1
+    run = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "
+           "robust='cauchy', max_iterations=30))")
+    r = subprocess.run([sys.executable, "-c", run, str(path)], capture_output=True, text=True,
+                       env=dict(os.environ, SAPGO_FAULT=f"update:{first_robust + 1}"), timeout=300)
+    assert r.returncode == -signal.SIGKILL, r.stderr
+    assert (work_path(path) / "robust_r.bin").exists()
+    s = sapgo.adjust(path, sapgo.Options(resume=True, **opts))
+    assert s.resumed_from_iteration == first_robust
+    assert s.iterations == s_ref.iterations
+    np.testing.assert_array_equal(solution(path)[0]["point_corr"],
+                                  solution(ref)[0]["point_corr"])

@@ -114,8 +114,12 @@ class Options:
     #: Robust estimation of the image observations: None, "huber" or "cauchy" (iteratively
     #: reweighted from the previous iteration's residuals; control and priors never are).
     robust: str | None = None
-    #: Threshold of the robust weight function, um of image residual (length of (vx, vy)).
-    robust_threshold_um: float = 15.0
+    #: Threshold of the robust weight function, um of standardised image residual
+    #: (``sqrt(v' R^+ v)``, the residual scaled by its redundancy).
+    robust_threshold_um: float = 30.0
+    #: Reweighting has converged when the corrections are below this fraction of the mean
+    #: standard deviations of the least-squares solution (or the absolute tolerances).
+    robust_tolerance: float = 0.01
     #: Baarda's data snooping after convergence: reject the observation with the largest
     #: normalised residual above the critical value of ``snooping_alpha`` and iterate again.
     snooping: bool = False
@@ -365,14 +369,34 @@ def _point_error(p, chunk, j, status, blk):
     )
 
 
-def robust_weights(residuals_mm, opts: Options):
+def standardised_residuals(residuals_mm, redundancy):
+    """The residual of each observation scaled to the observation's own size,
+    ``sqrt(v' R^+ v)`` (mm), ``R`` its 2 x 2 block of the redundancy matrix (columns r_x, r_y,
+    r_xy of ``redundancy``; pseudo-inverse where R has rank 1). A good observation's is
+    about sigma per coordinate whatever its redundancy, a blunder's about the blunder's size
+    times sqrt(r); 0 where R is 0 (a blunder there cannot be seen)."""
+    vx, vy = residuals_mm[:, 0], residuals_mm[:, 1]
+    rx, ry, rxy = redundancy[:, 0], redundancy[:, 1], redundancy[:, 2]
+    det = rx * ry - rxy * rxy
+    tr = rx + ry
+    full = det > 1e-8 * tr * tr
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s2 = np.where(full, (ry * vx * vx - 2 * rxy * vx * vy + rx * vy * vy) / det,
+                      (rx * vx * vx + 2 * rxy * vx * vy + ry * vy * vy) / (tr * tr))
+    return np.sqrt(np.where(tr > 1e-12, np.maximum(s2, 0.0), 0.0))
+
+
+def robust_weights(residuals_mm, opts: Options, redundancy=None):
     """Weights of the image observations from their previous residuals (n x 2, mm): Huber
-    ``min(1, k / r)`` or Cauchy ``1 / (1 + (r / k)^2)``, ``r`` the residual's length in um,
-    ``k`` the threshold; all ones without robust estimation (or before the first
-    iteration's residuals exist)."""
+    ``min(1, k / r)`` or Cauchy ``1 / (1 + (r / k)^2)``, ``k`` the threshold (um) and ``r``
+    the residual's length in um or, given the observations' ``redundancy`` (n x 3: r_x, r_y,
+    r_xy), its :func:`standardised_residuals`; all ones without robust estimation."""
     if opts.robust is None or not len(residuals_mm):
         return np.ones(len(residuals_mm))
-    r = 1000.0 * np.hypot(residuals_mm[:, 0], residuals_mm[:, 1])
+    if redundancy is None:
+        r = 1000.0 * np.hypot(residuals_mm[:, 0], residuals_mm[:, 1])
+    else:
+        r = 1000.0 * standardised_residuals(residuals_mm, redundancy)
     k = opts.robust_threshold_um
     if opts.robust == "huber":
         return np.where(r <= k, 1.0, k / np.maximum(r, 1e-300))
@@ -380,9 +404,10 @@ def robust_weights(residuals_mm, opts: Options):
 
 
 def _reweight(c, work, opts):
-    """Robust estimation: the chunk's observation sigmas divided by sqrt(weight)."""
-    if opts.robust is not None and c.o1 > c.o0:
-        w = robust_weights(work.res_current[c.o0:c.o1], opts)
+    """Robust estimation, once the least-squares phase has given the redundancy numbers
+    (``work.robust_r``): the chunk's observation sigmas divided by sqrt(weight)."""
+    if opts.robust is not None and work.robust_r is not None and c.o1 > c.o0:
+        w = robust_weights(work.res_current[c.o0:c.o1], opts, work.robust_r[c.o0:c.o1])
         c.obs_sigma = np.ascontiguousarray(c.obs_sigma / np.sqrt(np.maximum(w, 1e-12)))
         return w
     return None
@@ -562,6 +587,11 @@ class Work:
         self.res = [RawArray(self.dir / f"residuals.{i}.bin", (self.n_obs, 2), mode=mode)
                     for i in (0, 1)]
         self.state = 0  # the completed iteration whose buffers are current
+        # robust estimation: the observations' redundancy (r_x, r_y, r_xy) of the
+        # least-squares solution, once that phase is over
+        self.robust_r = None
+        if not create and (self.dir / "robust_r.bin").exists():
+            self.robust_r = RawArray(self.dir / "robust_r.bin", (self.n_obs, 3), mode="r")
 
     @property
     def xyz_current(self):
@@ -612,9 +642,21 @@ class Work:
         record["eo"] = eo
         return record
 
+    def start_robust(self, quality, chunk):
+        """Keep the least-squares redundancy numbers for the robust phase."""
+        tmp = self.dir / "robust_r.bin.tmp"
+        r = RawArray(tmp, (self.n_obs, 3), mode="w")
+        for a in range(0, self.n_obs, chunk):
+            r[a:a + chunk] = quality[a:a + chunk][:, :3]
+        r.close()
+        os.replace(tmp, self.dir / "robust_r.bin")  # whole or absent after a kill
+        self.robust_r = RawArray(self.dir / "robust_r.bin", (self.n_obs, 3), mode="r")
+
     def close(self):
         for a in [self.factor, self.y, *self.xyz, *self.res]:
             a.close()
+        if self.robust_r is not None:
+            self.robust_r.close()
 
 
 def _identity(p: Project, band_width):
@@ -670,9 +712,9 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         })
         if not np.isfinite(sigma0):
             raise SapgoError("the adjustment diverged (sigma0 is not finite)")
+        tol_pos, tol_ang = run.get("robust_tol") or (opts.tol_position, opts.tol_angle)
         converged = bool(
-            d_pos < opts.tol_position and st["max_point_corr"] < opts.tol_position
-            and d_ang < opts.tol_angle
+            d_pos < tol_pos and st["max_point_corr"] < tol_pos and d_ang < tol_ang
             and (prev is None or abs(sigma0 - prev) <= opts.tol_sigma0 * prev))
         work.save(it, blk.eo, dict(run, log=log, timings=timings, converged=converged))
         if converged:
@@ -748,6 +790,8 @@ def adjust(path, options: Options | None = None) -> Summary:
                 blk.n_points -= len(blk.rejected_points)
                 run["rejections"] = blk.rejections
                 run["planted"] = blk.planted
+                if checkpoint.get("robust_tol"):
+                    run["robust_tol"] = checkpoint["robust_tol"]
                 run["rejected_points"] = blk.rejected_points.tolist()
                 log = checkpoint["log"]
                 for k, v in checkpoint["timings"].items():
@@ -755,7 +799,23 @@ def adjust(path, options: Options | None = None) -> Summary:
                 work.state = int(checkpoint["iteration"])
                 converged = bool(checkpoint["converged"])
                 resumed_from = work.state
-            if not converged:
+            if opts.robust is not None and work.robust_r is None:
+                # least squares first; then reweighted iterations with its redundancy
+                if not converged:
+                    _iterate(p, work, blk, opts, timings, log, run)
+                t0 = time.perf_counter()
+                sig, _, quality = _quality_sweep(p, work, blk, opts, log[-1]["sigma0"])
+                # reweighting converges linearly: it stops when the corrections are below
+                # a fraction of the least-squares standard deviations
+                act = sig[blk.station_active]
+                run["robust_tol"] = [
+                    max(opts.tol_position, opts.robust_tolerance * float(act[:, 3:].mean())),
+                    max(opts.tol_angle, opts.robust_tolerance * float(act[:, :3].mean()))]
+                work.start_robust(quality, opts.chunk_points)
+                timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t0
+                converged = _iterate(p, work, blk, opts, timings, log, run,
+                                     limit=work.state + opts.max_iterations)
+            elif not converged:
                 converged = _iterate(p, work, blk, opts, timings, log, run)
             if opts.snooping and log:
                 converged = _snoop(p, work, blk, opts, timings, log, run, converged)

@@ -340,10 +340,13 @@ def build_parser():
                    help="convergence: relative change of sigma0 below this (default 1e-3)")
     a.add_argument("--ordering", default="best", help="ordering when the project is unordered")
     a.add_argument("--robust", choices=("huber", "cauchy"),
-                   help="robust estimation of the image observations: reweighted every "
-                        "iteration from the previous residuals (control and priors are not)")
-    a.add_argument("--robust-threshold", type=float, default=15.0, metavar="UM",
-                   help="threshold of the robust weights, um of image residual (default 15)")
+                   help="robust estimation of the image observations: least squares first, "
+                        "then reweighted every iteration from the standardised residuals "
+                        "(control and priors are not); cauchy is the stronger")
+    a.add_argument("--robust-threshold", type=float, default=30.0, metavar="UM",
+                   help="threshold of the robust weights, um of standardised image residual "
+                        "(the residual divided by the square root of its redundancy number; "
+                        "default 30, five sigmas of a 6 um camera)")
     a.add_argument("--snooping", action="store_true",
                    help="Baarda's data snooping: reject the observation with the largest "
                         "normalised residual above the critical value and adjust again, until "
