@@ -36,6 +36,8 @@ from .project import (
 
 #: At most this many points are drawn in the layout (a regular sample beyond).
 MAX_POINTS_DRAWN = 200_000
+#: Beyond this many check points their errors are drawn as means over square cells.
+MAX_CHECK_DRAWN = 5_000
 #: At most this many single residual vectors are drawn per camera.
 MAX_VECTORS_DRAWN = 5_000
 #: Cells of the residual grid along the longer side of the format.
@@ -106,7 +108,7 @@ def _layout(plt, p, out_dir, chunk, report):
         live = pts["status"] == STATUS_ACTIVE
         ctrl = np.isin(kind, (KIND_CONTROL, KIND_HORIZONTAL, KIND_VERTICAL))
         groups["control"].append(xyz[live & ctrl & ~rejected, :2])
-        groups["check"].append(xyz[live & (kind == KIND_CHECK) & ~rejected, :2])
+        groups["check"].append(xyz[live & (kind == KIND_CHECK) & ~rejected, :2][::step])
         groups["rejected"].append(xyz[rejected, :2])
         sel = live & (kind == KIND_PASS) & ~rejected
         groups["pass"].append(xyz[sel, :2][::step])
@@ -118,7 +120,8 @@ def _layout(plt, p, out_dir, chunk, report):
     for name, parts in groups.items():
         xy = np.concatenate(parts) if parts else np.zeros((0, 2))
         if len(xy):
-            label = name + (f" (every {step}th)" if name == "pass" and step > 1 else "")
+            label = name + (f" (every {step}th)" if name in ("pass", "check") and step > 1
+                            else "")
             label += " (with rejected rays)" if name == "rejected" else ""
             ax.scatter(xy[:, 0], xy[:, 1], label=f"{label}: {len(xy)}", **style[name])
     ax.scatter(eo[act, 3], eo[act, 4], s=8, c="tab:green", marker="o",
@@ -219,18 +222,30 @@ def _checkpoints(plt, p, out_dir, chunk, report):
     xy, d = np.concatenate(xy), np.concatenate(d)
     ext = np.ptp(xy, axis=0)
     fig, ax = _figure(plt, ext)
-    spacing = float(np.sqrt(max(ext[0], 1.0) * max(ext[1], 1.0) / len(xy)))
     h = np.hypot(d[:, 0], d[:, 1])
     ref = float(np.sqrt(np.mean(h ** 2))) or 1.0
-    k = 0.8 * spacing / ref  # the RMS error drawn as 0.8 of the mean point spacing
+    n_all = len(xy)
+    what = "points"
+    if n_all > MAX_CHECK_DRAWN:  # many check points: mean errors per square cell
+        cell = float(np.sqrt(max(ext[0], 1.0) * max(ext[1], 1.0) / MAX_CHECK_DRAWN))
+        ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64)
+        key, inv = np.unique(ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1],
+                             return_inverse=True)
+        cnt = np.bincount(inv)
+        xy = np.column_stack([np.bincount(inv, xy[:, k]) / cnt for k in range(2)])
+        d = np.column_stack([np.bincount(inv, d[:, k]) / cnt for k in range(3)])
+        what = f"cells of {cell:.0f} m, means"
+    spacing = float(np.sqrt(max(ext[0], 1.0) * max(ext[1], 1.0) / len(xy)))
+    k = 0.8 * spacing / ref  # the RMS error drawn as 0.8 of the mean spacing
     lim = float(np.abs(d[:, 2]).max()) or 1.0
-    sc = ax.scatter(xy[:, 0], xy[:, 1], c=d[:, 2], cmap="coolwarm", vmin=-lim, vmax=lim, s=25)
+    sc = ax.scatter(xy[:, 0], xy[:, 1], c=d[:, 2], cmap="coolwarm", vmin=-lim, vmax=lim,
+                    s=25 if what == "points" else 12)
     ax.quiver(xy[:, 0], xy[:, 1], d[:, 0] * k, d[:, 1] * k, angles="xy", scale_units="xy",
               scale=1, width=0.002)
     fig.colorbar(sc, ax=ax, label="dZ (adjusted - known) [m]", orientation="horizontal",
                  fraction=0.05, pad=0.2)
     c = report.get("check_points") or {}
-    ax.set_title(f"check points ({len(xy)}): dXY as vectors (RMS {ref:.3f} m = 0.8 point "
+    ax.set_title(f"check points ({n_all}; {what}): dXY as vectors (RMS {ref:.3f} m = 0.8 "
                  f"spacings), dZ as colour"
                  + (f" (sZ {c['sz']:.3f} m)" if c.get("sz") is not None else ""), fontsize=9)
     ax.set_aspect("equal")

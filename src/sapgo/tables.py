@@ -28,7 +28,7 @@ import numpy as np
 
 from .errors import DataError
 from .normals import control_rotations
-from .project import CHUNK_RECORDS, KIND_NAMES, STATUS_ACTIVE, STATUS_REJECTED, Project
+from .project import KIND_NAMES, STATUS_ACTIVE, STATUS_REJECTED, Project
 from .report import minimal_detectable_blunder, noncentrality, weakest_redundancy
 
 RAD2DEG = 180.0 / math.pi
@@ -63,7 +63,12 @@ def _opt(values, fmt, mask):
     return [fmt % v if m else "" for v, m in zip(values.tolist(), mask.tolist())]
 
 
-def write_tables(project_path, out_dir, chunk=CHUNK_RECORDS, alpha=None, power=0.8):
+#: Points per chunk of the tables: their rows are formatted through Python objects, about
+#: 1 kB per observation at a time.
+TABLE_CHUNK = 8192
+
+
+def write_tables(project_path, out_dir, chunk=TABLE_CHUNK, alpha=None, power=0.8):
     """Write ``photos.csv``, ``points.csv`` and ``observations.csv`` of an adjusted project
     into ``out_dir`` (created). ``alpha``: significance level of the minimal detectable
     blunders (default: the run's data snooping alpha, else 0.001). Returns paths and counts.
