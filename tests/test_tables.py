@@ -147,3 +147,28 @@ def test_report_command_prints_the_stored_report(snooped, capsys):
     assert code == 0 and "data snooping rejected" in text and "reliability:" in text, err
     code, text, err = run_cli(capsys, "report", path, "--json")
     assert json.loads(text)["sigma0"] == pytest.approx(s.sigma0)
+
+
+def test_matrix_envelope_holds_the_fill_in(block_cache, tmp_path):
+    """Every non-zero block of the Cholesky factor of a matrix with the reduced normals'
+    block pattern lies inside the drawn envelope; blocks drawn non-zero are those pairs."""
+    import shutil
+
+    from sapgo.plots import matrix_pattern, station_pairs
+
+    path = tmp_path / "p.h5"
+    shutil.copy(block_cache("small3", strips=3, photos_per_strip=6, control_points=6), path)
+    sapgo.order_project(path, "reverse_cuthill_mckee")
+    with Project(path) as p:
+        img, bw = matrix_pattern(p)
+        pairs = np.concatenate(list(station_pairs(p)))
+        n = p.n_stations
+    rng = np.random.default_rng(0)
+    m = np.zeros((n, n))
+    m[pairs[:, 0], pairs[:, 1]] = rng.uniform(0.1, 1.0, len(pairs))
+    m = m + m.T + 4 * n * np.eye(n)
+    u = np.linalg.cholesky(m).T  # upper factor, one scalar per station block
+    nz = np.abs(u) > 1e-14
+    assert (img[nz | nz.T] >= 1).all()
+    assert ((img == 2) == ((m != 0) & ~np.eye(n, dtype=bool) | np.eye(n, dtype=bool))).all()
+    assert (img == 1).any()  # the block has fill-in to hold

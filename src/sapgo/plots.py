@@ -6,8 +6,9 @@ the ``plot`` extra, matplotlib).
   vector per cell of a grid (systematic errors show as a pattern) and, for small blocks, every
   vector;
 - ``checkpoints.png``: check-point errors, horizontal as vectors and vertical as colour;
-- ``matrix.png``: the pattern of the reduced normal matrix in the stations' logical order,
-  with the band (as Figure 1 of seeds/002).
+- ``matrix.png``: the pattern of the reduced normal matrix in the stations' logical order:
+  non-zero blocks, the fill-in inside the envelope and the band (as Figure 1 of seeds/002
+  and Figure 12 of seeds/000).
 
 Everything is read in chunks; large blocks are drawn from a bounded sample of points and
 a binned image of the matrix, so memory stays bounded.
@@ -273,26 +274,48 @@ def station_pairs(p, chunk=CHUNK_RECORDS):
         yield np.concatenate(out)
 
 
-def _matrix(plt, p, out_dir, chunk):
+def matrix_pattern(p, bins=None, chunk=CHUNK_RECORDS):
+    """The pattern of the reduced normal matrix in ``bins`` x ``bins`` cells of stations
+    (default one per station): 2 where a 6 x 6 block is non-zero, 1 inside the envelope (the
+    fill-in: zero in the matrix, filled in by the Cholesky factorisation), 0 outside. Also
+    returns the band width in stations."""
     n = p.n_stations
-    bins = min(n, MATRIX_BINS)
-    img = np.zeros((bins, bins), bool)
+    bins = min(n, bins or n)
+    img = np.zeros((bins, bins), np.int8)
+    first = np.arange(bins)  # per column: the first row of the envelope (upper triangle)
     bw = 0
     for pairs in station_pairs(p, chunk):
         if len(pairs):
             bw = max(bw, int((pairs[:, 1] - pairs[:, 0]).max()) + 1)
             i, j = pairs[:, 0] * bins // n, pairs[:, 1] * bins // n
-            img[i, j] = True
-            img[j, i] = True
+            img[i, j] = 2
+            img[j, i] = 2
+            np.minimum.at(first, j, i)
+    r = np.arange(bins)[:, None]
+    env = (r >= first[None, :]) & (r <= np.arange(bins)[None, :])
+    env = env | env.T
+    img[(img == 0) & env] = 1
+    return img, bw
+
+
+def _matrix(plt, p, out_dir, chunk):
+    from matplotlib.colors import ListedColormap
+
+    n = p.n_stations
+    img, bw = matrix_pattern(p, MATRIX_BINS, chunk)
+    bins = len(img)
     fig, ax = plt.subplots(figsize=(7, 7))
-    ax.imshow(img, cmap="Greys", interpolation="nearest", extent=(0, n, n, 0))
+    ax.imshow(img, cmap=ListedColormap(["white", "#f4b183", "black"]), vmin=0, vmax=2,
+              interpolation="nearest", extent=(0, n, n, 0))
     ax.plot([0, n], [bw, n + bw], "r--", lw=0.8, label=f"band: {bw} stations")
     ax.plot([bw, n + bw], [0, n], "r--", lw=0.8)
+    ax.plot([], [], "s", color="black", label="non-zero 6x6 blocks")
+    ax.plot([], [], "s", color="#f4b183", label="fill-in inside the envelope")
     ax.set_xlim(0, n)
     ax.set_ylim(n, 0)
     ax.set_xlabel("station (logical order)")
     ax.set_ylabel("station (logical order)")
-    ax.set_title(f"reduced normal matrix: non-zero 6x6 blocks ({n} stations"
-                 + (f", {bins} x {bins} bins" if bins < n else "") + ")")
+    ax.set_title(f"reduced normal matrix ({n} stations"
+                 + (f", {bins} x {bins} cells" if bins < n else "") + ")")
     ax.legend(loc="upper right", fontsize=8)
     return _save(plt, fig, out_dir / "matrix.png")
