@@ -172,3 +172,16 @@ def test_matrix_envelope_holds_the_fill_in(block_cache, tmp_path):
     assert (img[nz | nz.T] >= 1).all()
     assert ((img == 2) == ((m != 0) & ~np.eye(n, dtype=bool) | np.eye(n, dtype=bool))).all()
     assert (img == 1).any()  # the block has fill-in to hold
+
+
+def test_plots_without_matplotlib_are_refused_before_the_run(small_block, capsys,
+                                                              monkeypatch):
+    import sys
+
+    from conftest import assert_one_line_error
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import fails
+    code, text, err = run_cli(capsys, "adjust", small_block, "--plots", "x", "--no-progress")
+    assert_one_line_error(code, err, "plots need matplotlib")
+    with Project(small_block) as p:
+        assert not p.has_solution  # refused before adjusting

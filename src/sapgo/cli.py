@@ -110,6 +110,10 @@ def cmd_adjust(args):
         snooping=args.snooping,
         snooping_alpha=args.alpha,
     )
+    if args.plots:  # before a long run: matplotlib is there
+        from .plots import check_matplotlib
+
+        check_matplotlib()
     with Project(args.project) as p:
         ordered = p.ordered
     try:

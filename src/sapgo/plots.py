@@ -47,11 +47,17 @@ GRID_CELLS = 12
 MATRIX_BINS = 1000
 
 
-def _pyplot():
+def check_matplotlib():
+    """Raise a clear error when matplotlib is not installed."""
     try:
         import matplotlib
     except ImportError as exc:
         raise DataError("plots need matplotlib: pip install 'sapgo[plot]'") from exc
+    return matplotlib
+
+
+def _pyplot():
+    matplotlib = check_matplotlib()
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
