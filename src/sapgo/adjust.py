@@ -48,7 +48,9 @@ from .normals import (
     PointChunk,
     build_points_parallel,
     control_rotations,
+    point_costs,
     point_sigmas,
+    station_diagonal,
     update_points,
 )
 from .ordering import order_project
@@ -76,6 +78,8 @@ from .frames import frame_info
 from .validate import check_values
 
 ARCSEC = math.pi / (180 * 3600)
+#: Solution methods (:attr:`Options.method`).
+METHODS = ("auto", "gauss-newton", "levenberg-marquardt")
 #: Columns of the observations' quality (work file ``quality.bin``, ``/solution/obs_quality``).
 QUALITY_COLUMNS = ("r_x", "r_y", "r_xy", "w_x", "w_y", "t", "weight")
 #: At most this many ids of excluded points or stations are listed in a report.
@@ -128,12 +132,25 @@ class Options:
     max_rejections: int = 1000
     #: Correlations of a station's or a point's parameters above this are listed.
     correlation_threshold: float = 0.9
+    #: "auto" (Gauss-Newton; Levenberg-Marquardt from the first step that raises the cost,
+    #: and always for a free network), "gauss-newton" or "levenberg-marquardt".
+    method: str = "auto"
+    #: Levenberg-Marquardt: the first damping ``mu`` (the normals' diagonal times ``1 + mu``;
+    #: Ceres' initial trust region radius 1e4 is mu = 1e-4).
+    lm_initial_mu: float = 1e-4
+    #: Levenberg-Marquardt: converged when an accepted step lowers the cost by less than this
+    #: fraction (Ceres' function_tolerance).
+    tol_cost: float = 1e-6
 
     def check(self):
         if self.max_iterations < 1:
             raise SapgoError("max_iterations must be at least 1")
         if not (self.tol_position > 0 and self.tol_angle > 0 and self.tol_sigma0 > 0):
             raise SapgoError("the convergence tolerances must be positive")
+        if self.method not in METHODS:
+            raise SapgoError(f"method {self.method!r}: one of {', '.join(METHODS)}")
+        if not self.lm_initial_mu > 0 or not self.tol_cost > 0:
+            raise SapgoError("lm_initial_mu and tol_cost must be positive")
         if self.chunk_points < 1 or self.chunk_rows < 1:
             raise SapgoError("chunk sizes must be positive")
         if not 0 <= self.pivot_tolerance < 1:
@@ -248,6 +265,12 @@ class _Block:
     n_weighted_control: int = 0
     n_fixed: int = 0
     n_prior_params: int = 0
+    #: a free network (no control, no priors; the project attribute ``datum`` is "free"):
+    #: adjusted by Levenberg-Marquardt, its gauge left to the damping, no precision
+    free: bool = False
+    #: points behind a camera are projected all the same (project attribute
+    #: ``points_behind`` "allowed": BAL problems), not refused
+    behind_ok: bool = False
 
     @property
     def n_stations(self):
@@ -257,7 +280,8 @@ class _Block:
     def redundancy(self):
         equations = 2 * self.n_rays + self.n_weighted_control + self.n_prior_params
         unknowns = 6 * self.n_stations + 3 * self.n_points - self.n_fixed
-        return equations - unknowns
+        # a free network: its 7 datum parameters are not determined by the observations
+        return equations - unknowns + (7 if self.free else 0)
 
 
 def _load_block(p: Project) -> _Block:
@@ -271,6 +295,8 @@ def _load_block(p: Project) -> _Block:
         cam_sigma=np.ascontiguousarray(cams["sigma_image"]),
         band_width=p.band_width,
         frame=p.frame(),
+        free=p.attr("datum", "") == "free",
+        behind_ok=p.attr("points_behind", "") == "allowed",
     )
     names = {1: "full", 2: "horizontal", 3: "vertical"}
     counts = {v: 0 for v in names.values()}
@@ -319,7 +345,10 @@ def _datum_advice(nh, nv, n_priors):
 
 
 def check_datum(p: Project):
-    """Raise :class:`DatumDefectError` when the control cannot fix the datum."""
+    """Raise :class:`DatumDefectError` when the control cannot fix the datum (a project
+    marked as a free network, ``datum = "free"``, needs none)."""
+    if p.attr("datum", "") == "free":
+        return
     nh, nv, npr = _datum_counts(p)
     if npr == 0 and (nh < 2 or nv < 3):
         raise DatumDefectError(f"{p.path}: datum defect: " + _datum_advice(nh, nv, npr))
@@ -413,14 +442,17 @@ def _reweight(c, work, opts):
     return None
 
 
-def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, sink=None):
+def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, sink=None,
+          lam=0.0):
     """Stream the points and hand over the reduced normal band rows as they are completed.
 
     Completed rows go to ``sink(band_rows, rhs_rows)`` in station order (the adjustment feeds
     them straight to the :class:`~sapgo.bandsolve.BandSolver`). Without a sink they are
     written into the files ``work.factor`` and ``work.y`` as they are, for tests and
     benchmarks that look at the band rows themselves. ``xyz`` is the array of current point
-    coordinates (rows in point order; default ``work.xyz_current``).
+    coordinates (rows in point order; default ``work.xyz_current``). ``lam > 0``:
+    Levenberg-Marquardt damping, ``lam`` times the diagonal of the unreduced normal matrix
+    (clamped to [1e-6, 1e32]) added to every station's and every point's diagonal.
     """
     n = len(blk.station_ids)
     bw = blk.band_width
@@ -437,6 +469,15 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     xyz_ds = work.xyz_current if xyz is None else xyz
     priors = _PriorCursor(p, opts.chunk_points)
     base = 0
+    if lam > 0.0:
+        diag = np.zeros((n, 6))
+        plain_sink = sink
+
+        def sink(rows, rhs_rows):  # the rows are complete: add the damping on the diagonal
+            d = np.clip(diag[base:base + len(rows)], 1e-6, 1e32)
+            idx = np.arange(6)
+            rows[:, idx, idx] += lam * d
+            plain_sink(rows, rhs_rows)
     _init_rows(band, rhs, base, 0, cap, blk, priors)
 
     def advance(new_base):
@@ -458,13 +499,17 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
                            blk.rejected_points)
             _reweight(c, work, opts)
+            if lam > 0.0:
+                station_diagonal(c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
+                                 c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams, diag)
             j = 0
             while j < len(c.xyz):
                 j, status, bad = build_points_parallel(
                     j, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.smin, c.smax,
                     c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
                     blk.camera, blk.cams, CTRL_MASK, band, rhs, base,
-                    c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS,
+                    c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS, lam,
+                    blk.behind_ok,
                 )
                 if status != OK:
                     raise _point_error(p, c, bad, status, blk)
@@ -477,7 +522,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
         advance(min(n, base + cap))
 
 
-def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0):
+def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam=0.0):
     """Stream the points: back-solve their corrections, new coordinates and residuals.
 
     Reads the current coordinates from ``work.xyz_current`` and writes the new ones and the
@@ -500,7 +545,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0):
                 c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
                 c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
                 blk.cams, CTRL_MASK, c.max_rays, xyz_out, res_out,
-                stats,
+                stats, lam, blk.behind_ok,
             )
             if stats[7]:
                 raise _point_error(p, c, int(stats[7]) - 1, int(stats[8]), blk)
@@ -664,20 +709,58 @@ def _identity(p: Project, band_width):
             "points": p.n_points, "observations": p.n_observations, "band_width": band_width}
 
 
+def _accepted(log):
+    """The log entries of accepted steps (Levenberg-Marquardt logs rejected ones too)."""
+    return [r for r in log if r.get("step", "accepted") == "accepted"]
+
+
+def _cost(p: Project, work, blk: _Block, opts: Options):
+    """Half the weighted sum of squared residuals at the current state (images, control,
+    priors): the cost Ceres reports."""
+    vpv = 0.0
+    xyz_ds = work.xyz_current
+    for a, b in p.chunks("points", opts.chunk_points):
+        c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
+                       blk.rejected_points)
+        _reweight(c, work, opts)
+        img, ctl = point_costs(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
+                               c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active,
+                               blk.eo, blk.camera, blk.cams, CTRL_MASK)
+        vpv += img + ctl
+    for a, b in p.chunks("station_priors", opts.chunk_points):
+        pr = p.read("station_priors", a, b)
+        pr = pr[blk.station_active[pr["station"]]]
+        v = blk.eo[pr["station"]] - pr["value"]
+        v[:, :3] = _wrap(v[:, :3])
+        vpv += float(np.einsum("ni,nij,nj->", v, pr["weight"], v))
+    return 0.5 * vpv
+
+
 def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, run,
-             limit=None):
-    """Gauss-Newton iterations from the work's state up to iteration ``limit`` (default
-    ``max_iterations``); appends to ``log``; returns converged."""
+             limit=None, reject=True):
+    """Iterations (Gauss-Newton, or Levenberg-Marquardt steps) until converged or ``limit``
+    entries in ``log`` (default ``max_iterations``); appends to ``log``; returns converged.
+
+    ``run["cost"]`` is the cost of the current state. Levenberg-Marquardt (``run["method"]``
+    "lm") damps the normals by ``mu`` times their diagonal; a step that does not lower the
+    cost is rejected (logged, parameters restored) and ``mu`` raised, an accepted one lowers
+    ``mu``. With ``Options.method`` "auto", Gauss-Newton turns into Levenberg-Marquardt at
+    the first step that raises the cost. ``reject=False``: every step is taken (the
+    cost function changes between steps, as in robust reweighting)."""
     n = len(blk.station_ids)
     bw = blk.band_width
-    for it in range(work.state + 1, (limit or opts.max_iterations) + 1):
+    limit = limit or opts.max_iterations
+    while len(log) < limit:
+        it = len(log) + 1
+        lm = run.get("method") == "lm"
+        mu = float(run.get("mu", opts.lm_initial_mu)) if lm else 0.0
         t0 = time.perf_counter()
         # The factorisation runs inside the build: every segment of band rows is factored as
         # soon as the build has completed it, so the band rows never go to disk. Its time is
         # booked as "solve", the rest as "build".
         solver = BandSolver(n, bw, work.factor, work.y, opts.chunk_rows, opts.pivot_tolerance)
         try:
-            build(p, work, blk, opts, iteration=it, sink=solver.feed)
+            build(p, work, blk, opts, iteration=it, sink=solver.feed, lam=mu)
             delta = solver.finish()
         except PivotError as exc:
             raise _pivot_error(exc, blk, p) from None
@@ -686,7 +769,8 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         t2 = time.perf_counter()
         t1 = t0 + (t2 - t0 - solver.seconds)
         del solver
-        st = update(p, work, blk, delta, opts, iteration=it)
+        eo_before = blk.eo.copy()
+        st = update(p, work, blk, delta, opts, iteration=it, lam=mu)
         t3 = time.perf_counter()
         timings["build"] += t1 - t0
         timings["solve"] += t2 - t1
@@ -694,11 +778,23 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         d_ang = float(np.abs(delta[:, :3]).max()) if n else 0.0
         d_pos = float(np.abs(delta[:, 3:]).max()) if n else 0.0
         del delta
+        cost = 0.5 * st["vpv"]
+        prev_cost = run.get("cost")
         sigma0 = math.sqrt(max(st["vpv"], 0.0) / blk.redundancy)
-        prev = log[-1]["sigma0"] if log else None
+        ok = np.isfinite(cost)
+        if reject and prev_cost is not None and np.isfinite(prev_cost):
+            if lm:  # (equal to rounding: a converged, heavily damped step)
+                ok = ok and cost <= prev_cost * (1.0 + 1e-12)
+            elif opts.method == "auto":
+                ok = ok and cost <= prev_cost * (1.0 + 1e-9)
+        if not ok and not lm and not (reject and opts.method != "gauss-newton"):
+            raise SapgoError("the adjustment diverged (sigma0 is not finite)")
+        accepted = _accepted(log)
+        prev = accepted[-1]["sigma0"] if accepted else None
         log.append({
             "iteration": it,
             "sigma0": sigma0,
+            "cost": cost,
             "image_rms_um": st["image_rms_um"],
             "image_rms_x_um": st["rms_x_um"],
             "image_rms_y_um": st["rms_y_um"],
@@ -710,13 +806,30 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             "solve_s": t2 - t1,
             "update_s": t3 - t2,
         })
-        if not np.isfinite(sigma0):
-            raise SapgoError("the adjustment diverged (sigma0 is not finite)")
+        if lm or not ok:
+            log[-1]["mu"] = mu
+            log[-1]["step"] = "accepted" if ok else "rejected"
+        if not ok:  # restore the state; damp more (Levenberg-Marquardt from now on)
+            blk.eo[:] = eo_before
+            if lm:
+                nu = float(run.get("nu", 2.0))
+                run["mu"], run["nu"] = mu * nu, nu * 2.0
+            else:
+                run["method"], run["mu"], run["nu"] = "lm", opts.lm_initial_mu, 2.0
+            if run["mu"] > 1e16:  # no step lowers the cost: a minimum
+                return True
+            continue
+        if lm:
+            run["mu"], run["nu"] = max(mu / 3.0, 1e-16), 2.0
+        run["cost"] = cost
         tol_pos, tol_ang = run.get("robust_tol") or (opts.tol_position, opts.tol_angle)
         converged = bool(
             d_pos < tol_pos and st["max_point_corr"] < tol_pos and d_ang < tol_ang
             and (prev is None or abs(sigma0 - prev) <= opts.tol_sigma0 * prev))
-        work.save(it, blk.eo, dict(run, log=log, timings=timings, converged=converged))
+        if lm and prev_cost is not None and prev_cost - cost <= opts.tol_cost * prev_cost:
+            converged = True
+        work.save(work.state + 1, blk.eo, dict(run, log=log, timings=timings,
+                                                converged=converged))
         if converged:
             return True
     return False
@@ -753,6 +866,13 @@ def adjust(path, options: Options | None = None) -> Summary:
         if blk.redundancy <= 0:
             raise SapgoError(f"{path}: the block has no redundancy ({blk.redundancy}): more "
                              f"unknowns than observations")
+        if blk.free and (opts.snooping or opts.robust is not None):
+            raise SapgoError(f"{path}: a free network (no control, no priors) has no "
+                             f"precision or redundancy numbers without a datum: data snooping "
+                             f"and robust estimation need control points or station priors")
+        if blk.free and opts.method == "gauss-newton":
+            raise SapgoError(f"{path}: a free network needs Levenberg-Marquardt (method auto "
+                             f"or levenberg-marquardt), not gauss-newton")
         ident = _identity(p, blk.band_width)
         if checkpoint is not None and checkpoint.get("identity") != ident:
             checkpoint = None  # the project changed since: start again
@@ -777,6 +897,9 @@ def adjust(path, options: Options | None = None) -> Summary:
             if checkpoint is None:
                 run = {"run": uuid.uuid4().hex, "identity": ident}
                 work.initialise(p, opts.chunk_points)
+                if blk.free or opts.method == "levenberg-marquardt":
+                    run["method"], run["mu"], run["nu"] = "lm", opts.lm_initial_mu, 2.0
+                run["cost"] = run["initial_cost"] = _cost(p, work, blk, opts)
                 work.save(0, blk.eo, dict(run, log=[], timings=timings, converged=False))
             else:
                 run = {"run": checkpoint["run"], "identity": ident}
@@ -790,8 +913,9 @@ def adjust(path, options: Options | None = None) -> Summary:
                 blk.n_points -= len(blk.rejected_points)
                 run["rejections"] = blk.rejections
                 run["planted"] = blk.planted
-                if checkpoint.get("robust_tol"):
-                    run["robust_tol"] = checkpoint["robust_tol"]
+                for key in ("robust_tol", "method", "mu", "nu", "cost", "initial_cost"):
+                    if checkpoint.get(key) is not None:
+                        run[key] = checkpoint[key]
                 run["rejected_points"] = blk.rejected_points.tolist()
                 log = checkpoint["log"]
                 for k, v in checkpoint["timings"].items():
@@ -804,7 +928,8 @@ def adjust(path, options: Options | None = None) -> Summary:
                 if not converged:
                     _iterate(p, work, blk, opts, timings, log, run)
                 t0 = time.perf_counter()
-                sig, _, quality = _quality_sweep(p, work, blk, opts, log[-1]["sigma0"])
+                sig, _, quality = _quality_sweep(p, work, blk, opts,
+                                                 _accepted(log)[-1]["sigma0"])
                 # reweighting converges linearly: it stops when the corrections are below
                 # a fraction of the least-squares standard deviations
                 act = sig[blk.station_active]
@@ -814,7 +939,7 @@ def adjust(path, options: Options | None = None) -> Summary:
                 work.start_robust(quality, opts.chunk_points)
                 timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t0
                 converged = _iterate(p, work, blk, opts, timings, log, run,
-                                     limit=work.state + opts.max_iterations)
+                                     limit=len(log) + opts.max_iterations, reject=False)
             elif not converged:
                 converged = _iterate(p, work, blk, opts, timings, log, run)
             if opts.snooping and log:
@@ -914,7 +1039,7 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
     crit = float(np.sqrt(chi2.isf(opts.snooping_alpha, 2)))
     while len(blk.rejected) < opts.max_rejections:
         t0 = time.perf_counter()
-        _, _, quality = _quality_sweep(p, work, blk, opts, log[-1]["sigma0"])
+        _, _, quality = _quality_sweep(p, work, blk, opts, _accepted(log)[-1]["sigma0"])
         _note_planted(p, blk, quality, run)
         best, worst = 0.0, -1
         for a, b in p.chunks("observations", opts.chunk_points):
@@ -949,8 +1074,9 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
         blk.n_rays -= len(drop)
         run["rejections"] = blk.rejections
         run["rejected_points"] = blk.rejected_points.tolist()
+        run["cost"] = _cost(p, work, blk, opts)  # the cost function lost an observation
         converged = _iterate(p, work, blk, opts, timings, log, run,
-                             limit=work.state + opts.max_iterations)
+                             limit=len(log) + opts.max_iterations)
     return converged
 
 
@@ -1042,15 +1168,24 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     or the new project, both whole.
     """
     t_commit = time.perf_counter()
-    last = log[-1]
+    accepted = _accepted(log)
+    if not accepted:
+        raise SapgoError(f"{path}: no step lowered the cost from its initial value "
+                         f"{run.get('initial_cost')}: nothing to write")
+    last = accepted[-1]
     xyz_ds, res_ds = work.xyz_current, work.res_current
     t_prec = time.perf_counter()
     correlations = HighCorrelations(opts.correlation_threshold)
-    station_sigma, psig, quality = _quality_sweep(p_read, work, blk, opts, last["sigma0"],
-                                                  correlations)
-    _note_planted(p_read, blk, quality, run)
-    reliability = reliability_statistics(opts.snooping_alpha)
-    for a, b in p_read.chunks("observations", opts.chunk_points):
+    if blk.free:  # no datum, no precision: zeros, and no report of them
+        station_sigma = np.zeros((len(blk.station_ids), 6))
+        psig = quality = None
+        correlations = reliability = None
+    else:
+        station_sigma, psig, quality = _quality_sweep(p_read, work, blk, opts,
+                                                      last["sigma0"], correlations)
+        _note_planted(p_read, blk, quality, run)
+        reliability = reliability_statistics(opts.snooping_alpha)
+    for a, b in (p_read.chunks("observations", opts.chunk_points) if not blk.free else ()):
         ob = p_read.read("observations", a, b)
         act = ob["status"] == STATUS_ACTIVE
         if len(blk.rejected):
@@ -1087,8 +1222,12 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         path=str(path),
         converged=converged,
         termination=(
-            f"converged after {len(log)} iterations: corrections below "
-            f"{opts.tol_position:g} m and {opts.tol_angle / ARCSEC:.2g}\""
+            (f"converged after {len(log)} iterations: corrections below "
+             f"{opts.tol_position:g} m and {opts.tol_angle / ARCSEC:.2g}\""
+             if run.get("method") != "lm" else
+             f"converged after {len(log)} iterations ({len(accepted)} accepted "
+             f"Levenberg-Marquardt steps): cost change below {opts.tol_cost:g} or "
+             f"corrections below tolerance")
             if converged else
             f"not converged after {len(log)} iterations (max_iterations)"
         ),
@@ -1118,10 +1257,14 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         resumed_from_iteration=resumed_from,
         strip_comparison=strips.result(),
         frame=frame_info(p_read.frame()),
-        precision=precision_summary(station_sigma[blk.station_active], psig, p_read,
-                                    opts.chunk_points),
-        correlations=correlations.result(),
-        reliability=reliability.result(),
+        precision=None if blk.free else precision_summary(
+            station_sigma[blk.station_active], psig, p_read, opts.chunk_points),
+        correlations=None if blk.free else correlations.result(),
+        reliability=None if blk.free else reliability.result(),
+        method=run.get("method", "gn"),
+        initial_cost=run.get("initial_cost"),
+        final_cost=run.get("cost"),
+        datum="free" if blk.free else "control",
         rejected=_rejected_list(p_read, blk),
         blunder_check=_blunder_check(p_read, blk, opts.snooping_alpha),
     )
@@ -1143,9 +1286,10 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
                 g["residuals"][a:b] = res_ds[a:b]
             for a, b in q.chunks("stations", opts.chunk_points):
                 g["station_sigma"][a:b] = station_sigma[a:b]
-            for a, b in q.chunks("points", opts.chunk_points):
+            for a, b in q.chunks("points", opts.chunk_points) if psig is not None else ():
                 g["point_sigma"][a:b] = psig[a:b]
-            for a, b in q.chunks("observations", opts.chunk_points):
+            for a, b in (q.chunks("observations", opts.chunk_points) if quality is not None
+                         else ()):
                 g["obs_quality"][a:b] = quality[a:b]
             if len(blk.rejected):  # flagged, never deleted
                 obs_ds = q.file["observations"]

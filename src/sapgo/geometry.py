@@ -191,8 +191,8 @@ def linearize(eo, xyz, c, a, b):
          -sk * cp, -sk * sp * sw + ck * cw, sk * sp * cw + ck * sw,
          sp, -cp * sw, cp * cw)
     u, v, w = q[0], q[1], q[2]
-    if w >= 0.0:  # behind the camera or in its principal plane: no projection
-        return np.nan, np.nan, w
+    if w == 0.0:  # in the principal plane: no projection (behind the camera, w > 0, the
+        return np.nan, np.nan, w  # callers refuse unless told otherwise: BAL problems)
     fw2 = f / (w * w)
     # d x / d q = -f/w * [1, 0, -u/w];  d y / d q = -f/w * [0, 1, -v/w]
     gx0, gx2 = -f / w, f * u / (w * w)

@@ -39,12 +39,15 @@ BAD_LAYOUT = 3  # the records do not follow the logical order the band width was
 @njit(cache=True)
 def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
-                  ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc):
+                  ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, lam=0.0,
+                  behind_ok=False):
     """Linearise point ``j``: fill its rays' A, l, p, Nbar and its 3x3 system nn, cc.
 
     Returns the number of active rays ``k`` (negative when a point is behind a camera).
     ``xyz`` receives the point's current coordinates (fixed control components replaced by
-    their control values).
+    their control values). ``lam > 0``: Levenberg-Marquardt damping, ``lam`` times the
+    diagonal of nn (clamped to [1e-6, 1e32], as Ceres does) added to it. ``behind_ok``: a
+    point behind a camera is projected all the same (BAL problems), not refused.
     """
     kind = pt_kind[j]
     for c in range(3):
@@ -62,7 +65,7 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
         s = obs_station[i]
         cam = cam_of_station[s]
         x, y, w = linearize(eo[s], xyz, cams[cam], a, b)
-        if w >= 0.0:
+        if w == 0.0 or (w > 0.0 and not behind_ok):
             return -1
         p = 1.0 / (obs_sigma[i] * obs_sigma[i])
         l0 = obs_xy[i, 0] - x
@@ -101,7 +104,31 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
                 for q in range(k):
                     for r in range(6):
                         nbar[q, r, c] = 0.0
+    if lam > 0.0:
+        for r in range(3):
+            nn[r, r] += lam * min(max(nn[r, r], 1e-6), 1e32)
     return k
+
+
+@njit(cache=True)
+def station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigma, obs_active,
+                     eo, cam_of_station, cams, diag):
+    """Add each station's diagonal of the (unreduced) normal matrix, ``sum p a_u^2`` over its
+    active observations of active points of a chunk, into ``diag`` (stations x 6): the
+    scaling of the Levenberg-Marquardt damping."""
+    a = np.empty((2, 6))
+    b = np.empty((2, 3))
+    for j in range(pt_xyz.shape[0]):
+        if pt_active[j] != 0:
+            continue
+        for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+            if not obs_active[i]:
+                continue
+            s = obs_station[i]
+            linearize(eo[s], pt_xyz[j], cams[cam_of_station[s]], a, b)
+            p = 1.0 / (obs_sigma[i] * obs_sigma[i])
+            for u in range(6):
+                diag[s, u] += p * (a[0, u] * a[0, u] + a[1, u] * a[1, u])
 
 
 @njit(cache=True)
@@ -147,7 +174,7 @@ def _workspace(max_rays):
 def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                  pt_smax, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                  cams, ctrl_mask, band, rhs, base, max_rays, split, ovf_band,
-                 ovf_rhs):
+                 ovf_rhs, lam=0.0, behind_ok=False):
     """Add points ``j0 .. j_stop-1`` of a chunk into the band-row window.
 
     ``band[r]`` (6 x 6b) and ``rhs[r]`` (6) are the rows of logical station ``base + r``;
@@ -171,7 +198,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc)
+                          st_all, nn, cc, lam, behind_ok)
         if k < 0:
             return j, BEHIND_CAMERA, j
         bw = band.shape[2] // 6
@@ -226,7 +253,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
 def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           pt_smin, pt_smax, pt_active, obs_station, obs_xy, obs_sigma,
                           obs_active, eo, cam_of_station, cams, ctrl_mask, band, rhs, base,
-                          max_rays, ovf_band, ovf_rhs, min_points):
+                          max_rays, ovf_band, ovf_rhs, min_points, lam=0.0, behind_ok=False):
     """:func:`build_points` for the points from ``j0`` that fit the window, on
     ``len(ovf_band)`` threads over station ranges.
 
@@ -251,7 +278,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                                       pt_start, pt_nobs, pt_smax, pt_active, obs_station, obs_xy,
                                       obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays, cap,
-                                      empty_b, empty_r)
+                                      empty_b, empty_r, lam, behind_ok)
         if status != OK or j < j_end:
             return j, status, bad
         return j_end, OK, -1
@@ -271,7 +298,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                                       pt_rot, pt_start, pt_nobs, pt_smax, pt_active, obs_station,
                                       obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays,
-                                      split[t], ob, orr)
+                                      split[t], ob, orr, lam, behind_ok)
         res[t, 0] = j
         res[t, 1] = status
         res[t, 2] = bad
@@ -293,7 +320,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
 @njit(cache=True)
 def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cams,
-                  ctrl_mask, max_rays, xyz_out, resid_out, stats):
+                  ctrl_mask, max_rays, xyz_out, resid_out, stats, lam=0.0,
+                  behind_ok=False):
     """Back-solve point corrections and compute residuals for a chunk of points.
 
     ``eps_j = Ndd_j^-1 (cdd_j - sum_s Nbar_s' delta_s)`` with the system linearised at the
@@ -301,7 +329,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     ``v = computed - observed`` are then evaluated at the new values (``eo + delta``,
     ``xyz_out``). ``stats`` accumulates: 0 vPv image, 1 vPv control, 2 sum vx^2, 3 sum vy^2,
     4 image rays, 5 max |eps|, 6 control components, 7 bad point (index+1) or 0,
-    8 its status code.
+    8 its status code. ``lam``: the Levenberg-Marquardt damping the normals were built with.
     """
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
     eps = np.empty(3)
@@ -313,7 +341,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc)
+                          st_all, nn, cc, lam, behind_ok)
         if k < 0 or not _chol3(nn, lo):
             stats[7] = j + 1
             stats[8] = BEHIND_CAMERA if k < 0 else SINGULAR_POINT
@@ -561,3 +589,37 @@ def control_rotations(kind, control, frame=None):
 PARALLEL_MIN_POINTS = 32
 
 CTRL_MASK = np.ascontiguousarray(CONTROL_MASK.astype(np.int64))
+
+
+@njit(cache=True)
+def point_costs(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
+                obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
+                ctrl_mask):
+    """The weighted squared residuals of a chunk's active points at their current values:
+    ``(sum p |v|^2 of the image observations, sum of the control terms)``; fixed control
+    components take their control values (as in the adjustment)."""
+    xyz = np.empty(3)
+    vpv_img = 0.0
+    vpv_ctl = 0.0
+    for j in range(pt_xyz.shape[0]):
+        if pt_active[j] != 0:
+            continue
+        kind = pt_kind[j]
+        for c in range(3):
+            xyz[c] = pt_xyz[j, c]
+            if ctrl_mask[kind, c] and pt_csig[j, c] == 0.0:
+                xyz[c] = pt_ctrl[j, c]
+        for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+            if not obs_active[i]:
+                continue
+            s = obs_station[i]
+            x, y = project(eo[s], xyz, cams[cam_of_station[s]])
+            vx, vy = x - obs_xy[i, 0], y - obs_xy[i, 1]
+            vpv_img += (vx * vx + vy * vy) / (obs_sigma[i] * obs_sigma[i])
+        for c in range(3):
+            if ctrl_mask[kind, c] and pt_csig[j, c] > 0.0:
+                v = 0.0
+                for q in range(3):
+                    v += pt_rot[j, c, q] * (xyz[q] - pt_ctrl[j, q])
+                vpv_ctl += v * v / (pt_csig[j, c] * pt_csig[j, c])
+    return vpv_img, vpv_ctl

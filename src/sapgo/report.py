@@ -299,6 +299,14 @@ class Summary:
     #: Internal reliability: redundancy numbers and minimal detectable blunders of the image
     #: observations (:class:`reliability_statistics`).
     reliability: dict | None = None
+    #: "gn" (Gauss-Newton) or "lm" (Levenberg-Marquardt, from the first rejected step).
+    method: str = "gn"
+    #: Half the weighted sum of squared residuals (images, control, priors) at the start and
+    #: at the end: the cost as Ceres reports it.
+    initial_cost: float | None = None
+    final_cost: float | None = None
+    #: "control" (control points and priors fix the datum) or "free" (a free network).
+    datum: str = "control"
     #: Observations rejected by data snooping (photo and point ids, normalised residual).
     rejected: list = dataclasses.field(default_factory=list)
     #: Planted blunders against the rejections: ``{"planted", "found", "false_rejections",

@@ -1,0 +1,295 @@
+"""BAL ("Bundle Adjustment in the Large", Agarwal et al. 2010) problems: read, convert, write.
+
+Format (plain text, whitespace separated)::
+
+    num_cameras num_points num_observations
+    camera_index point_index x y          (num_observations lines; pixels, origin at the
+                                           image centre, y up)
+    9 values per camera: Rodrigues rotation (3), translation (3), f, k1, k2
+    3 values per point: X, Y, Z
+
+Camera model: ``P = R X + t``, ``p = -P[:2] / P[2]``, ``d = 1 + k1 |p|^2 + k2 |p|^4``,
+projection ``f d p``; ``R`` (world to camera) is the Rodrigues vector.
+
+This is sapgo's collinearity model exactly (docs/theory.md section 1) with image units of
+pixels: ``M = R``, the projection centre ``Xc = -R' t``, focal length ``f``, principal point
+0 and radial distortion ``k1 / f^2``, ``k2 / f^4`` (sapgo's distortion is in image units).
+Each BAL camera becomes a photo with a camera of its own (intrinsics held fixed), the image
+sigma 1 pixel, so that ``1/2 sum v^2`` is the BAL (Ceres) cost.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataError
+
+
+def _tokens_error(path, lines, start, count, per_line, what):
+    """The first line among ``lines[start:start + count]`` that does not hold ``per_line``
+    numbers: a DataError naming it."""
+    for k in range(start, min(len(lines), start + count)):
+        parts = lines[k].split()
+        if len(parts) != per_line:
+            return DataError(f"{path}:{k + 1}: {what}: expected {per_line} values, got "
+                             f"{len(parts)}")
+        try:
+            [float(x) for x in parts]
+        except ValueError:
+            bad = next(x for x in parts if not _is_number(x))
+            return DataError(f"{path}:{k + 1}: {what}: {bad!r} is not a number")
+    return DataError(f"{path}:{len(lines)}: the file ends early: {count} {what} lines "
+                     f"expected from line {start + 1}")
+
+
+def _is_number(x):
+    try:
+        float(x)
+        return True
+    except ValueError:
+        return False
+
+
+def read_bal(path):
+    """Read a BAL problem: ``dict(cameras (n x 9), points (m x 3), obs_camera, obs_point
+    (int64), obs_xy (k x 2))``. Errors name the file and line."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{path}: not a text file ({exc.reason})") from None
+    lines = text.splitlines()
+    first = next((k for k, ln in enumerate(lines) if ln.strip()), None)
+    if first is None:
+        raise DataError(f"{path}: the file is empty")
+    head = lines[first].split()
+    if len(head) != 3 or not all(h.isdigit() for h in head):
+        raise DataError(f"{path}:{first + 1}: expected 'num_cameras num_points "
+                        f"num_observations' (three non-negative integers), got "
+                        f"{lines[first].strip()!r}")
+    n_cam, n_pt, n_obs = (int(h) for h in head)
+    if n_cam < 1 or n_pt < 1 or n_obs < 1:
+        raise DataError(f"{path}:{first + 1}: no cameras, points or observations")
+    # observation lines: the next n_obs non-empty lines
+    body = [k for k in range(first + 1, len(lines)) if lines[k].strip()]
+    if len(body) < n_obs:
+        raise DataError(f"{path}:{len(lines)}: the file ends early: {n_obs} observation "
+                        f"lines expected, {len(body)} lines follow the header")
+    obs_lines = body[:n_obs]
+    try:
+        obs = np.array(" ".join(lines[k] for k in obs_lines).split(), dtype=np.float64)
+    except ValueError:
+        obs = None
+    if obs is None or obs.size != 4 * n_obs:
+        for k in obs_lines:
+            parts = lines[k].split()
+            if len(parts) != 4 or not all(_is_number(x) for x in parts):
+                raise DataError(f"{path}:{k + 1}: observation: expected 'camera_index "
+                                f"point_index x y', got {lines[k].strip()!r}")
+    obs = obs.reshape(n_obs, 4)
+    rest_lines = body[n_obs:]
+    try:
+        rest = np.array(" ".join(lines[k] for k in rest_lines).split(), dtype=np.float64)
+    except ValueError:
+        for k in rest_lines:
+            for x in lines[k].split():
+                if not _is_number(x):
+                    raise DataError(f"{path}:{k + 1}: camera or point parameter: {x!r} is "
+                                    f"not a number") from None
+        raise
+    need = 9 * n_cam + 3 * n_pt
+    if rest.size != need:
+        where = rest_lines[-1] + 1 if rest_lines else len(lines)
+        raise DataError(f"{path}:{where}: {rest.size} camera and point parameters after the "
+                        f"observations, expected {need} (9 per camera, 3 per point)")
+    cam_i, pt_i = obs[:, 0], obs[:, 1]
+    for name, idx, n in (("camera", cam_i, n_cam), ("point", pt_i, n_pt)):
+        bad = np.flatnonzero((idx != np.round(idx)) | (idx < 0) | (idx >= n))
+        if len(bad):
+            k = obs_lines[bad[0]]
+            token = lines[k].split()[0 if name == "camera" else 1]
+            raise DataError(f"{path}:{k + 1}: {name} index {token} is not one of "
+                            f"0..{n - 1}")
+    bad = np.flatnonzero(~np.isfinite(obs[:, 2:]).all(axis=1))
+    if len(bad):
+        k = obs_lines[bad[0]]
+        raise DataError(f"{path}:{k + 1}: observation x or y is not finite")
+    cams = rest[:9 * n_cam].reshape(n_cam, 9)
+    pts = rest[9 * n_cam:].reshape(n_pt, 3)
+    for name, arr, per, off in (("camera", cams, 9, 0), ("point", pts, 3, 9 * n_cam)):
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        if len(bad):
+            j = int(bad[0])
+            col = int(np.flatnonzero(~np.isfinite(arr[j]))[0])
+            k = rest_lines[min(len(rest_lines) - 1, off + per * j + col)]
+            raise DataError(f"{path}:{k + 1}: {name} {j}: a parameter is not finite")
+    bad = np.flatnonzero(cams[:, 6] <= 0)
+    if len(bad):
+        k = rest_lines[9 * int(bad[0]) + 6]
+        raise DataError(f"{path}:{k + 1}: camera {int(bad[0])}: focal length "
+                        f"{cams[bad[0], 6]!r} is not positive")
+    return {"cameras": cams, "points": pts, "obs_camera": cam_i.astype(np.int64),
+            "obs_point": pt_i.astype(np.int64), "obs_xy": obs[:, 2:].copy()}
+
+
+def rodrigues(rvec):
+    """Rotation matrices (n x 3 x 3) of Rodrigues vectors (n x 3): rotation by |r| about r."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(rvec, np.float64).reshape(-1, 3)).as_matrix()
+
+
+def rodrigues_vector(m):
+    """The inverse of :func:`rodrigues`."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(m, np.float64).reshape(-1, 3, 3)).as_rotvec()
+
+
+def bal_to_sapgo(cams):
+    """Stations ``(omega, phi, kappa, Xc, Yc, Zc)`` and camera rows ``(f, x0, y0, k1, k2, k3,
+    p1, p2)`` in image units (pixels) of BAL cameras (n x 9)."""
+    from ..frames import opk_of
+
+    r = rodrigues(cams[:, :3])
+    centre = -np.einsum("nji,nj->ni", r, cams[:, 3:6])
+    eo = np.column_stack([opk_of(r), centre])
+    f = cams[:, 6]
+    rows = np.column_stack([f, np.zeros_like(f), np.zeros_like(f), cams[:, 7] / f ** 2,
+                            cams[:, 8] / f ** 4, np.zeros((len(f), 3))])
+    return eo, rows
+
+
+def sapgo_to_bal(eo, rows):
+    """The inverse of :func:`bal_to_sapgo` (cameras without k3, p1, p2 and principal point)."""
+    from ..frames import rotation_matrices
+
+    r = rotation_matrices(eo[:, :3])
+    t = -np.einsum("nij,nj->ni", r, eo[:, 3:])
+    f = rows[:, 0]
+    return np.column_stack([rodrigues_vector(r), t, f, rows[:, 3] * f ** 2,
+                            rows[:, 4] * f ** 4])
+
+
+def bal_cost(data):
+    """The BAL cost ``1/2 sum |projection - observation|^2`` with the file's values, computed
+    directly from the BAL camera model (the reference for sapgo's conversion)."""
+    cams, pts = data["cameras"], data["points"]
+    r = rodrigues(cams[:, :3])
+    c, j = data["obs_camera"], data["obs_point"]
+    p = np.einsum("nij,nj->ni", r[c], pts[j]) + cams[c, 3:6]
+    q = -p[:, :2] / p[:, 2:3]
+    r2 = (q * q).sum(axis=1)
+    d = 1.0 + cams[c, 7] * r2 + cams[c, 8] * r2 * r2
+    proj = cams[c, 6][:, None] * d[:, None] * q
+    return 0.5 * float(((proj - data["obs_xy"]) ** 2).sum())
+
+
+def write_bal(path, cams, pts, obs_camera, obs_point, obs_xy):
+    """Write a BAL problem (observations in the given order)."""
+    with open(path, "w") as f:
+        f.write(f"{len(cams)} {len(pts)} {len(obs_camera)}\n")
+        f.write("".join(f"{int(a)} {int(b)} {x!r} {y!r}\n" for a, b, x, y in
+                        zip(obs_camera.tolist(), obs_point.tolist(), obs_xy[:, 0].tolist(),
+                            obs_xy[:, 1].tolist())))
+        f.write("".join(f"{v!r}\n" for v in np.asarray(cams, np.float64).ravel().tolist()))
+        f.write("".join(f"{v!r}\n" for v in np.asarray(pts, np.float64).ravel().tolist()))
+
+
+def import_bal(path, out, force=False):
+    """Import the BAL problem ``path`` into a new project ``out``: one photo and one camera
+    per BAL camera (ids = BAL indices; intrinsics f, k1, k2 held fixed), the points as pass
+    points with the file's coordinates as approximations, image units pixels with sigma 1
+    (the project attribute ``image_unit`` is ``"px"``). Returns a summary dict."""
+    import json
+
+    from ..errors import ParameterError
+    from ..project import (
+        CAMERA_DTYPE,
+        OBSERVATION_DTYPE,
+        POINT_DTYPE,
+        PRIOR_DTYPE,
+        STATION_DTYPE,
+        append_history,
+        write_project,
+    )
+
+    out = Path(out)
+    if out.exists() and not force:
+        raise ParameterError(f"{out} exists: use --force to replace it")
+    d = read_bal(path)
+    cams, pts = d["cameras"], d["points"]
+    n_cam, n_pt = len(cams), len(pts)
+    eo, rows = bal_to_sapgo(cams)
+    # observations grouped by point (a stable sort keeps the file's order within a point)
+    order = np.argsort(d["obs_point"], kind="stable")
+    oc, op, xy = d["obs_camera"][order], d["obs_point"][order], d["obs_xy"][order]
+    # a camera's format: the square that holds its observations
+    half = np.zeros(n_cam)
+    np.maximum.at(half, oc, np.abs(xy).max(axis=1))
+    camera = np.zeros(n_cam, CAMERA_DTYPE)
+    camera["id"] = np.arange(n_cam)
+    for k, name in enumerate(("focal_length", "x0", "y0", "k1", "k2", "k3", "p1", "p2")):
+        camera[name] = rows[:, k]
+    camera["format_x"] = camera["format_y"] = 2.0 * np.ceil(np.maximum(half, 1.0))
+    camera["sigma_image"] = 1.0
+    station = np.zeros(n_cam, STATION_DTYPE)
+    station["id"] = np.arange(n_cam)
+    station["camera"] = np.arange(n_cam)
+    station["strip"] = -1
+    station["eo"] = eo
+    counts = np.bincount(op, minlength=n_pt)
+    point = np.zeros(n_pt, POINT_DTYPE)
+    point["id"] = np.arange(n_pt)
+    point["xyz"] = pts
+    point["n_obs"] = counts
+    point["obs_start"] = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    smin = np.full(n_pt, np.iinfo(np.int64).max)
+    smax = np.full(n_pt, -1)
+    np.minimum.at(smin, op, oc)
+    np.maximum.at(smax, op, oc)
+    point["station_min"] = np.where(counts > 0, smin, 0)
+    point["station_max"] = np.where(counts > 0, smax, 0)
+    obs = np.zeros(len(oc), OBSERVATION_DTYPE)
+    obs["point"], obs["station"] = op, oc
+    obs["x"], obs["y"] = xy[:, 0], xy[:, 1]
+    creator = {"command": "import", "format": "bal", "file": str(path)}
+    write_project(out, camera, station, point, obs, np.zeros(0, PRIOR_DTYPE),
+                  attrs={"creator": json.dumps(creator), "image_unit": "px", "datum": "free",
+                         "points_behind": "allowed",
+                         "history": append_history("[]", creator)})
+    return {"path": str(out), "cameras": n_cam, "photos": n_cam, "points": n_pt,
+            "observations": len(obs), "initial_cost": bal_cost(d)}
+
+
+def export_bal(project_path, out_path, adjusted=True):
+    """Write a project (its adjusted values, or the inputs) as a BAL problem. Every photo is
+    a BAL camera with its camera's f, k1, k2 (principal point, k3, p1 and p2 must be 0);
+    points and observations in record order, excluded ones left out."""
+    from ..project import STATUS_ACTIVE, Project
+
+    with Project(project_path) as p:
+        st, pt, ob = p.read("stations"), p.read("points"), p.read("observations")
+        cams = p.cameras()
+        eo = st["eo"] + (p.solution("station_corr") if adjusted else 0.0)
+        xyz = pt["xyz"] + (p.solution("point_corr") if adjusted else 0.0)
+    from ..geometry import camera_array
+
+    rows = camera_array(cams)[st["camera"]]
+    extra = np.abs(rows[:, [1, 2, 5, 6, 7]]).max(axis=1) > 0
+    if extra.any():
+        raise DataError(f"{project_path}: photo id {int(st['id'][np.argmax(extra)])}: its "
+                        f"camera has a principal point, k3 or decentring distortion, which "
+                        f"BAL cannot hold")
+    live_st = st["status"] == STATUS_ACTIVE
+    live_pt = pt["status"] == STATUS_ACTIVE
+    keep = (ob["status"] == STATUS_ACTIVE) & live_pt[ob["point"]] & live_st[ob["station"]]
+    new_st = np.cumsum(live_st) - 1
+    new_pt = np.cumsum(live_pt) - 1
+    write_bal(out_path, sapgo_to_bal(eo[live_st], rows[live_st]), xyz[live_pt],
+              new_st[ob["station"][keep]], new_pt[ob["point"][keep]],
+              np.column_stack([ob["x"][keep], ob["y"][keep]]))
+    return {"cameras": int(live_st.sum()), "points": int(live_pt.sum()),
+            "observations": int(keep.sum())}
