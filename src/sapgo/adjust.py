@@ -1265,6 +1265,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         initial_cost=run.get("initial_cost"),
         final_cost=run.get("cost"),
         datum="free" if blk.free else "control",
+        image_unit=str(p_read.attr("image_unit", "mm") or "mm"),
         rejected=_rejected_list(p_read, blk),
         blunder_check=_blunder_check(p_read, blk, opts.snooping_alpha),
     )

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from . import __version__
-from .errors import SapgoError
+from .errors import ParameterError, SapgoError
 
 
 def _warn(msg):
@@ -76,10 +76,24 @@ def cmd_order(args):
 
 
 def cmd_import(args):
+    if args.format == "bal":
+        from .formats.bal import import_bal
+
+        if len(args.paths) != 2:
+            raise ParameterError("--format bal takes the BAL file and the project to create: "
+                                 "sapgo import --format bal problem.txt block.h5")
+        r = import_bal(args.paths[0], args.paths[1], force=args.force)
+        print(f"imported {r['path']}: {r['photos']} photos (one camera each), {r['points']} "
+              f"points, {r['observations']} image observations (pixels); a free network; "
+              f"initial cost {r['initial_cost']:.6e}")
+        return 0
     from .ingest import import_text, summary_text
 
+    if len(args.paths) != 1:
+        raise ParameterError("text import takes one project to create (the files are given "
+                             "with --cameras, --photos, --measurements, ...)")
     summary = import_text(
-        args.output, cameras=args.cameras, photos=args.photos,
+        args.paths[0], cameras=args.cameras, photos=args.photos,
         measurements=args.measurements, control=args.control, angles=args.angles,
         memory=args.memory, append=args.append, force=args.force, priors=args.priors,
         prior_covariances=args.prior_covariances, crs=args.crs, orientation=args.orientation,
@@ -109,6 +123,7 @@ def cmd_adjust(args):
         robust_threshold_um=args.robust_threshold,
         snooping=args.snooping,
         snooping_alpha=args.alpha,
+        method=args.method,
     )
     if args.plots:  # before a long run: matplotlib is there
         from .plots import check_matplotlib
@@ -175,7 +190,14 @@ def cmd_report(args):
 def cmd_export(args):
     from .formats import export_adjusted, export_text
 
-    if args.adjusted:
+    if args.format == "bal":
+        from .formats.bal import export_bal
+
+        r = export_bal(args.project, args.directory, adjusted=args.adjusted)
+        print(f"wrote {'the adjusted' if args.adjusted else 'the input'} BAL problem "
+              f"{args.directory}: {r['cameras']} cameras, {r['points']} points, "
+              f"{r['observations']} observations")
+    elif args.adjusted:
         r = export_adjusted(args.project, args.directory, angles=args.angles,
                             orientation=args.orientation)
         print(f"wrote {r['counts']['photos']} adjusted photos and {r['counts']['points']} "
@@ -287,10 +309,17 @@ def build_parser():
     m = sub.add_parser("import", help="import a block from text files (cameras, photos, image "
                                       "measurements, control)",
                        description="Import a block from whitespace-separated text files into "
-                                   "a new project (formats: docs/formats.md). Each file option "
-                                   "may be repeated. The measurements are sorted within the "
-                                   "memory budget, so their files may be in any order.")
-    m.add_argument("output", help="project file to create (e.g. block.h5)")
+                                   "a new project (formats: docs/formats.md), or a BAL problem "
+                                   "(--format bal FILE OUTPUT). Each file option may be "
+                                   "repeated. The measurements are sorted within the memory "
+                                   "budget, so their files may be in any order.")
+    m.add_argument("paths", nargs="+", metavar="[FILE] OUTPUT",
+                   help="the project file to create (e.g. block.h5); with --format bal the BAL "
+                        "file first")
+    m.add_argument("--format", choices=("text", "bal"), default="text",
+                   help="text (default: the files below) or bal (a 'Bundle Adjustment in the "
+                        "Large' problem: one camera per photo with its f, k1, k2 held fixed, "
+                        "pixels, a free network adjusted by Levenberg-Marquardt)")
     m.add_argument("--cameras", action="append", default=[], metavar="FILE",
                    help="id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2] "
                         "(mm)")
@@ -357,6 +386,10 @@ def build_parser():
                         "none is left (rejected observations are flagged, not deleted)")
     a.add_argument("--alpha", type=float, default=0.001,
                    help="significance level of data snooping (default 0.001: |w| > 3.29)")
+    a.add_argument("--method", choices=("auto", "gauss-newton", "levenberg-marquardt"),
+                   default="auto",
+                   help="auto (default): Gauss-Newton, turning into Levenberg-Marquardt at the "
+                        "first step that raises the cost (always for a free network)")
     a.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its last completed iteration")
     a.add_argument("--memory", default=None, metavar="SIZE",
@@ -380,7 +413,9 @@ def build_parser():
     e = sub.add_parser("export", help="write a project as text files (inputs, or with "
                                       "--adjusted the adjusted photos and points)")
     e.add_argument("project")
-    e.add_argument("directory", help="output directory (created)")
+    e.add_argument("directory", help="output directory (created); with --format bal the file")
+    e.add_argument("--format", choices=("text", "bal"), default="text",
+                   help="text files (default) or one BAL problem file")
     e.add_argument("--adjusted", action="store_true",
                    help="adjusted_photos.txt and adjusted_points.txt in the user's CRS")
     e.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg")

@@ -307,6 +307,9 @@ class Summary:
     final_cost: float | None = None
     #: "control" (control points and priors fix the datum) or "free" (a free network).
     datum: str = "control"
+    #: The project's image unit: "mm", or "px" (BAL problems: the ``*_um`` figures are then
+    #: thousandths of a pixel).
+    image_unit: str = "mm"
     #: Observations rejected by data snooping (photo and point ids, normalised residual).
     rejected: list = dataclasses.field(default_factory=list)
     #: Planted blunders against the rejections: ``{"planted", "found", "false_rejections",
@@ -316,6 +319,10 @@ class Summary:
     def to_dict(self):
         return dataclasses.asdict(self)
 
+    def _img(self, um):
+        """An image residual figure in the project's unit."""
+        return f"{um / 1000:.3f} px" if self.image_unit == "px" else f"{um:.2f} um"
+
     def to_json(self, indent=2):
         return json.dumps(self.to_dict(), indent=indent)
 
@@ -323,7 +330,7 @@ class Summary:
         c = self.check_points
         chk = (f", check points sXY {c['sxy']:.3f} m sZ {c['sz']:.3f} m" if c["n"] else "")
         return (f"{'converged' if self.converged else 'NOT converged'} in {self.iterations} "
-                f"iterations: sigma0 {self.sigma0:.3f}, image RMS {self.image_rms_um:.2f} um"
+                f"iterations: sigma0 {self.sigma0:.3f}, image RMS {self._img(self.image_rms_um)}"
                 f"{chk}, band width {self.band_width}, {self.timings_s.get('total', 0):.2f} s")
 
     def full_report(self):
@@ -350,7 +357,8 @@ class Summary:
         L.append("")
         L.append("  iter   sigma0  image RMS  max dXYZc   max dang  max dXYZ    build    solve"
                  "   update")
-        L.append("                      [um]        [m]       [\"]       [m]      [s]      [s]"
+        L.append(f"                      [{'um' if self.image_unit != 'px' else 'mpx'}]"
+                 "        [m]       [\"]       [m]      [s]      [s]"
                  "      [s]")
         for r in self.iteration_log:
             L.append(
@@ -365,8 +373,15 @@ class Summary:
                      f"interrupted run")
         L.append(f"  {self.termination}")
         L.append(f"  sigma0 = {self.sigma0:.4f}  (redundancy {self.redundancy})")
-        L.append(f"  image residuals RMS: x {self.image_rms_x_um:.2f} um, "
-                 f"y {self.image_rms_y_um:.2f} um, both {self.image_rms_um:.2f} um")
+        L.append(f"  image residuals RMS: x {self._img(self.image_rms_x_um)}, "
+                 f"y {self._img(self.image_rms_y_um)}, both {self._img(self.image_rms_um)}")
+        if self.initial_cost is not None and self.final_cost is not None:
+            L.append(f"  cost (1/2 sum of squared weighted residuals): initial "
+                     f"{self.initial_cost:.6e}, final {self.final_cost:.6e}"
+                     + (" (Levenberg-Marquardt)" if self.method == "lm" else ""))
+        if self.datum == "free":
+            L.append("  a free network: no control or priors fix the datum, so no precision "
+                     "is computed")
         c = self.check_points
         if c["n"]:
             L.append(

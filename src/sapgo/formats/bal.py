@@ -53,13 +53,29 @@ def _is_number(x):
 
 
 def read_bal(path):
-    """Read a BAL problem: ``dict(cameras (n x 9), points (m x 3), obs_camera, obs_point
-    (int64), obs_xy (k x 2))``. Errors name the file and line."""
+    """Read a BAL problem (plain, ``.gz`` or ``.bz2``): ``dict(cameras (n x 9), points
+    (m x 3), obs_camera, obs_point (int64), obs_xy (k x 2))``. Errors name the file and
+    line."""
     path = Path(path)
     try:
-        text = path.read_text()
+        if path.suffix == ".gz":
+            import gzip
+
+            with gzip.open(path, "rt") as f:
+                text = f.read()
+        elif path.suffix == ".bz2":
+            import bz2
+
+            with bz2.open(path, "rt") as f:
+                text = f.read()
+        else:
+            text = path.read_text()
     except UnicodeDecodeError as exc:
         raise DataError(f"{path}: not a text file ({exc.reason})") from None
+    except (OSError, EOFError) as exc:
+        if isinstance(exc, FileNotFoundError):
+            raise
+        raise DataError(f"{path}: cannot be read ({exc})") from None
     lines = text.splitlines()
     first = next((k for k, ln in enumerate(lines) if ln.strip()), None)
     if first is None:
@@ -267,7 +283,8 @@ def import_bal(path, out, force=False):
 def export_bal(project_path, out_path, adjusted=True):
     """Write a project (its adjusted values, or the inputs) as a BAL problem. Every photo is
     a BAL camera with its camera's f, k1, k2 (principal point, k3, p1 and p2 must be 0);
-    points and observations in record order, excluded ones left out."""
+    cameras and points in the order of their ids, observations by point and camera; excluded
+    ones left out."""
     from ..project import STATUS_ACTIVE, Project
 
     with Project(project_path) as p:
@@ -286,10 +303,18 @@ def export_bal(project_path, out_path, adjusted=True):
     live_st = st["status"] == STATUS_ACTIVE
     live_pt = pt["status"] == STATUS_ACTIVE
     keep = (ob["status"] == STATUS_ACTIVE) & live_pt[ob["point"]] & live_st[ob["station"]]
-    new_st = np.cumsum(live_st) - 1
-    new_pt = np.cumsum(live_pt) - 1
-    write_bal(out_path, sapgo_to_bal(eo[live_st], rows[live_st]), xyz[live_pt],
-              new_st[ob["station"][keep]], new_pt[ob["point"][keep]],
-              np.column_stack([ob["x"][keep], ob["y"][keep]]))
+    # cameras and points in the order of their ids (a BAL import's ids are the file's
+    # indices, so the file comes back in its own order)
+    st_rec = np.flatnonzero(live_st)[np.argsort(st["id"][live_st], kind="stable")]
+    pt_rec = np.flatnonzero(live_pt)[np.argsort(pt["id"][live_pt], kind="stable")]
+    new_st = np.full(len(st), -1)
+    new_st[st_rec] = np.arange(len(st_rec))
+    new_pt = np.full(len(pt), -1)
+    new_pt[pt_rec] = np.arange(len(pt_rec))
+    o = np.flatnonzero(keep)
+    o = o[np.lexsort((new_st[ob["station"][o]], new_pt[ob["point"][o]]))]
+    write_bal(out_path, sapgo_to_bal(eo[st_rec], rows[st_rec]), xyz[pt_rec],
+              new_st[ob["station"][o]], new_pt[ob["point"][o]],
+              np.column_stack([ob["x"][o], ob["y"][o]]))
     return {"cameras": int(live_st.sum()), "points": int(live_pt.sum()),
             "observations": int(keep.sum())}
