@@ -17,19 +17,20 @@ from sapgo.bandsolve import (
 )
 
 
-def random_block_banded(n, bw, seed=0):
-    """A symmetric positive definite matrix, 6x6 blocks, band width ``bw`` stations."""
+def random_block_banded(n, bw, seed=0, q=6):
+    """A symmetric positive definite matrix, q x q blocks, band width ``bw`` stations."""
     rng = np.random.default_rng(seed)
-    a = np.zeros((6 * n, 6 * n))
+    a = np.zeros((q * n, q * n))
     for i in range(n):
         for k in range(1, bw):
             j = i + k
             if j < n:
-                blk = rng.normal(0, 1, (6, 6))
-                a[6 * i:6 * i + 6, 6 * j:6 * j + 6] = blk
-                a[6 * j:6 * j + 6, 6 * i:6 * i + 6] = blk.T
-    # scale rows very differently, as angles and positions are
-    d = np.tile([1e8, 1e8, 1e8, 1.0, 1.0, 1.0], n) * rng.uniform(0.5, 2, 6 * n)
+                blk = rng.normal(0, 1, (q, q))
+                a[q * i:q * i + q, q * j:q * j + q] = blk
+                a[q * j:q * j + q, q * i:q * i + q] = blk.T
+    # scale rows very differently, as angles and positions are (intrinsics more so)
+    scale = [1e8, 1e8, 1e8, 1.0, 1.0, 1.0] + [1e-3, 1e12, 1e20][:q - 6]
+    d = np.tile(scale, n) * rng.uniform(0.5, 2, q * n)
     a += np.diag(np.abs(a).sum(axis=1) + 1.0)
     s = np.sqrt(d)
     a = a * s[:, None] * s[None, :]
@@ -238,3 +239,29 @@ def test_covariance_window_holds_the_band_of_the_inverse_for_each_block():
 
     covariance_blocks(fac, n, bw, step=100, on_block=check)
     assert seen[0][1] == n and seen[-1][0] == 0 and all(b - a <= bw for a, b in seen)
+
+
+@pytest.mark.parametrize("n, bw, chunk_rows", [(17, 4, 3), (40, 9, 50), (1, 1, 1)])
+def test_stations_of_nine_parameters(n, bw, chunk_rows):
+    """Stations of 9 parameters (orientation and per-photo intrinsics): the solver, fed in
+    pieces, the out-of-core path and the selected inversion equal the dense computation."""
+    from sapgo.bandsolve import covariance_blocks
+
+    a = random_block_banded(n, bw, seed=5, q=9)
+    band = dense_to_band(a, bw, block=9)
+    np.testing.assert_array_equal(band_to_dense(band), np.triu(a, 0) + np.triu(a, 1).T)
+    rhs = np.random.default_rng(2).normal(0, 1, (n, 9))
+    ref = np.linalg.solve(a, rhs.ravel()).reshape(n, 9)
+    factor, delta = solve_in_core(band, rhs)
+    np.testing.assert_allclose(delta, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+    fac = np.zeros_like(band)
+    y = np.zeros_like(rhs)
+    solver = BandSolver(n, bw, fac, y, chunk_rows=chunk_rows, block=9)
+    for i in range(0, n, 5):
+        solver.feed(band[i:i + 5], rhs[i:i + 5])
+    np.testing.assert_allclose(solver.finish(), delta, rtol=1e-12, atol=1e-300)
+    blocks = covariance_blocks(fac, n, bw, step=3)
+    inv = np.linalg.inv(a)
+    for i in range(n):
+        r = inv[9 * i:9 * i + 9, 9 * i:9 * i + 9]
+        np.testing.assert_allclose(blocks[i], r, rtol=1e-8, atol=1e-10 * np.abs(r).max())

@@ -221,9 +221,10 @@ def _factor_range(fns, a, y, orig, ring, ld1, n, u, p, k_start, k_stop, first, t
 def _load_rows(band, rhs, i0, a, y, orig, ring, ld1):
     """Band rows of stations ``i0 ..`` into the ring as columns of ``L`` (zero padded)."""
     width = band.shape[2]
+    k = band.shape[1]
     for ii in prange(band.shape[0]):
-        for r in range(6):
-            h = 6 * (i0 + ii) + r
+        for r in range(k):
+            h = k * (i0 + ii) + r
             base = (h % ring) * ld1
             for d in range(width - r):
                 a[base + d] = band[ii, r, r + d]
@@ -239,9 +240,10 @@ def _back_rows(fac, y, x, i0, n):
     factor rows ``fac`` (in reverse; diagonal-first, ``fac[i, r, d] = U[h, h + d]``); ``x``
     holds the solution of the rows after them."""
     width = fac.shape[2]
+    k = fac.shape[1]
     for ii in range(fac.shape[0] - 1, -1, -1):
-        for r in range(5, -1, -1):
-            h = 6 * (i0 + ii) + r
+        for r in range(k - 1, -1, -1):
+            h = k * (i0 + ii) + r
             s = y[ii, r]
             top = min(width, n - h)
             for d in range(1, top):
@@ -254,9 +256,10 @@ def _take_cols(a, y, ring, ld1, lo, fac, rhs):
     """Diagonal-first factor rows ``fac`` (k x 6 x 6b) and ``rhs`` (k x 6) from the ring
     columns ``lo, lo + 1, ...`` (slots modulo ``ring``)."""
     width = fac.shape[2]
+    k = fac.shape[1]
     for ii in prange(fac.shape[0]):
-        for r in range(6):
-            slot = (lo + 6 * ii + r) % ring
+        for r in range(k):
+            slot = (lo + k * ii + r) % ring
             base = slot * ld1
             for d in range(width):
                 fac[ii, r, d] = a[base + d]
@@ -270,7 +273,7 @@ def factor_to_band(fac):
     fac = np.asarray(fac)
     band = np.zeros_like(fac)
     width = fac.shape[2]
-    for r in range(6):
+    for r in range(fac.shape[1]):
         band[:, r, r:] = fac[:, r, :width - r]
     return band
 
@@ -364,22 +367,23 @@ class BandSolver:
     """
 
     def __init__(self, n_st, band_width, factor_ds, y_ds, chunk_rows=256,
-                 pivot_tol=PIVOT_TOLERANCE, progress=None, panel=None, threads=None):
+                 pivot_tol=PIVOT_TOLERANCE, progress=None, panel=None, threads=None, block=6):
         self.n_st = n_st
-        self.width = width = 6 * band_width
-        self.n = n = 6 * n_st
+        self.block = kb = block          # parameters per station
+        self.width = width = kb * band_width
+        self.n = n = kb * n_st
         self.u = u = width - 1
-        self.p = p = panel or panel_width(u)
-        if p % 6:
-            raise ValueError(f"panel width {p} is not a multiple of 6")
+        self.p = p = panel or _up(panel_width(u), kb)
+        if p % kb:
+            raise ValueError(f"panel width {p} is not a multiple of {kb}")
         self.factor_ds, self.y_ds = factor_ds, y_ds
         self.chunk_rows = max(1, chunk_rows)
         self.pivot_tol = pivot_tol
         self.progress = progress
         self.nthreads = threads or numba.get_num_threads()
-        self.seg = _up(6 * self.chunk_rows, p)          # scalar columns per segment
+        self.seg = _up(kb * self.chunk_rows, p)          # scalar columns per segment
         self.ld1 = u + p + 1
-        self.ring = min(_up(3 * self.seg + u + 2 * p + 6, p), _up(max(n, 1), p))
+        self.ring = min(_up(3 * self.seg + u + 2 * p + kb, p), _up(max(n, 1), p))
         self.a = np.zeros(self.ring * self.ld1)
         self.y = np.zeros(self.ring)
         self.orig = np.zeros(self.ring)
@@ -396,15 +400,16 @@ class BandSolver:
         """Place the next band rows (and right-hand-side rows) and factor what is ready."""
         t0 = time.perf_counter()
         band = np.ascontiguousarray(band, dtype=np.float64)
-        rhs = np.ascontiguousarray(rhs, dtype=np.float64).reshape(-1, 6)
-        if band.shape[1:] != (6, self.width) or len(rhs) != len(band):
+        kb = self.block
+        rhs = np.ascontiguousarray(rhs, dtype=np.float64).reshape(-1, kb)
+        if band.shape[1:] != (kb, self.width) or len(rhs) != len(band):
             raise ValueError(f"band rows of shape {band.shape[1:]} and {len(rhs)} right-hand "
-                             f"side rows, expected (6, {self.width}) and {len(band)}")
+                             f"side rows, expected ({kb}, {self.width}) and {len(band)}")
         if self.loaded + len(band) > self.n_st:
             raise ValueError(f"{self.loaded + len(band)} band rows fed for {self.n_st} stations")
         i = 0
         while i < len(band):
-            room = (6 * self.stored + self.ring) // 6 - self.loaded
+            room = (kb * self.stored + self.ring) // kb - self.loaded
             take = min(room, len(band) - i)
             if take > 0:
                 self._writer.wait()   # (the slots may still be on their way to the file)
@@ -417,7 +422,7 @@ class BandSolver:
 
     def _reach(self, col):
         """Stations covering the scalar columns below ``col``."""
-        return min(self.n_st, -(-min(self.n, col) // 6))
+        return min(self.n_st, -(-min(self.n, col) // self.block))
 
     def _factor_ready(self):
         n, u, p = self.n, self.u, self.p
@@ -427,24 +432,25 @@ class BandSolver:
             if self.loaded < self._reach(stop + u + p):
                 return
             self._writer.wait()
-            self._writer.start(self._write, *self._take(k // 6))
+            self._writer.start(self._write, *self._take(k // self.block))
             with blas_limits(1):
                 fail = _factor_range(FNS, self.a, self.y, self.orig, self.ring, self.ld1, n,
                                      u, p, k, stop, k == 0, self.pivot_tol, self.nthreads)
             if fail >= 0:
                 self._writer.wait()
-                raise PivotError(fail // 6, fail % 6)
+                raise PivotError(fail // self.block, fail % self.block)
             if self.progress is not None:
-                self.progress((stop - k) // 6)
+                self.progress((stop - k) // self.block)
             self.k = stop
 
     def _take(self, i1):
         """Factor rows of the stations ``stored .. i1`` out of the ring (diagonal-first: the
         first ``6 b`` doubles of each column of ``L``)."""
         i0 = self.stored
-        fac = np.empty((i1 - i0, 6, self.width))
-        rhs = np.empty((i1 - i0, 6))
-        _take_cols(self.a, self.y, self.ring, self.ld1, (6 * i0) % self.ring, fac, rhs)
+        kb = self.block
+        fac = np.empty((i1 - i0, kb, self.width))
+        rhs = np.empty((i1 - i0, kb))
+        _take_cols(self.a, self.y, self.ring, self.ld1, (kb * i0) % self.ring, fac, rhs)
         self.stored = i1
         return i0, fac, rhs
 
@@ -459,13 +465,13 @@ class BandSolver:
             raise ValueError(f"{self.loaded} band rows fed for {self.n_st} stations")
         t0 = time.perf_counter()
         if self.n == 0:
-            return np.zeros((0, 6))
+            return np.zeros((0, self.block))
         self._factor_ready()
         self._writer.wait()
         self._write(*self._take(self.n_st))
         # read back in blocks of at least 8 MiB (fewer, larger reads)
-        step = max(self.chunk_rows, (8 << 20) // (48 * self.width))
-        delta = _back_substitute(self.factor_ds, self.y_ds, self.n_st, step)
+        step = max(self.chunk_rows, (8 << 20) // (8 * self.block * self.width))
+        delta = _back_substitute(self.factor_ds, self.y_ds, self.n_st, step, self.block)
         self.seconds += time.perf_counter() - t0
         return delta
 
@@ -483,11 +489,12 @@ def solve_out_of_core(band_ds, rhs_ds, band_width, chunk_rows=256, pivot_tol=PIV
     defaults.
     """
     n_st = band_ds.shape[0]
-    width = 6 * band_width
-    if band_ds.shape[1:] != (6, width):
-        raise ValueError(f"band rows have shape {band_ds.shape[1:]}, expected (6, {width})")
+    kb = band_ds.shape[1]
+    width = kb * band_width
+    if band_ds.shape[2] != width:
+        raise ValueError(f"band rows have shape {band_ds.shape[1:]}, expected ({kb}, {width})")
     solver = BandSolver(n_st, band_width, band_ds, rhs_ds, chunk_rows, pivot_tol, progress,
-                        panel, threads)
+                        panel, threads, block=kb)
     step = max(1, chunk_rows)
     for i0 in range(0, n_st, step):
         i1 = min(n_st, i0 + step)
@@ -496,10 +503,10 @@ def solve_out_of_core(band_ds, rhs_ds, band_width, chunk_rows=256, pivot_tol=PIV
     return solver.finish()
 
 
-def _back_substitute(band_ds, rhs_ds, n_st, step):
+def _back_substitute(band_ds, rhs_ds, n_st, step, block=6):
     """``delta = U^-1 y`` reading the factor rows in reverse segments, the next one read while
     the current one is solved."""
-    n = 6 * n_st
+    n = block * n_st
     x = np.zeros(n)
 
     def read(lo, hi):
@@ -517,7 +524,7 @@ def _back_substitute(band_ds, rhs_ds, n_st, step):
         _back_rows(chunk[0], chunk[1], x, start, n)
         chunk = bg.wait() if start > 0 else None
         stop, start = start, nxt
-    return x.reshape(n_st, 6)
+    return x.reshape(n_st, block)
 
 
 @njit(cache=True, nogil=True)
@@ -533,12 +540,13 @@ def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, v, y, margin):
     the block a row needs is contiguous; ``out_blocks[i - i0]`` receives the 6x6 diagonal
     block of station ``i``."""
     width = fac.shape[2]
+    kb = fac.shape[1]
     u = width - 1
     bsz = zb.shape[0]
     flat = zb.reshape(-1)
     for ii in range(fac.shape[0] - 1, -1, -1):
-        for r in range(5, -1, -1):
-            h = 6 * (i0 + ii) + r
+        for r in range(kb - 1, -1, -1):
+            h = kb * (i0 + ii) + r
             base = state[0]
             if h < base:  # shift the window: rows h+1 .. h+u+margin to its top part
                 nb = max(0, h + u + margin + 1 - bsz)
@@ -567,9 +575,9 @@ def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, v, y, margin):
             else:
                 zb[p, p] = 1.0 / (u0 * u0)
         i = i0 + ii
-        q = 6 * i - state[0]
-        for a in range(6):
-            for b in range(6):
+        q = kb * i - state[0]
+        for a in range(kb):
+            for b in range(kb):
                 out_blocks[ii, a, b] = zb[q + a, q + b]
 
 
@@ -585,26 +593,28 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     ``on_block(start, stop, zb, base)`` is called after each block of stations
     ``start .. stop`` (then at most ``b`` stations): ``zb[k - base, j - base] = Z[k, j]`` for
     the scalar rows and columns ``k, j`` of those stations and the ``6b - 1`` after them,
-    inside the band (the covariances a point observed from those stations needs)."""
-    width = 6 * band_width
-    n = 6 * n_st
-    bsz = 4 * width + 6
+    inside the band (the covariances a point observed from those stations needs). Stations
+    of ``k`` parameters (``factor_ds`` n x k x kb) give k x k blocks."""
+    kb = factor_ds.shape[1]
+    width = kb * band_width
+    n = kb * n_st
+    bsz = 4 * width + kb
     margin = 0
     if on_block is not None:
         step = max(1, min(step, band_width))
-        margin = 6 * step
+        margin = kb * step
     zb = np.zeros((bsz, bsz))
     state = np.array([max(0, n - bsz)], np.int64)
     v = np.empty(bsz)
     y = np.empty(bsz)
     keep = out is None
-    blocks_all = np.empty((n_st, 6, 6)) if keep else None
-    var = np.empty((n_st, 6))
+    blocks_all = np.empty((n_st, kb, kb)) if keep else None
+    var = np.empty((n_st, kb))
     stop = n_st
     while stop > 0:
         start = max(0, stop - step)
         fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
-        blocks = np.empty((stop - start, 6, 6))
+        blocks = np.empty((stop - start, kb, kb))
         with blas_limits(1):
             _inverse_rows(FNS, fac, start, n, zb, state, blocks, v, y, margin)
         var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
@@ -626,41 +636,44 @@ def solve_in_core(band, rhs, pivot_tol=PIVOT_TOLERANCE, panel=None, threads=None
     ``U`` (as :func:`factor_to_band`).
     """
     band = np.array(band, dtype=np.float64, order="C")
-    y = np.array(rhs, dtype=np.float64, order="C").reshape(-1, 6)
-    delta = solve_out_of_core(band, y, band.shape[2] // 6, 256, pivot_tol, panel=panel,
+    kb = band.shape[1]
+    y = np.array(rhs, dtype=np.float64, order="C").reshape(-1, kb)
+    delta = solve_out_of_core(band, y, band.shape[2] // kb, 256, pivot_tol, panel=panel,
                               threads=threads)
     return factor_to_band(band), delta
 
 
 def band_to_dense(band):
     """The full symmetric matrix of band rows (for tests and small problems)."""
-    n, _, width = band.shape
-    bw = width // 6
-    a = np.zeros((6 * n, 6 * n))
+    n, q, width = band.shape
+    bw = width // q
+    a = np.zeros((q * n, q * n))
     for i in range(n):
         for k in range(bw):
             j = i + k
             if j >= n:
                 break
-            blk = band[i, :, 6 * k:6 * k + 6]
-            a[6 * i:6 * i + 6, 6 * j:6 * j + 6] = blk
+            blk = band[i, :, q * k:q * k + q]
+            a[q * i:q * i + q, q * j:q * j + q] = blk
             if k:
-                a[6 * j:6 * j + 6, 6 * i:6 * i + 6] = blk.T
+                a[q * j:q * j + q, q * i:q * i + q] = blk.T
             else:
-                a[6 * i:6 * i + 6, 6 * i:6 * i + 6] = np.triu(blk) + np.triu(blk, 1).T
+                a[q * i:q * i + q, q * i:q * i + q] = np.triu(blk) + np.triu(blk, 1).T
     return a
 
 
-def dense_to_band(a, band_width):
-    """Band rows of a symmetric block-banded matrix (inverse of :func:`band_to_dense`)."""
-    n = a.shape[0] // 6
-    band = np.zeros((n, 6, 6 * band_width))
+def dense_to_band(a, band_width, block=6):
+    """Band rows of a symmetric block-banded matrix (inverse of :func:`band_to_dense`),
+    ``block`` parameters per station."""
+    q = block
+    n = a.shape[0] // q
+    band = np.zeros((n, q, q * band_width))
     for i in range(n):
         for k in range(band_width):
             j = i + k
             if j >= n:
                 break
-            band[i, :, 6 * k:6 * k + 6] = a[6 * i:6 * i + 6, 6 * j:6 * j + 6]
+            band[i, :, q * k:q * k + q] = a[q * i:q * i + q, q * j:q * j + q]
     return band
 
 
