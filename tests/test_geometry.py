@@ -192,3 +192,39 @@ def test_a_distortion_folding_beyond_the_format_is_caught():
     # a mild distortion passes
     rec["k1"] = DIST[0]
     assert _distortion_fold(rec) is None
+
+
+@pytest.mark.parametrize("dist", [None, DIST])
+def test_partials_by_the_photos_intrinsics_by_complex_step(rng, dist):
+    """A 2x9 ``a`` gets d(x, y)/d(f, k1 f^2, k2 f^4) too (k3, p1, p2 held in their own
+    units), equal to the complex-step derivative of the reference projection; and
+    ``apply_intrinsics`` moves a camera row along exactly those parameters."""
+    from sapgo.geometry import apply_intrinsics
+
+    d5 = dist or (0.0,) * 5
+    c = camera(152.0, 0.02, -0.01, d5)
+    a9 = np.empty((2, 9))
+    a6 = np.empty((2, 6))
+    b = np.empty((2, 3))
+    h = 1e-30
+
+    def proj(fc, k1n, k2n, eo, xyz):
+        k1, k2 = k1n / fc ** 2, k2n / fc ** 4
+        return naive.project(eo, xyz, fc, 0.02, -0.01, (k1, k2, *d5[2:]))
+
+    for _ in range(20):
+        eo, xyz = random_ray(rng)
+        linearize(eo, xyz, c, a9, b)
+        linearize(eo, xyz, c, a6, b)
+        np.testing.assert_array_equal(a9[:, :6], a6)
+        theta = np.array([152.0, d5[0] * 152.0 ** 2, d5[1] * 152.0 ** 4], dtype=complex)
+        for k in range(3):
+            t = theta.copy()
+            t[k] += 1j * h
+            ref = proj(t[0], t[1], t[2], eo.astype(complex), xyz.astype(complex)).imag / h
+            np.testing.assert_allclose(a9[:, 6 + k], ref, rtol=1e-10, atol=1e-14)
+    moved = apply_intrinsics(c, [0.5, 0.01, -0.002])
+    assert moved[0] == 152.5
+    assert moved[3] * 152.5 ** 2 == pytest.approx(d5[0] * 152.0 ** 2 + 0.01)
+    assert moved[4] * 152.5 ** 4 == pytest.approx(d5[1] * 152.0 ** 4 - 0.002)
+    np.testing.assert_array_equal(moved[[1, 2, 5, 6, 7]], c[[1, 2, 5, 6, 7]])

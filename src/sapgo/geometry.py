@@ -166,7 +166,8 @@ def linearize(eo, xyz, c, a, b):
     """Computed image coordinates and the partial derivatives of the collinearity equations.
 
     Fills ``a`` (2x6) with d(x, y)/d(omega, phi, kappa, Xc, Yc, Zc) and ``b`` (2x3) with
-    d(x, y)/d(X, Y, Z), distortion included (chain rule through its Jacobian); returns the
+    d(x, y)/d(X, Y, Z), distortion included (chain rule through its Jacobian); an ``a`` of
+    2x9 gets the partials by the photo's intrinsics too (:data:`INTRINSICS`); returns the
     computed ``x, y`` and ``w`` (the depth along the optical axis, negative for a point in
     front of the camera).
     """
@@ -223,7 +224,38 @@ def linearize(eo, xyz, c, a, b):
             b0, b1 = b[0, k], b[1, k]
             b[0, k] = j00 * b0 + j01 * b1
             b[1, k] = j01 * b0 + j11 * b1
+    if a.shape[1] >= 9:  # the photo's own intrinsics (f, k1 f^2, k2 f^4): see INTRINSICS
+        r2 = xi * xi + yi * yi
+        k1, k2, k3, p1, p2 = c[3], c[4], c[5], c[6], c[7]
+        rad12 = 1.0 + r2 * (k1 + r2 * k2)
+        r6k3 = 7.0 * k3 * r2 * r2 * r2
+        tx = 2.0 * (p1 * (r2 + 2.0 * xi * xi) + 2.0 * p2 * xi * yi)
+        ty = 2.0 * (p2 * (r2 + 2.0 * yi * yi) + 2.0 * p1 * xi * yi)
+        a[0, 6] = (xi * (rad12 + r6k3) + tx) / f
+        a[1, 6] = (yi * (rad12 + r6k3) + ty) / f
+        f2 = f * f
+        a[0, 7] = xi * r2 / f2
+        a[1, 7] = yi * r2 / f2
+        a[0, 8] = xi * r2 * r2 / (f2 * f2)
+        a[1, 8] = yi * r2 * r2 / (f2 * f2)
     return c[1] + xi + dx, c[2] + yi + dy, w
+
+
+#: The per-photo intrinsics of 9-parameter stations (parameters 6, 7, 8): the focal length
+#: and the radial distortion normalised by it, ``k1 f^2`` and ``k2 f^4`` (dimensionless: BAL's
+#: k1 and k2); k3, p1, p2 and the principal point stay fixed.
+INTRINSICS = ("f", "k1*f^2", "k2*f^4")
+
+
+def apply_intrinsics(c, d):
+    """The camera row ``c`` with its intrinsics moved by ``d`` = (df, d(k1 f^2), d(k2 f^4))."""
+    out = np.array(c, dtype=np.float64)
+    f0 = out[0]
+    f1 = f0 + d[0]
+    out[0] = f1
+    out[3] = (out[3] * f0 ** 2 + d[1]) / f1 ** 2
+    out[4] = (out[4] * f0 ** 4 + d[2]) / f1 ** 4
+    return out
 
 
 @njit(cache=True)
