@@ -56,7 +56,8 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
             xyz[c] = pt_ctrl[j, c]
     nn[:, :] = 0.0
     cc[:] = 0.0
-    a = np.empty((2, 6))
+    npar = a_all.shape[2]  # parameters per station: 6, or 9 with the photo's intrinsics
+    a = np.empty((2, npar))
     b = np.empty((2, 3))
     k = 0
     for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
@@ -70,7 +71,7 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
         p = 1.0 / (obs_sigma[i] * obs_sigma[i])
         l0 = obs_xy[i, 0] - x
         l1 = obs_xy[i, 1] - y
-        for r in range(6):
+        for r in range(npar):
             for c in range(3):
                 nbar[k, r, c] = p * (a[0, r] * b[0, c] + a[1, r] * b[1, c])
         for r in range(3):
@@ -102,7 +103,7 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
                 nn[c, c] = 1.0
                 cc[c] = 0.0
                 for q in range(k):
-                    for r in range(6):
+                    for r in range(npar):
                         nbar[q, r, c] = 0.0
     if lam > 0.0:
         for r in range(3):
@@ -116,7 +117,8 @@ def station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigm
     """Add each station's diagonal of the (unreduced) normal matrix, ``sum p a_u^2`` over its
     active observations of active points of a chunk, into ``diag`` (stations x 6): the
     scaling of the Levenberg-Marquardt damping."""
-    a = np.empty((2, 6))
+    npar = diag.shape[1]
+    a = np.empty((2, npar))
     b = np.empty((2, 3))
     for j in range(pt_xyz.shape[0]):
         if pt_active[j] != 0:
@@ -127,7 +129,7 @@ def station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigm
             s = obs_station[i]
             linearize(eo[s], pt_xyz[j], cams[cam_of_station[s]], a, b)
             p = 1.0 / (obs_sigma[i] * obs_sigma[i])
-            for u in range(6):
+            for u in range(npar):
                 diag[s, u] += p * (a[0, u] * a[0, u] + a[1, u] * a[1, u])
 
 
@@ -163,9 +165,11 @@ def _solve3(lo, rhs, out):
 
 
 @njit(cache=True)
-def _workspace(max_rays):
-    """Per-point work arrays of :func:`_point_system` for points of up to ``max_rays`` rays."""
-    return (np.empty((max_rays, 6, 3)), np.empty((max_rays, 2, 6)), np.empty((max_rays, 2)),
+def _workspace(max_rays, npar=6):
+    """Per-point work arrays of :func:`_point_system` for points of up to ``max_rays`` rays
+    and stations of ``npar`` parameters."""
+    return (np.empty((max_rays, npar, 3)), np.empty((max_rays, 2, npar)),
+            np.empty((max_rays, 2)),
             np.empty(max_rays), np.empty(max_rays, np.int64), np.empty((3, 3)), np.empty(3),
             np.zeros((3, 3)), np.empty(3))
 
@@ -185,8 +189,9 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     BAD_LAYOUT with the offending point.
     """
     cap = band.shape[0]
-    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
-    g = np.empty((max_rays, 6, 3))
+    npar = band.shape[1]
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays, npar)
+    g = np.empty((max_rays, npar, 3))
     h = np.empty(3)
     col = np.empty(3)
     tmp = np.empty(3)
@@ -201,7 +206,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
                           st_all, nn, cc, lam, behind_ok)
         if k < 0:
             return j, BEHIND_CAMERA, j
-        bw = band.shape[2] // 6
+        bw = band.shape[2] // npar
         for q in range(k):
             r = st_all[q] - base
             if r < 0 or r >= cap or st_all[q] - st_all[0] >= bw or (
@@ -217,15 +222,15 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
             p = w_all[q]
             a = a_all[q]
             # station diagonal block and right-hand side
-            for u in range(6):
-                for v in range(6):
+            for u in range(npar):
+                for v in range(npar):
                     row[u, v] += p * (a[0, u] * a[0, v] + a[1, u] * a[1, v])
                 s = p * (a[0, u] * l_all[q, 0] + a[1, u] * l_all[q, 1])
                 for c in range(3):
                     s -= nbar[q, u, c] * h[c]
                 rrow[u] += s
             # G = Nbar Ndd^-1 (row by row)
-            for u in range(6):
+            for u in range(npar):
                 for c in range(3):
                     col[c] = nbar[q, u, c]
                 _solve3(lo, col, tmp)
@@ -236,10 +241,10 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
             r = st_all[q] - base
             row = band[r] if r < split else ovf_band[r - split]
             for t in range(q, k):
-                off = 6 * (st_all[t] - st_all[q])
+                off = npar * (st_all[t] - st_all[q])
                 same = st_all[t] == st_all[q]
-                for u in range(6):
-                    for v in range(6):
+                for u in range(npar):
+                    for v in range(npar):
                         x = 0.0
                         for c in range(3):
                             x += g[q, u, c] * nbar[t, v, c]
@@ -321,7 +326,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
 def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cams,
                   ctrl_mask, max_rays, xyz_out, resid_out, stats, lam=0.0,
-                  behind_ok=False):
+                  behind_ok=False, cams_new=None):
     """Back-solve point corrections and compute residuals for a chunk of points.
 
     ``eps_j = Ndd_j^-1 (cdd_j - sum_s Nbar_s' delta_s)`` with the system linearised at the
@@ -330,8 +335,12 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     ``xyz_out``). ``stats`` accumulates: 0 vPv image, 1 vPv control, 2 sum vx^2, 3 sum vy^2,
     4 image rays, 5 max |eps|, 6 control components, 7 bad point (index+1) or 0,
     8 its status code. ``lam``: the Levenberg-Marquardt damping the normals were built with.
+    ``delta`` has a row of 6 or 9 parameters per station; with 9, ``cams_new`` holds the camera
+    rows moved by the intrinsics' corrections (one camera per photo), for the residuals.
     """
-    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
+    npar = delta.shape[1]
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays, npar)
+    cams_v = cams if cams_new is None else cams_new
     eps = np.empty(3)
     e_new = np.empty(6)
     for j in range(pt_xyz.shape[0]):
@@ -350,7 +359,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             s = st_all[q]
             for c in range(3):
                 x = 0.0
-                for u in range(6):
+                for u in range(npar):
                     x += nbar[q, u, c] * delta[s, u]
                 cc[c] -= x
         _solve3(lo, cc, eps)
@@ -373,7 +382,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                 e_new[u] = eo[s, u] + delta[s, u]
             # rejected observations get their residual too (how far off they are); only the
             # active ones count in the statistics
-            x, y = project(e_new, xyz_out[j], cams[cam])
+            x, y = project(e_new, xyz_out[j], cams_v[cam])
             vx = x - obs_xy[i, 0]
             vy = y - obs_xy[i, 1]
             if not obs_active[i]:
@@ -393,8 +402,9 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
 @njit(cache=True)
 def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                  obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
-                 ctrl_mask, max_rays, zb, base, res, out, out_r, out_w):
-    """Precision of the points of a chunk and the quality of their observations.
+                 ctrl_mask, max_rays, zb, base, res, out, out_r, out_w, npar=6):
+    """Precision of the points of a chunk and the quality of their observations (stations
+    of ``npar`` parameters: 6, or 9 with the photo's intrinsics).
 
     ``out`` (n x 6): the points' cofactor standard deviations (multiply by sigma0) and the
     correlations of X-Y, X-Z and Y-Z, from the point block of the inverse of the full normal
@@ -411,15 +421,15 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     ``out_w`` (observations x 3): normalised residuals ``v / (sigma sqrt(r))`` of the residuals
     ``res`` and the observation's 2-D statistic ``sqrt(v' Q_vv^+ v)`` (divide by sigma0);
     inactive observations 0."""
-    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays)
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays, npar)
     g = np.empty((3, 3))
     t = np.empty((3, 3))
     qpp = np.empty((3, 3))
-    qsp = np.empty((6, 3))
-    zn = np.empty((6, 3))
+    qsp = np.empty((npar, 3))
+    zn = np.empty((npar, 3))
     e = np.empty(3)
     col = np.empty(3)
-    a = np.empty((2, 6))
+    a = np.empty((2, npar))
     b = np.empty((2, 3))
     qv = np.empty((2, 2))
     for i in range(out_r.shape[0]):
@@ -447,11 +457,11 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                 g[r, c] = col[r]
         t[:, :] = 0.0
         for q in range(k):
-            sq = 6 * st_all[q] - base
+            sq = npar * st_all[q] - base
             for r in range(k):
-                sr = 6 * st_all[r] - base
-                for a6 in range(6):
-                    for b6 in range(6):
+                sr = npar * st_all[r] - base
+                for a6 in range(npar):
+                    for b6 in range(npar):
                         z = zb[sq + a6, sr + b6]
                         for c1 in range(3):
                             za = z * nbar[q, a6, c1]
@@ -479,17 +489,17 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                 continue
             s = obs_station[i]
             linearize(eo[s], xyz, cams[cam_of_station[s]], a, b)
-            sq = 6 * s - base
+            sq = npar * s - base
             # Q_sp = -(sum_r Z[s, s_r] Nbar_r) G
             zn[:, :] = 0.0
             for r in range(k):
-                sr = 6 * st_all[r] - base
-                for a6 in range(6):
-                    for b6 in range(6):
+                sr = npar * st_all[r] - base
+                for a6 in range(npar):
+                    for b6 in range(npar):
                         z = zb[sq + a6, sr + b6]
                         for c in range(3):
                             zn[a6, c] += z * nbar[r, b6, c]
-            for a6 in range(6):
+            for a6 in range(npar):
                 for c in range(3):
                     v = 0.0
                     for p1 in range(3):
@@ -499,8 +509,8 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
             for m in range(2):
                 for m2 in range(m, 2):
                     cmm = 0.0
-                    for a6 in range(6):
-                        for b6 in range(6):
+                    for a6 in range(npar):
+                        for b6 in range(npar):
                             cmm += a[m, a6] * zb[sq + a6, sq + b6] * a[m2, b6]
                         for c in range(3):
                             cmm += a[m, a6] * qsp[a6, c] * b[m2, c]
