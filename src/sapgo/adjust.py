@@ -39,7 +39,7 @@ import numpy as np
 from . import normals
 from .bandsolve import PIVOT_TOLERANCE, BandSolver, PivotError, covariance_blocks
 from .errors import DatumDefectError, SapgoError, SingularNormalsError
-from .geometry import camera_array
+from .geometry import INTRINSICS, camera_array
 from .normals import (
     BAD_LAYOUT,
     BEHIND_CAMERA,
@@ -268,6 +268,10 @@ class _Block:
     #: a free network (no control, no priors; the project attribute ``datum`` is "free"):
     #: adjusted by Levenberg-Marquardt, its gauge left to the damping, no precision
     free: bool = False
+    #: parameters per station: 6, or 9 with the photo's own intrinsics adjusted (project
+    #: attribute ``station_intrinsics`` "adjusted"; f, k1 f^2, k2 f^4, see
+    #: :data:`sapgo.geometry.INTRINSICS`; one camera per photo)
+    npar: int = 6
     #: points behind a camera are projected all the same (project attribute
     #: ``points_behind`` "allowed": BAL problems), not refused
     behind_ok: bool = False
@@ -297,7 +301,17 @@ def _load_block(p: Project) -> _Block:
         frame=p.frame(),
         free=p.attr("datum", "") == "free",
         behind_ok=p.attr("points_behind", "") == "allowed",
+        npar=9 if p.attr("station_intrinsics", "") == "adjusted" else 6,
     )
+    if blk.npar == 9:
+        cam = blk.camera[blk.station_active]
+        shared = np.bincount(cam, minlength=len(blk.cams))
+        if (shared > 1).any():
+            c = int(np.argmax(shared > 1))
+            raise SapgoError(f"{p.path}: the photos' own intrinsics are adjusted "
+                             f"(station_intrinsics), but camera id "
+                             f"{int(p.cameras()['id'][c])} is shared by {int(shared[c])} "
+                             f"photos: each photo needs a camera of its own")
     names = {1: "full", 2: "horizontal", 3: "vertical"}
     counts = {v: 0 for v in names.values()}
     for a, b in p.chunks("points"):
@@ -360,16 +374,17 @@ def _init_rows(band, rhs, base, lo, hi, blk, priors):
     """Band rows of stations ``lo .. hi-1`` enter the window: priors and excluded stations."""
     n = len(blk.station_active)
     hi = min(hi, n)
+    k = blk.npar
     for s in range(lo, hi):
         if not blk.station_active[s]:
-            band[s - base, :, :6] += np.eye(6)
+            band[s - base, :, :k] += np.eye(k)
     for rec in priors.take(lo, hi):
         s = int(rec["station"])
         if not blk.station_active[s]:
             continue
         w = rec["weight"]
-        band[s - base, :, :6] += w
-        rhs[s - base] += w @ (-_prior_residual(rec, blk.eo[s]))
+        band[s - base, :6, :6] += w
+        rhs[s - base, :6] += w @ (-_prior_residual(rec, blk.eo[s]))
 
 
 def _point_error(p, chunk, j, status, blk):
@@ -457,11 +472,12 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     n = len(blk.station_ids)
     bw = blk.band_width
     cap = min(n, bw + opts.chunk_rows)
-    band = np.zeros((cap, 6, 6 * bw))
-    rhs = np.zeros((cap, 6))
+    k = blk.npar
+    band = np.zeros((cap, k, k * bw))
+    rhs = np.zeros((cap, k))
     threads = numba.get_num_threads()  # per thread: b rows of its own beyond its station range
-    ovf_band = np.zeros((threads, bw, 6, 6 * bw))
-    ovf_rhs = np.zeros((threads, bw, 6))
+    ovf_band = np.zeros((threads, bw, k, k * bw))
+    ovf_rhs = np.zeros((threads, bw, k))
     if sink is None:
         def sink(rows, rhs_rows, band_ds=work.factor, rhs_ds=work.y):
             band_ds[base:base + len(rows)] = rows
@@ -470,12 +486,12 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     priors = _PriorCursor(p, opts.chunk_points)
     base = 0
     if lam > 0.0:
-        diag = np.zeros((n, 6))
+        diag = np.zeros((n, k))
         plain_sink = sink
 
         def sink(rows, rhs_rows):  # the rows are complete: add the damping on the diagonal
             d = np.clip(diag[base:base + len(rows)], 1e-6, 1e32)
-            idx = np.arange(6)
+            idx = np.arange(k)
             rows[:, idx, idx] += lam * d
             plain_sink(rows, rhs_rows)
     _init_rows(band, rhs, base, 0, cap, blk, priors)
@@ -520,6 +536,23 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             _fault("build", iteration)
     while base < n:
         advance(min(n, base + cap))
+    return diag if lam > 0.0 else None
+
+
+def _moved_cameras(blk: _Block, delta):
+    """The camera rows after a step: moved by the intrinsics' corrections of 9-parameter
+    stations (``delta[:, 6:9]``: f, k1 f^2, k2 f^4 of each photo's own camera)."""
+    cams = blk.cams.copy()
+    if blk.npar == 9:
+        act = np.flatnonzero(blk.station_active)
+        c = blk.camera[act]
+        d = delta[act, 6:9]
+        f0 = blk.cams[c, 0]
+        f1 = f0 + d[:, 0]
+        cams[c, 0] = f1
+        cams[c, 3] = (blk.cams[c, 3] * f0 ** 2 + d[:, 1]) / f1 ** 2
+        cams[c, 4] = (blk.cams[c, 4] * f0 ** 4 + d[:, 2]) / f1 ** 4
+    return np.ascontiguousarray(cams)
 
 
 def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam=0.0):
@@ -528,9 +561,10 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
     Reads the current coordinates from ``work.xyz_current`` and writes the new ones and the
     residuals to the other buffer (``work.xyz_next``, ``work.res_next``).
     """
-    stats = np.zeros(9)
+    stats = np.zeros(11)
     stats_robust = [0, 0]  # observations downweighted, and to below a tenth
     xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
+    cams_new = _moved_cameras(blk, delta)
     with _progress(opts.progress, p.n_points, "update") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
             c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
@@ -545,7 +579,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
                 c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
                 c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
                 blk.cams, CTRL_MASK, c.max_rays, xyz_out, res_out,
-                stats, lam, blk.behind_ok,
+                stats, lam, blk.behind_ok, cams_new,
             )
             if stats[7]:
                 raise _point_error(p, c, int(stats[7]) - 1, int(stats[8]), blk)
@@ -558,10 +592,11 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
     for a, b in p.chunks("station_priors", opts.chunk_points):
         pr = p.read("station_priors", a, b)
         pr = pr[blk.station_active[pr["station"]]]
-        v = blk.eo[pr["station"]] + delta[pr["station"]] - pr["value"]
+        v = blk.eo[pr["station"]] + delta[pr["station"], :6] - pr["value"]
         v[:, :3] = _wrap(v[:, :3])
         vpv_prior += float(np.einsum("ni,nij,nj->", v, pr["weight"], v))
-    blk.eo += delta
+    blk.eo += delta[:, :6]
+    blk.cams = cams_new
     return {
         "vpv": stats[0] + stats[1] + vpv_prior,
         "vpv_image": stats[0],
@@ -569,6 +604,8 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
         "rms_y_um": 1000 * math.sqrt(stats[3] / max(stats[4], 1)),
         "image_rms_um": 1000 * math.sqrt((stats[2] + stats[3]) / max(2 * stats[4], 1)),
         "max_point_corr": stats[5],
+        "points_cNc": stats[9],
+        "points_dDd": stats[10],
         "downweighted": stats_robust[0],
         "downweighted_below_tenth": stats_robust[1],
     }
@@ -577,7 +614,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
 def _pivot_error(exc: PivotError, blk: _Block, p: Project):
     s = exc.row
     sid = int(blk.station_ids[s])
-    param = EO_NAMES[exc.parameter]
+    param = (EO_NAMES + INTRINSICS)[exc.parameter]
     active = np.flatnonzero(blk.station_active)
     last = active[-1] if len(active) else 0
     # a datum defect spreads over the whole block and shows at the end of the elimination;
@@ -615,7 +652,7 @@ class Work:
     its log, timings and the identity of the project). State K uses buffer ``K % 2``.
     """
 
-    def __init__(self, path, p: Project, band_width, create):
+    def __init__(self, path, p: Project, band_width, create, block=6):
         self.dir = Path(path)
         self.n_st, self.n_pt, self.n_obs = p.n_stations, p.n_points, p.n_observations
         self.band_width = band_width
@@ -625,8 +662,9 @@ class Work:
                 shutil.rmtree(self.dir)
             self.dir.mkdir(parents=True)
         bw = band_width
-        self.factor = RawArray(self.dir / "factor.bin", (self.n_st, 6, 6 * bw), mode=mode)
-        self.y = RawArray(self.dir / "y.bin", (self.n_st, 6), mode=mode)
+        k = self.block = block
+        self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=mode)
+        self.y = RawArray(self.dir / "y.bin", (self.n_st, k), mode=mode)
         self.xyz = [RawArray(self.dir / f"xyz.{i}.bin", (self.n_pt, 3), mode=mode)
                     for i in (0, 1)]
         self.res = [RawArray(self.dir / f"residuals.{i}.bin", (self.n_obs, 2), mode=mode)
@@ -658,21 +696,29 @@ class Work:
         for a, b in p.chunks("points", chunk):
             self.xyz[0][a:b] = p.read_field("points", "xyz", a, b)
 
-    def save(self, iteration, eo, record):
-        """Make iteration ``iteration`` the checkpoint (its buffers must be complete)."""
+    def save(self, iteration, eo, record, cams=None):
+        """Make iteration ``iteration`` the checkpoint (its buffers must be complete);
+        ``cams``: the camera rows when the photos' intrinsics are adjusted."""
         eo_file = self.dir / f"eo.{iteration}.npy"
         tmp = self.dir / f"eo.{iteration}.npy.tmp"
         with open(tmp, "wb") as f:
             np.save(f, eo)
         os.replace(tmp, eo_file)
-        _fault("checkpoint", iteration)
         record = dict(record, iteration=iteration, eo_file=eo_file.name)
+        if cams is not None and self.block > 6:
+            cams_file = self.dir / f"cams.{iteration}.npy"
+            with open(self.dir / f"cams.{iteration}.npy.tmp", "wb") as f:
+                np.save(f, cams)
+            os.replace(self.dir / f"cams.{iteration}.npy.tmp", cams_file)
+            record["cams_file"] = cams_file.name
+        _fault("checkpoint", iteration)
         tmp = self.dir / "checkpoint.json.tmp"
         tmp.write_text(json.dumps(record))
         os.replace(tmp, self.dir / "checkpoint.json")
         self.state = iteration
-        for old in self.dir.glob("eo.*.npy"):
-            if old.name != eo_file.name:
+        keep = {eo_file.name, record.get("cams_file")}
+        for old in [*self.dir.glob("eo.*.npy"), *self.dir.glob("cams.*.npy")]:
+            if old.name not in keep:
                 old.unlink(missing_ok=True)
 
     @staticmethod
@@ -682,6 +728,8 @@ class Work:
         try:
             record = json.loads(f.read_text())
             eo = np.load(Path(path) / record["eo_file"])
+            if record.get("cams_file"):
+                record["cams"] = np.load(Path(path) / record["cams_file"])
         except (OSError, ValueError, KeyError):
             return None
         record["eo"] = eo
@@ -758,9 +806,10 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         # The factorisation runs inside the build: every segment of band rows is factored as
         # soon as the build has completed it, so the band rows never go to disk. Its time is
         # booked as "solve", the rest as "build".
-        solver = BandSolver(n, bw, work.factor, work.y, opts.chunk_rows, opts.pivot_tolerance)
+        solver = BandSolver(n, bw, work.factor, work.y, opts.chunk_rows, opts.pivot_tolerance,
+                            block=blk.npar)
         try:
-            build(p, work, blk, opts, iteration=it, sink=solver.feed, lam=mu)
+            diag = build(p, work, blk, opts, iteration=it, sink=solver.feed, lam=mu)
             delta = solver.finish()
         except PivotError as exc:
             raise _pivot_error(exc, blk, p) from None
@@ -769,22 +818,35 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         t2 = time.perf_counter()
         t1 = t0 + (t2 - t0 - solver.seconds)
         del solver
-        eo_before = blk.eo.copy()
+        eo_before, cams_before = blk.eo.copy(), blk.cams
         st = update(p, work, blk, delta, opts, iteration=it, lam=mu)
         t3 = time.perf_counter()
         timings["build"] += t1 - t0
         timings["solve"] += t2 - t1
         timings["update"] += t3 - t2
         d_ang = float(np.abs(delta[:, :3]).max()) if n else 0.0
-        d_pos = float(np.abs(delta[:, 3:]).max()) if n else 0.0
+        d_pos = float(np.abs(delta[:, 3:6]).max()) if n else 0.0
+        step_s = delta
         del delta
         cost = 0.5 * st["vpv"]
         prev_cost = run.get("cost")
+        rho = None
+        if lm and prev_cost is not None:
+            # predicted decrease 1/2 (dx' b + mu dx' D dx), with dx' b = |y|^2 (the stations'
+            # reduced system: y = U'^-1 d) + sum over points of c' Ndd^-1 c
+            y = np.asarray(work.y[:], dtype=np.float64)
+            dsd = float((np.clip(diag, 1e-6, 1e32) * step_s ** 2).sum()) if diag is not None \
+                else 0.0
+            pred = 0.5 * (float((y * y).sum()) + st["points_cNc"]
+                          + mu * (dsd + st["points_dDd"]))
+            rho = (prev_cost - cost) / pred if pred > 0 else 0.0
         sigma0 = math.sqrt(max(st["vpv"], 0.0) / blk.redundancy)
         ok = np.isfinite(cost)
         if reject and prev_cost is not None and np.isfinite(prev_cost):
-            if lm:  # (equal to rounding: a converged, heavily damped step)
-                ok = ok and cost <= prev_cost * (1.0 + 1e-12)
+            if lm:  # a step that lowers the cost by at least 1e-3 of the predicted decrease
+                # (Ceres' min_relative_decrease), or equal to rounding (converged)
+                ok = ok and (cost <= prev_cost * (1.0 + 1e-12) if rho is None else
+                             (rho > 1e-3 or abs(cost - prev_cost) <= 1e-12 * prev_cost))
             elif opts.method == "auto":
                 ok = ok and cost <= prev_cost * (1.0 + 1e-9)
         if not ok and not lm and not (reject and opts.method != "gauss-newton"):
@@ -808,9 +870,11 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         })
         if lm or not ok:
             log[-1]["mu"] = mu
+            log[-1]["rho"] = rho
             log[-1]["step"] = "accepted" if ok else "rejected"
         if not ok:  # restore the state; damp more (Levenberg-Marquardt from now on)
             blk.eo[:] = eo_before
+            blk.cams = cams_before
             if lm:
                 nu = float(run.get("nu", 2.0))
                 run["mu"], run["nu"] = mu * nu, nu * 2.0
@@ -819,8 +883,9 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             if run["mu"] > 1e16:  # no step lowers the cost: a minimum
                 return True
             continue
-        if lm:
-            run["mu"], run["nu"] = max(mu / 3.0, 1e-16), 2.0
+        if lm:  # Ceres: radius / max(1/3, 1 - (2 rho - 1)^3)
+            factor = 1.0 / 3.0 if rho is None else max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            run["mu"], run["nu"] = max(mu * factor, 1e-16), 2.0
         run["cost"] = cost
         tol_pos, tol_ang = run.get("robust_tol") or (opts.tol_position, opts.tol_angle)
         converged = bool(
@@ -829,7 +894,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         if lm and prev_cost is not None and prev_cost - cost <= opts.tol_cost * prev_cost:
             converged = True
         work.save(work.state + 1, blk.eo, dict(run, log=log, timings=timings,
-                                                converged=converged))
+                                                converged=converged), cams=blk.cams)
         if converged:
             return True
     return False
@@ -886,13 +951,13 @@ def adjust(path, options: Options | None = None) -> Summary:
         work = None
         if checkpoint is not None:
             try:
-                work = Work(wpath, p, blk.band_width, create=False)
+                work = Work(wpath, p, blk.band_width, create=False, block=blk.npar)
             except (OSError, ValueError) as exc:  # work files missing or cut short
                 sys.stderr.write(f"sapgo: warning: the interrupted run of {path} cannot be "
                                  f"resumed ({exc}); starting from the beginning\n")
                 checkpoint = None
         if work is None:
-            work = Work(wpath, p, blk.band_width, create=True)
+            work = Work(wpath, p, blk.band_width, create=True, block=blk.npar)
         try:
             if checkpoint is None:
                 run = {"run": uuid.uuid4().hex, "identity": ident}
@@ -904,6 +969,8 @@ def adjust(path, options: Options | None = None) -> Summary:
             else:
                 run = {"run": checkpoint["run"], "identity": ident}
                 blk.eo = np.ascontiguousarray(checkpoint["eo"], dtype=np.float64)
+                if checkpoint.get("cams") is not None:
+                    blk.cams = np.ascontiguousarray(checkpoint["cams"], dtype=np.float64)
                 blk.rejections = list(checkpoint.get("rejections", []))
                 blk.rejected = np.sort(np.array([r["observation"] for r in blk.rejections],
                                                 np.int64))
@@ -1002,7 +1069,7 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
             point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
                          c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
                          blk.camera, blk.cams, CTRL_MASK, c.max_rays, zb, base,
-                         np.ascontiguousarray(res_ds[c.o0:c.o1]), out, out_r, out_w)
+                         np.ascontiguousarray(res_ds[c.o0:c.o1]), out, out_r, out_w, blk.npar)
             psig[a:b] = sigma0 * out[:, :3]
             if weight is None:
                 weight = np.ones(c.o1 - c.o0)
@@ -1012,19 +1079,20 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
                 rho = np.where((c.active == 0)[:, None], out[:, 3:], np.nan)
                 correlations.add("points", p_read.read_field("points", "id", a, b), rho)
 
-    cov = RawArray(work.dir / "cov.bin", (n_st, 6, 6), mode="w")
+    k = blk.npar
+    cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
     try:
         var = covariance_blocks(work.factor, n_st, blk.band_width, opts.chunk_rows, out=cov,
                                 on_block=points_of)
         if correlations is not None:
             for a in range(0, n_st, opts.chunk_points):
                 b = min(n_st, a + opts.chunk_points)
-                rho = station_correlations(cov[a:b])
+                rho = station_correlations(cov[a:b][:, :6, :6])
                 rho[~blk.station_active[a:b]] = np.nan
                 correlations.add("stations", blk.station_ids[a:b], rho)
     finally:
         cov.close()
-    station_sigma = sigma0 * np.sqrt(np.maximum(var, 0.0))
+    station_sigma = sigma0 * np.sqrt(np.maximum(var[:, :6], 0.0))
     station_sigma[~blk.station_active] = 0.0
     return station_sigma, psig, quality
 
@@ -1281,6 +1349,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
             g = q.new_solution()
             for a, b in q.chunks("stations", opts.chunk_points):
                 g["station_corr"][a:b] = blk.eo[a:b] - q.read_field("stations", "eo", a, b)
+            g["camera_corr"][:] = blk.cams - camera_array(q.cameras())
             for a, b in q.chunks("points", opts.chunk_points):
                 g["point_corr"][a:b] = xyz_ds[a:b] - q.read_field("points", "xyz", a, b)
             for a, b in q.chunks("observations", opts.chunk_points):

@@ -82,8 +82,10 @@ def cmd_import(args):
         if len(args.paths) != 2:
             raise ParameterError("--format bal takes the BAL file and the project to create: "
                                  "sapgo import --format bal problem.txt block.h5")
-        r = import_bal(args.paths[0], args.paths[1], force=args.force)
-        print(f"imported {r['path']}: {r['photos']} photos (one camera each), {r['points']} "
+        r = import_bal(args.paths[0], args.paths[1], force=args.force,
+                       intrinsics="fixed" if args.fixed_intrinsics else "adjusted")
+        print(f"imported {r['path']}: {r['photos']} photos (one camera each, f, k1, k2 "
+              f"{'held' if args.fixed_intrinsics else 'adjusted'}), {r['points']} "
               f"points, {r['observations']} image observations (pixels); a free network; "
               f"initial cost {r['initial_cost']:.6e}")
         return 0
@@ -318,8 +320,10 @@ def build_parser():
                         "file first")
     m.add_argument("--format", choices=("text", "bal"), default="text",
                    help="text (default: the files below) or bal (a 'Bundle Adjustment in the "
-                        "Large' problem: one camera per photo with its f, k1, k2 held fixed, "
-                        "pixels, a free network adjusted by Levenberg-Marquardt)")
+                        "Large' problem: one camera per photo whose f, k1, k2 are adjusted "
+                        "with it, pixels, a free network adjusted by Levenberg-Marquardt)")
+    m.add_argument("--fixed-intrinsics", action="store_true",
+                   help="with --format bal: hold each photo's f, k1, k2 fixed")
     m.add_argument("--cameras", action="append", default=[], metavar="FILE",
                    help="id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2] "
                         "(mm)")

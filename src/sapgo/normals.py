@@ -334,7 +334,8 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     ``v = computed - observed`` are then evaluated at the new values (``eo + delta``,
     ``xyz_out``). ``stats`` accumulates: 0 vPv image, 1 vPv control, 2 sum vx^2, 3 sum vy^2,
     4 image rays, 5 max |eps|, 6 control components, 7 bad point (index+1) or 0,
-    8 its status code. ``lam``: the Levenberg-Marquardt damping the normals were built with.
+    8 its status code, 9 sum of c' Ndd^-1 c, 10 sum of D eps^2 (undamped diagonal).
+    ``lam``: the Levenberg-Marquardt damping the normals were built with.
     ``delta`` has a row of 6 or 9 parameters per station; with 9, ``cams_new`` holds the camera
     rows moved by the intrinsics' corrections (one camera per photo), for the residuals.
     """
@@ -355,6 +356,11 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             stats[7] = j + 1
             stats[8] = BEHIND_CAMERA if k < 0 else SINGULAR_POINT
             return
+        # the step's predicted cost decrease (Levenberg-Marquardt's gain ratio): the point's
+        # share c' Ndd^-1 c (stats 9) and D eps^2 with D the undamped diagonal (stats 10)
+        _solve3(lo, cc, eps)
+        for c in range(3):
+            stats[9] += cc[c] * eps[c]
         for q in range(k):
             s = st_all[q]
             for c in range(3):
@@ -363,6 +369,9 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                     x += nbar[q, u, c] * delta[s, u]
                 cc[c] -= x
         _solve3(lo, cc, eps)
+        if lam > 0.0:
+            for c in range(3):
+                stats[10] += min(max(nn[c, c] / (1.0 + lam), 1e-6), 1e32) * eps[c] * eps[c]
         kind = pt_kind[j]
         for c in range(3):
             xyz_out[j, c] = xyz[c] + eps[c]

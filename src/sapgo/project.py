@@ -152,9 +152,12 @@ SOLUTION_LAYOUT = {
     "point_sigma": ("points", (3,)),  # a-posteriori standard deviations (m)
     # per observation r_x, r_y, r_xy, w_x, w_y, t, robust weight (adjust.QUALITY_COLUMNS)
     "obs_quality": ("observations", (7,)),
+    # corrections to the camera rows (geometry.CAMERA_FIELDS: f, x0, y0, k1, k2, k3, p1, p2)
+    # when the photos' own intrinsics are adjusted; zeros otherwise
+    "camera_corr": ("cameras", (8,)),
 }
 #: Solution datasets that files of older versions may lack (read as zeros).
-SOLUTION_OPTIONAL = {"station_sigma", "point_sigma", "obs_quality"}
+SOLUTION_OPTIONAL = {"station_sigma", "point_sigma", "obs_quality", "camera_corr"}
 #: Solution datasets stored in single precision (the rest in double).
 SOLUTION_SINGLE = {"obs_quality"}
 

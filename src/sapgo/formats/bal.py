@@ -214,9 +214,10 @@ def write_bal(path, cams, pts, obs_camera, obs_point, obs_xy):
         f.write("".join(f"{v!r}\n" for v in np.asarray(pts, np.float64).ravel().tolist()))
 
 
-def import_bal(path, out, force=False):
+def import_bal(path, out, force=False, intrinsics="adjusted"):
     """Import the BAL problem ``path`` into a new project ``out``: one photo and one camera
-    per BAL camera (ids = BAL indices; intrinsics f, k1, k2 held fixed), the points as pass
+    per BAL camera (ids = BAL indices; its f, k1, k2 ``"adjusted"`` with the photo, as
+    9-parameter stations, or held ``"fixed"``), the points as pass
     points with the file's coordinates as approximations, image units pixels with sigma 1
     (the project attribute ``image_unit`` is ``"px"``). Returns a summary dict."""
     import json
@@ -232,6 +233,8 @@ def import_bal(path, out, force=False):
         write_project,
     )
 
+    if intrinsics not in ("adjusted", "fixed"):
+        raise ParameterError(f"intrinsics {intrinsics!r}: adjusted or fixed")
     out = Path(out)
     if out.exists() and not force:
         raise ParameterError(f"{out} exists: use --force to replace it")
@@ -274,7 +277,7 @@ def import_bal(path, out, force=False):
     creator = {"command": "import", "format": "bal", "file": str(path)}
     write_project(out, camera, station, point, obs, np.zeros(0, PRIOR_DTYPE),
                   attrs={"creator": json.dumps(creator), "image_unit": "px", "datum": "free",
-                         "points_behind": "allowed",
+                         "points_behind": "allowed", "station_intrinsics": intrinsics,
                          "history": append_history("[]", creator)})
     return {"path": str(out), "cameras": n_cam, "photos": n_cam, "points": n_pt,
             "observations": len(obs), "initial_cost": bal_cost(d)}
@@ -294,7 +297,11 @@ def export_bal(project_path, out_path, adjusted=True):
         xyz = pt["xyz"] + (p.solution("point_corr") if adjusted else 0.0)
     from ..geometry import camera_array
 
-    rows = camera_array(cams)[st["camera"]]
+    rows = camera_array(cams)
+    if adjusted:
+        with Project(project_path) as p:
+            rows = rows + p.solution("camera_corr")
+    rows = rows[st["camera"]]
     extra = np.abs(rows[:, [1, 2, 5, 6, 7]]).max(axis=1) > 0
     if extra.any():
         raise DataError(f"{project_path}: photo id {int(st['id'][np.argmax(extra)])}: its "
