@@ -85,52 +85,79 @@ def reduced_normals_dense(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma,
     return m, d
 
 
+#: Camera fields in sapgo's order (f, x0, y0, k1, k2, k3, p1, p2).
+CAMERA_FIELDS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2")
+
+
 def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma, ctrl_mask,
-                            ctrl, ctrl_sigma, iterations=30, tol=1e-11, dist=None):
+                            ctrl, ctrl_sigma, iterations=30, tol=1e-11, dist=None,
+                            calibrate=(), x0=0.0, y0=0.0):
     """Gauss-Newton on the full dense normal equations (no reduction, no band).
 
-    Control components with sigma 0 are held at their control values. Returns adjusted
-    ``(eo, xyz, sigma0, iterations)``.
+    Control components with sigma 0 are held at their control values. ``calibrate``: names
+    of the (one) camera's fields adjusted too (self-calibration; raw units, derivatives by
+    complex step, the normal equations scaled to a unit diagonal). Returns adjusted
+    ``(eo, xyz, sigma0, iterations)``, and the camera row (f, x0, y0, k1, k2, k3, p1, p2) as
+    a fifth element when ``calibrate`` is given.
     """
     eo = eo.astype(float).copy()
     xyz = xyz.astype(float).copy()
+    cam = np.array([f, x0, y0, *(dist if dist is not None else (0.0,) * 5)], dtype=float)
+    cal = [CAMERA_FIELDS.index(n) for n in calibrate]
+    ncal = len(cal)
     fixed = ctrl_mask & (ctrl_sigma == 0)
     xyz[fixed] = ctrl[fixed]
     weighted = ctrl_mask & (ctrl_sigma > 0)
     ns, npnt = len(eo), len(xyz)
     free_pt = ~fixed.ravel()
-    index = np.concatenate([np.ones(6 * ns, bool), free_pt])
+    index = np.concatenate([np.ones(6 * ns, bool), free_pt, np.ones(ncal, bool)])
     nobs = len(obs_station)
+
+    def proj(e, x, c):
+        return project(e, x, c[0], c[1], c[2], dist=tuple(c[3:]))
+
     for it in range(1, iterations + 1):
-        jac = np.zeros((2 * nobs + weighted.sum(), 6 * ns + 3 * npnt))
+        jac = np.zeros((2 * nobs + weighted.sum(), 6 * ns + 3 * npnt + ncal))
         res = np.zeros(jac.shape[0])
         for i in range(nobs):
             s, j = obs_station[i], obs_point[i]
-            a, b = jacobian_complex_step(eo[s], xyz[j], f, dist=dist)
+            a, b = jacobian_complex_step(eo[s], xyz[j], cam[0], cam[1], cam[2],
+                                         dist=tuple(cam[3:]))
             sw = 1.0 / obs_sigma[i]
             jac[2 * i:2 * i + 2, 6 * s:6 * s + 6] = a * sw
             jac[2 * i:2 * i + 2, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b * sw
-            res[2 * i:2 * i + 2] = (project(eo[s], xyz[j], f, dist=dist) - obs_xy[i]) * sw
+            for q, k in enumerate(cal):
+                c = cam.astype(complex)
+                c[k] += 1e-30j * max(abs(cam[k]), 1e-30)
+                jac[2 * i:2 * i + 2, 6 * ns + 3 * npnt + q] = (
+                    proj(eo[s], xyz[j], c).imag / (1e-30 * max(abs(cam[k]), 1e-30)) * sw)
+            res[2 * i:2 * i + 2] = (proj(eo[s], xyz[j], cam) - obs_xy[i]) * sw
         r = 2 * nobs
         for j, k in zip(*np.nonzero(weighted)):
             jac[r, 6 * ns + 3 * j + k] = 1.0 / ctrl_sigma[j, k]
             res[r] = (xyz[j, k] - ctrl[j, k]) / ctrl_sigma[j, k]
             r += 1
         jr = jac[:, index]
+        scale = 1.0 / np.sqrt((jr * jr).sum(axis=0))
+        jr = jr * scale
         n = jr.T @ jr
         g = jr.T @ res
         dx = np.zeros(len(index))
-        dx[index] = -scipy.linalg.solve(n, g, assume_a="pos")
+        dx[index] = -scale * scipy.linalg.solve(n, g, assume_a="pos")
         eo += dx[:6 * ns].reshape(ns, 6)
-        xyz += dx[6 * ns:].reshape(npnt, 3)
-        if np.abs(dx).max() < tol:
+        xyz += dx[6 * ns:6 * ns + 3 * npnt].reshape(npnt, 3)
+        cam[cal] += dx[6 * ns + 3 * npnt:]
+        if np.abs(dx[:6 * ns + 3 * npnt]).max() < tol and (
+                not ncal or (np.abs(dx[6 * ns + 3 * npnt:]) <= 1e-12 * np.abs(cam[cal])).all()):
             break
     # final residuals
-    v = project(eo[obs_station], xyz[obs_point], f, dist=dist) - obs_xy
+    v = proj(eo[obs_station], xyz[obs_point], cam) - obs_xy
     vpv = float(((v / obs_sigma[:, None]) ** 2).sum())
     vc = (xyz - ctrl)[weighted] / ctrl_sigma[weighted]
     vpv += float((vc ** 2).sum())
-    redundancy = 2 * nobs + weighted.sum() - 6 * ns - 3 * npnt + fixed.sum()
+    redundancy = 2 * nobs + weighted.sum() - 6 * ns - 3 * npnt + fixed.sum() - ncal
+    if ncal:
+        return eo, xyz, np.sqrt(vpv / redundancy), it, cam
     return eo, xyz, np.sqrt(vpv / redundancy), it
 
 

@@ -37,9 +37,20 @@ import numba
 import numpy as np
 
 from . import normals
-from .bandsolve import PIVOT_TOLERANCE, BandSolver, PivotError, covariance_blocks
+from .bandsolve import (
+    PIVOT_TOLERANCE,
+    BandSolver,
+    BorderPivotError,
+    PivotError,
+    covariance_blocks,
+)
 from .errors import DatumDefectError, SapgoError, SingularNormalsError
-from .geometry import INTRINSICS, camera_array
+from .geometry import (
+    CALIBRATION_FIELDS,
+    CALIBRATION_POWERS,
+    INTRINSICS,
+    camera_array,
+)
 from .normals import (
     BAD_LAYOUT,
     BEHIND_CAMERA,
@@ -141,6 +152,12 @@ class Options:
     #: Levenberg-Marquardt: converged when an accepted step lowers the cost by less than this
     #: fraction (Ceres' function_tolerance).
     tol_cost: float = 1e-6
+    #: Self-calibration: the camera fields adjusted with the block, shared by every photo of
+    #: the camera (a few global unknowns bordering the band; docs/theory.md section 1c):
+    #: any of "f", "x0", "y0", "k1", "k2", "k3", "p1", "p2". Empty: cameras held fixed.
+    calibrate: tuple = ()
+    #: The camera ids self-calibrated (None: every camera with a photo).
+    calibrate_cameras: tuple | None = None
 
     def check(self):
         if self.max_iterations < 1:
@@ -161,6 +178,20 @@ class Options:
             raise SapgoError(f"robust {self.robust!r}: choose huber or cauchy")
         if not self.robust_threshold_um > 0:
             raise SapgoError("the robust threshold must be positive (um)")
+        if isinstance(self.calibrate, str):
+            self.calibrate = tuple(x for x in self.calibrate.replace(",", " ").split() if x)
+        self.calibrate = tuple(self.calibrate)
+        bad = [x for x in self.calibrate if x not in CALIBRATION_FIELDS]
+        if bad:
+            raise SapgoError(f"self-calibration of {bad[0]!r}: the camera parameters that can "
+                             f"be adjusted are {', '.join(CALIBRATION_FIELDS)}")
+        if len(set(self.calibrate)) != len(self.calibrate):
+            raise SapgoError("self-calibration: a camera parameter is named twice")
+        if self.calibrate_cameras is not None:
+            self.calibrate_cameras = tuple(int(c) for c in self.calibrate_cameras)
+            if not self.calibrate:
+                raise SapgoError("calibrate_cameras without calibrate: name the camera "
+                                 "parameters to adjust")
         return self
 
 
@@ -275,6 +306,15 @@ class _Block:
     #: points behind a camera are projected all the same (project attribute
     #: ``points_behind`` "allowed": BAL problems), not refused
     behind_ok: bool = False
+    #: self-calibration: ``cal[camera, field]`` is the border column of a camera's field
+    #: (:data:`sapgo.geometry.CALIBRATION_FIELDS`), -1 where held; ``border`` lists
+    #: ``(camera index, field index)`` by column
+    cal: np.ndarray = dataclasses.field(default_factory=lambda: np.full((0, 8), -1, np.int64))
+    border: list = dataclasses.field(default_factory=list)
+
+    @property
+    def n_border(self):
+        return len(self.border)
 
     @property
     def n_stations(self):
@@ -283,7 +323,8 @@ class _Block:
     @property
     def redundancy(self):
         equations = 2 * self.n_rays + self.n_weighted_control + self.n_prior_params
-        unknowns = 6 * self.n_stations + 3 * self.n_points - self.n_fixed
+        unknowns = (self.npar * self.n_stations + 3 * self.n_points - self.n_fixed
+                    + self.n_border)
         # a free network: its 7 datum parameters are not determined by the observations
         return equations - unknowns + (7 if self.free else 0)
 
@@ -335,6 +376,73 @@ def _load_block(p: Project) -> _Block:
             ev = np.linalg.eigvalsh(pr["weight"][act])
             blk.n_prior_params += int((ev > 1e-12 * ev.max(axis=1, keepdims=True)).sum())
     return blk
+
+
+def _set_calibration(blk: _Block, p: Project, opts: Options):
+    """The border of a self-calibration (``Options.calibrate``): a column per adjusted field
+    of every calibrated camera that has an active photo."""
+    blk.cal = np.full((len(blk.cams), 8), -1, np.int64)
+    blk.border = []
+    if not opts.calibrate:
+        return
+    if blk.npar != 6:
+        raise SapgoError(f"{p.path}: the photos' own intrinsics are adjusted already "
+                         f"(station_intrinsics): self-calibration of shared cameras does not "
+                         f"go with it; import with the intrinsics fixed")
+    ids = p.cameras()["id"]
+    used = np.zeros(len(blk.cams), bool)
+    used[blk.camera[blk.station_active]] = True
+    if opts.calibrate_cameras is None:
+        chosen = np.flatnonzero(used)
+    else:
+        chosen = []
+        for cid in opts.calibrate_cameras:
+            hit = np.flatnonzero(ids == cid)
+            if not len(hit):
+                raise SapgoError(f"{p.path}: self-calibration of camera id {cid}: no such "
+                                 f"camera (ids: {', '.join(str(int(i)) for i in ids[:20])})")
+            if not used[hit[0]]:
+                raise SapgoError(f"{p.path}: self-calibration of camera id {cid}: none of "
+                                 f"its photos can be adjusted")
+            chosen.append(int(hit[0]))
+    for c in chosen:
+        for name in opts.calibrate:
+            f = CALIBRATION_FIELDS.index(name)
+            blk.cal[c, f] = len(blk.border)
+            blk.border.append((int(c), f))
+
+
+def _border_names(blk: _Block, p: Project):
+    """``"camera <id> <field>"`` of every border column (for messages and the report)."""
+    ids = p.cameras()["id"]
+    return [f"camera {int(ids[c])} {CALIBRATION_FIELDS[f]}" for c, f in blk.border]
+
+
+def _border_step(blk: _Block, theta):
+    """Per camera, the step of its 8 border parameters (zero where held): cameras x 8."""
+    dtheta = np.zeros((len(blk.cams), 8))
+    for col, (c, f) in enumerate(blk.border):
+        dtheta[c, f] = theta[col]
+    return dtheta
+
+
+def _border_settled(blk: _Block, dtheta):
+    """Self-calibration has converged when no camera's step moves an image point at the
+    distance f from the principal point by more than 1/1000 of the camera's sigma (every
+    scaled border parameter moves it by about its own size: df, dx0, d(k1 f^2) f, ...)."""
+    f = blk.cams[:, 0]
+    move = np.abs(dtheta).copy()
+    move[:, 3:] *= np.abs(f)[:, None]
+    return bool((move.max(axis=1) <= 1e-3 * blk.cam_sigma).all())
+
+
+def _border_pivot_error(exc: BorderPivotError, blk: _Block, p: Project):
+    name = _border_names(blk, p)[exc.index]
+    return SingularNormalsError(
+        f"{p.path}: self-calibration: {name} cannot be determined by this block (it is not "
+        f"separable from the other unknowns: e.g. f from the flying height without height "
+        f"differences, or the principal point from the photos' positions without position "
+        f"priors); adjust fewer camera parameters")
 
 
 def _datum_counts(p: Project):
@@ -468,6 +576,12 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     coordinates (rows in point order; default ``work.xyz_current``). ``lam > 0``:
     Levenberg-Marquardt damping, ``lam`` times the diagonal of the unreduced normal matrix
     (clamped to [1e-6, 1e32]) added to every station's and every point's diagonal.
+
+    Returns ``(diag, border)``: the stations' undamped diagonal (n x k, with ``lam > 0``,
+    else None) and, with self-calibration, ``(cnn, ccg, cdiag)`` -- the border block, its
+    right-hand side (both reduced, damped) and its undamped diagonal -- the border columns
+    of the band rows having gone to ``work.border`` row by row with the band rows (else
+    None).
     """
     n = len(blk.station_ids)
     bw = blk.band_width
@@ -478,6 +592,11 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     threads = numba.get_num_threads()  # per thread: b rows of its own beyond its station range
     ovf_band = np.zeros((threads, bw, k, k * bw))
     ovf_rhs = np.zeros((threads, bw, k))
+    ng = blk.n_border
+    bord = np.zeros((cap, k, ng))
+    ovf_bord = np.zeros((threads, bw, k, ng))
+    cnn_t, ccg_t, cdiag_t = (np.zeros((threads, ng, ng)), np.zeros((threads, ng)),
+                             np.zeros((threads, ng)))
     if sink is None:
         def sink(rows, rhs_rows, band_ds=work.factor, rhs_ds=work.y):
             band_ds[base:base + len(rows)] = rows
@@ -502,6 +621,10 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             raise SapgoError(f"{p.path}: the points are not sorted by their first station; "
                              f"the records were changed after ordering: run 'sapgo order'")
         shift = min(new_base, n) - base
+        if ng:
+            work.border[base:base + shift] = bord[:shift]
+            bord[:cap - shift] = bord[shift:]
+            bord[cap - shift:] = 0.0
         sink(band[:shift], rhs[:shift])
         band[:cap - shift] = band[shift:]
         rhs[:cap - shift] = rhs[shift:]
@@ -524,8 +647,8 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
                     j, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.smin, c.smax,
                     c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
                     blk.camera, blk.cams, CTRL_MASK, band, rhs, base,
-                    c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS, lam,
-                    blk.behind_ok,
+                    c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS, blk.cal,
+                    bord, ovf_bord, cnn_t, ccg_t, cdiag_t, lam, blk.behind_ok,
                 )
                 if status != OK:
                     raise _point_error(p, c, bad, status, blk)
@@ -536,13 +659,23 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             _fault("build", iteration)
     while base < n:
         advance(min(n, base + cap))
-    return diag if lam > 0.0 else None
+    border = None
+    if ng:
+        cnn, ccg, cdiag = cnn_t.sum(axis=0), ccg_t.sum(axis=0), cdiag_t.sum(axis=0)
+        if lam > 0.0:
+            cnn[np.arange(ng), np.arange(ng)] += lam * np.clip(cdiag, 1e-6, 1e32)
+        border = (cnn, ccg, cdiag)
+    return (diag if lam > 0.0 else None), border
 
 
-def _moved_cameras(blk: _Block, delta):
+def _moved_cameras(blk: _Block, delta, dtheta=None):
     """The camera rows after a step: moved by the intrinsics' corrections of 9-parameter
-    stations (``delta[:, 6:9]``: f, k1 f^2, k2 f^4 of each photo's own camera)."""
+    stations (``delta[:, 6:9]``: f, k1 f^2, k2 f^4 of each photo's own camera), or by the
+    self-calibration step ``dtheta`` (cameras x 8, :func:`sapgo.geometry.camera_partials`'
+    scaled parameters)."""
     cams = blk.cams.copy()
+    if dtheta is not None:
+        cams += dtheta / cams[:, :1] ** CALIBRATION_POWERS[None, :]
     if blk.npar == 9:
         act = np.flatnonzero(blk.station_active)
         c = blk.camera[act]
@@ -555,7 +688,8 @@ def _moved_cameras(blk: _Block, delta):
     return np.ascontiguousarray(cams)
 
 
-def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam=0.0):
+def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam=0.0,
+           dtheta=None):
     """Stream the points: back-solve their corrections, new coordinates and residuals.
 
     Reads the current coordinates from ``work.xyz_current`` and writes the new ones and the
@@ -564,7 +698,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
     stats = np.zeros(11)
     stats_robust = [0, 0]  # observations downweighted, and to below a tenth
     xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
-    cams_new = _moved_cameras(blk, delta)
+    cams_new = _moved_cameras(blk, delta, dtheta)
     with _progress(opts.progress, p.n_points, "update") as bar:
         for a, b in p.chunks("points", opts.chunk_points):
             c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
@@ -579,7 +713,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
                 c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
                 c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
                 blk.cams, CTRL_MASK, c.max_rays, xyz_out, res_out,
-                stats, lam, blk.behind_ok, cams_new,
+                stats, lam, blk.behind_ok, cams_new, dtheta,
             )
             if stats[7]:
                 raise _point_error(p, c, int(stats[7]) - 1, int(stats[8]), blk)
@@ -652,7 +786,7 @@ class Work:
     its log, timings and the identity of the project). State K uses buffer ``K % 2``.
     """
 
-    def __init__(self, path, p: Project, band_width, create, block=6):
+    def __init__(self, path, p: Project, band_width, create, block=6, n_border=0):
         self.dir = Path(path)
         self.n_st, self.n_pt, self.n_obs = p.n_stations, p.n_points, p.n_observations
         self.band_width = band_width
@@ -665,6 +799,9 @@ class Work:
         k = self.block = block
         self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=mode)
         self.y = RawArray(self.dir / "y.bin", (self.n_st, k), mode=mode)
+        # self-calibration: the border columns of the band rows, then W = U'^-1 B
+        self.border = (RawArray(self.dir / "border.bin", (self.n_st, k, n_border), mode="w")
+                       if n_border else None)
         self.xyz = [RawArray(self.dir / f"xyz.{i}.bin", (self.n_pt, 3), mode=mode)
                     for i in (0, 1)]
         self.res = [RawArray(self.dir / f"residuals.{i}.bin", (self.n_obs, 2), mode=mode)
@@ -705,7 +842,7 @@ class Work:
             np.save(f, eo)
         os.replace(tmp, eo_file)
         record = dict(record, iteration=iteration, eo_file=eo_file.name)
-        if cams is not None and self.block > 6:
+        if cams is not None:
             cams_file = self.dir / f"cams.{iteration}.npy"
             with open(self.dir / f"cams.{iteration}.npy.tmp", "wb") as f:
                 np.save(f, cams)
@@ -748,6 +885,8 @@ class Work:
     def close(self):
         for a in [self.factor, self.y, *self.xyz, *self.res]:
             a.close()
+        if self.border is not None:
+            self.border.close()
         if self.robust_r is not None:
             self.robust_r.close()
 
@@ -809,17 +948,22 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         solver = BandSolver(n, bw, work.factor, work.y, opts.chunk_rows, opts.pivot_tolerance,
                             block=blk.npar)
         try:
-            diag = build(p, work, blk, opts, iteration=it, sink=solver.feed, lam=mu)
-            delta = solver.finish()
+            diag, border = build(p, work, blk, opts, iteration=it, sink=solver.feed, lam=mu)
+            delta = solver.finish(None if border is None else
+                                  (work.border, border[0], border[1]))
         except PivotError as exc:
             raise _pivot_error(exc, blk, p) from None
+        except BorderPivotError as exc:
+            raise _border_pivot_error(exc, blk, p) from None
         _fault("solve", it)
         delta[~blk.station_active] = 0.0
+        theta = solver.theta if border is not None else None
+        dtheta = _border_step(blk, theta) if border is not None else None
         t2 = time.perf_counter()
         t1 = t0 + (t2 - t0 - solver.seconds)
         del solver
         eo_before, cams_before = blk.eo.copy(), blk.cams
-        st = update(p, work, blk, delta, opts, iteration=it, lam=mu)
+        st = update(p, work, blk, delta, opts, iteration=it, lam=mu, dtheta=dtheta)
         t3 = time.perf_counter()
         timings["build"] += t1 - t0
         timings["solve"] += t2 - t1
@@ -834,11 +978,17 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         if lm and prev_cost is not None:
             # predicted decrease 1/2 (dx' b + mu dx' D dx), with dx' b = |y|^2 (the stations'
             # reduced system: y = U'^-1 d) + sum over points of c' Ndd^-1 c
-            y = np.asarray(work.y[:], dtype=np.float64)
+            # (+ t' S^-1 t, the border's share, with self-calibration)
+            if border is None:
+                y = np.asarray(work.y[:], dtype=np.float64)
+                xb = float((y * y).sum())
+            else:
+                xb = solver.y_norm2 + solver.border_decrease
             dsd = float((np.clip(diag, 1e-6, 1e32) * step_s ** 2).sum()) if diag is not None \
                 else 0.0
-            pred = 0.5 * (float((y * y).sum()) + st["points_cNc"]
-                          + mu * (dsd + st["points_dDd"]))
+            if border is not None:
+                dsd += float((np.clip(border[2], 1e-6, 1e32) * theta ** 2).sum())
+            pred = 0.5 * (xb + st["points_cNc"] + mu * (dsd + st["points_dDd"]))
             rho = (prev_cost - cost) / pred if pred > 0 else 0.0
         sigma0 = math.sqrt(max(st["vpv"], 0.0) / blk.redundancy)
         ok = np.isfinite(cost)
@@ -890,7 +1040,8 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         tol_pos, tol_ang = run.get("robust_tol") or (opts.tol_position, opts.tol_angle)
         converged = bool(
             d_pos < tol_pos and st["max_point_corr"] < tol_pos and d_ang < tol_ang
-            and (prev is None or abs(sigma0 - prev) <= opts.tol_sigma0 * prev))
+            and (prev is None or abs(sigma0 - prev) <= opts.tol_sigma0 * prev)
+            and (dtheta is None or _border_settled(blk, dtheta)))
         if lm and prev_cost is not None and prev_cost - cost <= opts.tol_cost * prev_cost:
             converged = True
         work.save(work.state + 1, blk.eo, dict(run, log=log, timings=timings,
@@ -925,6 +1076,7 @@ def adjust(path, options: Options | None = None) -> Summary:
     resumed_from = None
     with Project(path, "r") as p:
         blk = _load_block(p)
+        _set_calibration(blk, p, opts)
         if blk.n_stations == 0:
             raise DatumDefectError(f"{path}: no station can be adjusted (every photo has fewer "
                                    f"than 3 determinable points)")
@@ -939,6 +1091,8 @@ def adjust(path, options: Options | None = None) -> Summary:
             raise SapgoError(f"{path}: a free network needs Levenberg-Marquardt (method auto "
                              f"or levenberg-marquardt), not gauss-newton")
         ident = _identity(p, blk.band_width)
+        if blk.border:  # a run with another self-calibration is another run
+            ident["calibration"] = _border_names(blk, p)
         if checkpoint is not None and checkpoint.get("identity") != ident:
             checkpoint = None  # the project changed since: start again
         if not opts.resume and (wpath / "checkpoint.json").exists():
@@ -951,13 +1105,15 @@ def adjust(path, options: Options | None = None) -> Summary:
         work = None
         if checkpoint is not None:
             try:
-                work = Work(wpath, p, blk.band_width, create=False, block=blk.npar)
+                work = Work(wpath, p, blk.band_width, create=False, block=blk.npar,
+                            n_border=blk.n_border)
             except (OSError, ValueError) as exc:  # work files missing or cut short
                 sys.stderr.write(f"sapgo: warning: the interrupted run of {path} cannot be "
                                  f"resumed ({exc}); starting from the beginning\n")
                 checkpoint = None
         if work is None:
-            work = Work(wpath, p, blk.band_width, create=True, block=blk.npar)
+            work = Work(wpath, p, blk.band_width, create=True, block=blk.npar,
+                        n_border=blk.n_border)
         try:
             if checkpoint is None:
                 run = {"run": uuid.uuid4().hex, "identity": ident}

@@ -295,6 +295,133 @@ def _solve_skewed(a, ld1, n, u, b):
         b[h] = s / a[base]
 
 
+@njit(cache=True, nogil=True)
+def _border_rows(fac, win, y, i0, n, s_mat, t_vec, yy):
+    """Forward substitution of the border columns, ``W = U'^-1 B``, for the scalar rows of
+    the stations ``i0 ..`` of the diagonal-first factor rows ``fac``: ``win`` (scalar rows
+    x ng) holds ``B`` of these stations and the ``b`` after them (row 0 = station ``i0``)
+    and receives ``W``; meanwhile ``S -= W'W``, ``t -= W'y`` (``y = U'^-1 d``, the
+    forward-substituted right-hand side of the same rows) and ``yy += y'y``."""
+    width = fac.shape[2]
+    kb = fac.shape[1]
+    ng = win.shape[1]
+    for ii in range(fac.shape[0]):
+        for r in range(kb):
+            h = kb * (i0 + ii) + r
+            lh = kb * ii + r
+            u0 = fac[ii, r, 0]
+            for c in range(ng):
+                win[lh, c] /= u0
+            top = min(width, n - h)
+            for d in range(1, top):
+                ud = fac[ii, r, d]
+                if ud != 0.0:
+                    for c in range(ng):
+                        win[lh + d, c] -= ud * win[lh, c]
+            yh = y[ii, r]
+            yy[0] += yh * yh
+            for c in range(ng):
+                wc = win[lh, c]
+                t_vec[c] -= wc * yh
+                for c2 in range(ng):
+                    s_mat[c, c2] -= wc * win[lh, c2]
+
+
+@njit(cache=True)
+def _dense_cholesky(a, tol):
+    """Lower Cholesky factor of the symmetric matrix ``a`` (overwritten); -1, or the first
+    column whose pivot is at or below ``tol`` times its original diagonal element."""
+    ng = a.shape[0]
+    orig = np.empty(ng)
+    for i in range(ng):
+        orig[i] = a[i, i]
+    for j in range(ng):
+        s = a[j, j]
+        for k in range(j):
+            s -= a[j, k] * a[j, k]
+        if not (s > tol * orig[j]) or not (s > 0.0):
+            return j
+        a[j, j] = np.sqrt(s)
+        for i in range(j + 1, ng):
+            x = a[i, j]
+            for k in range(j):
+                x -= a[i, k] * a[j, k]
+            a[i, j] = x / a[j, j]
+    for i in range(ng):
+        for j in range(i + 1, ng):
+            a[i, j] = 0.0
+    return -1
+
+
+class BorderPivotError(Exception):
+    """A border parameter that the block cannot determine (a non-positive pivot of the
+    border's Schur complement); ``index`` is its border column."""
+
+    def __init__(self, index):
+        super().__init__(f"non-positive pivot of the border at column {index}")
+        self.index = index
+
+
+def border_solve(factor_ds, y_ds, border_ds, cnn, ccg, n_st, band_width, step=256,
+                 pivot_tol=PIVOT_TOLERANCE):
+    """Solve the border of a bordered band after the band's factorisation.
+
+    The full system is ``[[M, B], [B', C]] [delta; theta] = [d; c]`` with ``M = U'U`` the
+    band (already factored: ``factor_ds`` holds ``U``, ``y_ds`` holds ``y = U'^-1 d``) and
+    ``B`` (``border_ds``, n x k x ng) the border columns of the band rows. One forward pass
+    over the factor rows turns ``B`` into ``W = U'^-1 B`` (in place) and forms the border's
+    Schur complement ``S = C - W'W`` and ``t = c - W'y``; ``theta = S^-1 t`` (a dense
+    Cholesky, ng x ng, scaled to a unit diagonal); a second pass sets ``y <- y - W theta``,
+    after which the band's back substitution ``delta = U^-1 y`` gives the stations. In core:
+    ``step + b`` stations' border rows. Returns ``(theta, y'y, t'S^-1 t)``; the last two are
+    ``x'b`` of the solution split into the band's and the border's share (for the
+    Levenberg-Marquardt gain ratio). Raises :class:`BorderPivotError` when ``S`` is not
+    positive definite at ``pivot_tol``.
+    """
+    kb = factor_ds.shape[1]
+    ng = cnn.shape[0]
+    n = kb * n_st
+    s_mat = np.array(cnn, dtype=np.float64)
+    t_vec = np.array(ccg, dtype=np.float64)
+    yy = np.zeros(1)
+    step = max(1, step)
+    win = np.zeros(((step + band_width) * kb, ng))
+    base = loaded = 0
+    while base < n_st:
+        stop = min(n_st, base + step)
+        need = min(n_st, stop + band_width)
+        if need > loaded:
+            win[(loaded - base) * kb:(need - base) * kb] = np.asarray(
+                border_ds[loaded:need], dtype=np.float64).reshape(-1, ng)
+            loaded = need
+        fac = np.ascontiguousarray(factor_ds[base:stop], dtype=np.float64)
+        y = np.ascontiguousarray(y_ds[base:stop], dtype=np.float64)
+        _border_rows(fac, win, y, base, n, s_mat, t_vec, yy)
+        border_ds[base:stop] = win[:(stop - base) * kb].reshape(stop - base, kb, ng)
+        rest = loaded - stop
+        win[:rest * kb] = win[(stop - base) * kb:(loaded - base) * kb]
+        win[rest * kb:] = 0.0
+        base = stop
+    s_mat = 0.5 * (s_mat + s_mat.T)
+    dg = np.diag(s_mat).copy()
+    if ng and not (dg > 0.0).all():
+        raise BorderPivotError(int(np.argmin(dg > 0.0)))
+    scale = 1.0 / np.sqrt(dg) if ng else dg
+    lo = np.ascontiguousarray(s_mat * scale[:, None] * scale[None, :])
+    fail = _dense_cholesky(lo, pivot_tol)
+    if fail >= 0:
+        raise BorderPivotError(int(fail))
+    import scipy.linalg
+
+    z = scipy.linalg.solve_triangular(lo, scale * t_vec, lower=True) if ng else t_vec
+    theta = scale * scipy.linalg.solve_triangular(lo.T, z, lower=False) if ng else t_vec
+    for a in range(0, n_st, step):
+        b = min(n_st, a + step)
+        w = np.asarray(border_ds[a:b], dtype=np.float64)
+        y_ds[a:b] = np.asarray(y_ds[a:b], dtype=np.float64) - w @ theta
+    return theta, float(yy[0]), float(z @ z)
+
+
 # -- drivers ------------------------------------------------------------------------------
 
 class PivotError(Exception):
@@ -459,8 +586,12 @@ class BandSolver:
             self.factor_ds[i0:i0 + len(band)] = band
             self.y_ds[i0:i0 + len(rhs)] = rhs
 
-    def finish(self):
-        """Factor the rest (every row must have been fed) and return ``delta`` (n x 6)."""
+    def finish(self, border=None):
+        """Factor the rest (every row must have been fed) and return ``delta`` (n x 6).
+
+        ``border = (border_ds, cnn, ccg)``: a bordered band (:func:`border_solve`); the
+        border's solution is left in ``theta``, ``y'y`` and ``t'S^-1 t`` in ``y_norm2`` and
+        ``border_decrease``."""
         if self.loaded != self.n_st:
             raise ValueError(f"{self.loaded} band rows fed for {self.n_st} stations")
         t0 = time.perf_counter()
@@ -469,6 +600,10 @@ class BandSolver:
         self._factor_ready()
         self._writer.wait()
         self._write(*self._take(self.n_st))
+        if border is not None:
+            self.theta, self.y_norm2, self.border_decrease = border_solve(
+                self.factor_ds, self.y_ds, border[0], border[1], border[2], self.n_st,
+                self.width // self.block, self.chunk_rows, self.pivot_tol)
         # read back in blocks of at least 8 MiB (fewer, larger reads)
         step = max(self.chunk_rows, (8 << 20) // (8 * self.block * self.width))
         delta = _back_substitute(self.factor_ds, self.y_ds, self.n_st, step, self.block)

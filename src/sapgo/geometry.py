@@ -258,6 +258,67 @@ def apply_intrinsics(c, d):
     return out
 
 
+#: Self-calibration of shared cameras (a bordered band, docs/theory.md section 1c): the
+#: camera fields that can be adjusted, in :data:`CAMERA_FIELDS` order, by their short names.
+CALIBRATION_FIELDS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2")
+#: The border parameter of field ``i`` is the field times ``f ** CALIBRATION_POWERS[i]`` (f
+#: at the linearisation point): all of them in image units or dimensionless, so that the
+#: border is well scaled whatever the units (k1 f^2, k2 f^4, k3 f^6, p1 f, p2 f).
+CALIBRATION_POWERS = np.array([0, 0, 0, 2, 4, 6, 1, 1], np.int64)
+
+
+@njit(cache=True)
+def camera_partials(eo, xyz, c, e):
+    """Partial derivatives of the image coordinates by the camera's border parameters.
+
+    Fills ``e`` (2 x 8) with d(x, y) / d(f, x0, y0, k1 f^2, k2 f^4, k3 f^6, p1 f, p2 f) at
+    station ``eo``, object point ``xyz``, camera row ``c`` (each scaled border parameter
+    :data:`CALIBRATION_POWERS`, f held at its current value in the scaling). From the model
+    of the module docstring: ``d xi / d f = xi / f`` through the distortion's Jacobian,
+    ``d x / d x0 = 1``, ``d x / d k1 = xi r^2``, ``d x / d p1 = r^2 + 2 xi^2``, ... Returns
+    False in the principal plane (no projection)."""
+    f = c[0]
+    m = _rot9(eo[0], eo[1], eo[2])
+    d0, d1, d2 = xyz[0] - eo[3], xyz[1] - eo[4], xyz[2] - eo[5]
+    u = m[0] * d0 + m[1] * d1 + m[2] * d2
+    v = m[3] * d0 + m[4] * d1 + m[5] * d2
+    w = m[6] * d0 + m[7] * d1 + m[8] * d2
+    if w == 0.0:
+        return False
+    xi, yi = -f * u / w, -f * v / w
+    _, _, j00, j01, j11 = distortion(xi, yi, c)
+    r2 = xi * xi + yi * yi
+    f2 = f * f
+    e[0, 0] = (j00 * xi + j01 * yi) / f
+    e[1, 0] = (j01 * xi + j11 * yi) / f
+    e[0, 1] = 1.0
+    e[1, 1] = 0.0
+    e[0, 2] = 0.0
+    e[1, 2] = 1.0
+    q = r2 / f2
+    e[0, 3] = xi * q
+    e[1, 3] = yi * q
+    e[0, 4] = xi * q * q
+    e[1, 4] = yi * q * q
+    e[0, 5] = xi * q * q * q
+    e[1, 5] = yi * q * q * q
+    e[0, 6] = (r2 + 2.0 * xi * xi) / f
+    e[1, 6] = 2.0 * xi * yi / f
+    e[0, 7] = 2.0 * xi * yi / f
+    e[1, 7] = (r2 + 2.0 * yi * yi) / f
+    return True
+
+
+def apply_calibration(c, dtheta):
+    """The camera row ``c`` moved by the border step ``dtheta`` (8: df, dx0, dy0, d(k1 f^2),
+    d(k2 f^4), d(k3 f^6), d(p1 f), d(p2 f), scaled by the current f as in
+    :func:`camera_partials`)."""
+    out = np.array(c, dtype=np.float64)
+    f0 = out[0]
+    out += np.asarray(dtheta, dtype=np.float64) / f0 ** CALIBRATION_POWERS
+    return out
+
+
 @njit(cache=True)
 def _add_ray(eo, x, y, c, a, r):
     """Add the ray from station ``eo`` through image point (x, y) of camera row ``c`` to the

@@ -1028,6 +1028,64 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     return summary
 
 
+class TextControl:
+    """The control and check points of text ``control`` files (docs/formats.md), read exactly
+    as :func:`import_text` reads them, for the importers of other formats (COLMAP models):
+    the same parser and errors naming file and line, repeats loaded once or refused, and
+    with ``crs`` the same conversion into the computation frame.
+
+    ``records`` (:data:`CTRL_DTYPE`, sorted by id, each id once): ``kind``, ``control`` and
+    ``sigma`` as the text import stores them, ``loc`` the place for :meth:`where`, ``raw``
+    marking horizontal and vertical control still in the CRS (:meth:`partial` converts them
+    once the points' approximate positions are known). ``frame``: the local frame, or for a
+    ``crs`` the frame at the centre of the control points (the block's photos are not in the
+    CRS). ``work``: a scratch directory for the external sort (removed by the caller).
+    """
+
+    def __init__(self, paths, work, crs=None, memory=None):
+        paths = _as_list(paths)
+        for f in map(Path, paths):
+            if not f.exists():
+                raise ParameterError(f"{f}: no such file (--control)")
+            if f.is_dir():
+                raise ParameterError(f"{f}: is a directory, not a control file (--control)")
+        memory = DEFAULT_MEMORY if memory is None else parse_memory(memory)
+        files = dict.fromkeys(("cameras", "photos", "photos_matrix", "measurements",
+                               "priors", "prior_covariances"), [])
+        files["control"] = paths
+        self._imp = imp = _Import(None, files, "deg", memory, Path(work), None, crs)
+        imp.s.update(kinds=dict.fromkeys(KIND_NAMES, 0))
+        if imp.crs is not None:  # the frame at the centre of the points known in X and Y
+            xyz = []
+            for path in paths:
+                for first, chunk in read_chunks(path, imp.chunk_bytes):
+                    rec, _ = parse_chunk(CONTROL, chunk, first, "deg", str(path))
+                    keep = NEEDED[np.clip(rec["kind"], 0, KIND_CHECK), 1]
+                    xyz.append(np.stack([rec["X"], rec["Y"], rec["Z"]], axis=1)[keep])
+            xyz = np.concatenate(xyz) if xyz else np.zeros((0, 3))
+            if not len(xyz):
+                raise ParameterError(f"--crs {crs}: the control files have no point with "
+                                     f"known X and Y to place the frame")
+            imp.frame = Frame.for_crs(imp.crs, xyz)
+        imp.read_control(None)
+        pieces = list(imp._control_pieces(_SUM_PIECE))
+        self.records = np.concatenate(pieces) if pieces else np.zeros(0, CTRL_DTYPE)
+        self.frame = imp.frame
+        self.crs = imp.crs
+        self.warnings = imp.warnings
+        self.loaded_twice = imp.s["control_loaded_twice"]
+
+    def where(self, loc):
+        """``file:line`` of a record's ``loc``."""
+        return self._imp.src.where(loc)
+
+    def partial(self, control, kind, raw, approx):
+        """Frame coordinates of the ``raw`` (horizontal and vertical CRS) control, the
+        unknown coordinates taken from the approximate points ``approx`` (as the text
+        import does)."""
+        return self._imp._partial_control(control, kind, raw, approx)
+
+
 def summary_text(summary):
     """The one-paragraph summary ``sapgo import`` prints."""
     s = summary

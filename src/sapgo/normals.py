@@ -26,7 +26,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .geometry import linearize, project
+from .geometry import camera_partials, linearize, project
 from .project import CONTROL_MASK, STATUS_ACTIVE
 
 # kernel status codes
@@ -178,7 +178,7 @@ def _workspace(max_rays, npar=6):
 def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                  pt_smax, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                  cams, ctrl_mask, band, rhs, base, max_rays, split, ovf_band,
-                 ovf_rhs, lam=0.0, behind_ok=False):
+                 ovf_rhs, cal, bord, ovf_bord, cnn, ccg, cdiag, lam=0.0, behind_ok=False):
     """Add points ``j0 .. j_stop-1`` of a chunk into the band-row window.
 
     ``band[r]`` (6 x 6b) and ``rhs[r]`` (6) are the rows of logical station ``base + r``;
@@ -187,6 +187,13 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     first active point whose largest station lies beyond the window. Returns
     ``(next_point, status, point)``: status OK, or SINGULAR_POINT / BEHIND_CAMERA /
     BAD_LAYOUT with the offending point.
+
+    Self-calibration (a border of ``ng = bord.shape[2]`` camera parameters; ``cal[camera,
+    field]`` is the border column of a camera's field or -1, :func:`camera_partials`):
+    ``bord[r]`` (6 x ng) are the border columns of band row ``r`` (``ovf_bord`` beside
+    ``ovf_band``), ``cnn`` (ng x ng, full) and ``ccg`` (ng) the border's block and
+    right-hand side, ``cdiag`` the diagonal of its unreduced block; every point is
+    eliminated from them as from the band (docs/theory.md section 1c). ``ng = 0``: no border.
     """
     cap = band.shape[0]
     npar = band.shape[1]
@@ -195,6 +202,14 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     h = np.empty(3)
     col = np.empty(3)
     tmp = np.empty(3)
+    ng = bord.shape[2]
+    slot = np.full(ng, -1, np.int64)     # border column -> its place among the point's
+    tcols = np.empty(ng, np.int64)       # the border columns the point touches
+    ngp = np.empty((ng, 3))              # Nbar of the border: sum p E' B
+    ggp = np.empty((ng, 3))              # Ndd^-1 Nbar_g'
+    e = np.empty((2, 8))
+    a_t = np.empty((2, npar))
+    b_t = np.empty((2, 3))
     for j in range(j0, j_stop):
         if pt_active[j] != 0:
             continue
@@ -251,14 +266,98 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
                         row[u, off + v] -= x
                         if same and t != q:
                             row[v, off + u] -= x
+        if ng > 0:
+            _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal, xyz,
+                          a_all, l_all, w_all, st_all, g, lo, h, base, split, bord, ovf_bord,
+                          cnn, ccg, cdiag, slot, tcols, ngp, ggp, e, a_t, b_t)
     return j_stop, OK, -1
+
+
+@njit(cache=True, nogil=True)
+def _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal, xyz, a_all,
+                  l_all, w_all, st_all, g, lo, h, base, split, bord, ovf_bord, cnn, ccg,
+                  cdiag, slot, tcols, ngp, ggp, e, a_t, b_t):
+    """Point ``j``'s share of the border (see :func:`build_points`): the direct terms of its
+    ``k`` rays, ``p A'E`` into the border columns of their band rows, ``p E'E`` and ``p E'l``
+    into the border block, then its elimination, ``-G_q Nbar_g'``, ``-Nbar_g Ndd^-1 Nbar_g'``
+    and ``-Nbar_g Ndd^-1 cdd`` (``G_q = Nbar_q Ndd^-1`` and ``h = Ndd^-1 cdd`` come from
+    the band's elimination)."""
+    npar = a_all.shape[2]
+    nt = 0
+    for q in range(k):
+        s = st_all[q]
+        cam = cam_of_station[s]
+        used = False
+        for f in range(8):
+            if cal[cam, f] >= 0:
+                used = True
+        if not used:
+            continue
+        camera_partials(eo[s], xyz, cams[cam], e)
+        linearize(eo[s], xyz, cams[cam], a_t, b_t)
+        p = w_all[q]
+        a = a_all[q]
+        r = s - base
+        brow = bord[r] if r < split else ovf_bord[r - split]
+        for f in range(8):
+            c1 = cal[cam, f]
+            if c1 < 0:
+                continue
+            if slot[c1] < 0:
+                slot[c1] = nt
+                tcols[nt] = c1
+                for c in range(3):
+                    ngp[nt, c] = 0.0
+                nt += 1
+            sl = slot[c1]
+            ex, ey = e[0, f], e[1, f]
+            for u in range(npar):
+                brow[u, c1] += p * (a[0, u] * ex + a[1, u] * ey)
+            ccg[c1] += p * (ex * l_all[q, 0] + ey * l_all[q, 1])
+            cdiag[c1] += p * (ex * ex + ey * ey)
+            for c in range(3):
+                ngp[sl, c] += p * (ex * b_t[0, c] + ey * b_t[1, c])
+            for f2 in range(8):
+                c2 = cal[cam, f2]
+                if c2 >= 0:
+                    cnn[c1, c2] += p * (ex * e[0, f2] + ey * e[1, f2])
+    kind = pt_kind[j]
+    for c in range(3):  # a fixed control component is no unknown (as in _point_system)
+        if ctrl_mask[kind, c] and pt_csig[j, c] == 0.0:
+            for t in range(nt):
+                ngp[t, c] = 0.0
+    for t in range(nt):
+        _solve3(lo, ngp[t], ggp[t])
+    for t in range(nt):
+        c1 = tcols[t]
+        x = 0.0
+        for c in range(3):
+            x += ngp[t, c] * h[c]
+        ccg[c1] -= x
+        for t2 in range(nt):
+            x = 0.0
+            for c in range(3):
+                x += ggp[t, c] * ngp[t2, c]
+            cnn[c1, tcols[t2]] -= x
+    for q in range(k):
+        r = st_all[q] - base
+        brow = bord[r] if r < split else ovf_bord[r - split]
+        for u in range(npar):
+            for t in range(nt):
+                x = 0.0
+                for c in range(3):
+                    x += g[q, u, c] * ngp[t, c]
+                brow[u, tcols[t]] -= x
+    for t in range(nt):
+        slot[tcols[t]] = -1
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           pt_smin, pt_smax, pt_active, obs_station, obs_xy, obs_sigma,
                           obs_active, eo, cam_of_station, cams, ctrl_mask, band, rhs, base,
-                          max_rays, ovf_band, ovf_rhs, min_points, lam=0.0, behind_ok=False):
+                          max_rays, ovf_band, ovf_rhs, min_points, cal, bord, ovf_bord, cnn,
+                          ccg, cdiag, lam=0.0, behind_ok=False):
     """:func:`build_points` for the points from ``j0`` that fit the window, on
     ``len(ovf_band)`` threads over station ranges.
 
@@ -266,7 +365,9 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
     from its first point's first station up to the next part's, and writes the rows beyond
     (at most ``b`` of them) into its own buffer ``ovf_band[t]``, which is added to the window
     afterwards. Fewer than ``min_points`` points a thread are built on one thread. Same
-    return value as :func:`build_points`.
+    return value as :func:`build_points`. The border (``ng = bord.shape[2]`` columns) goes
+    the same way: ``ovf_bord[t]`` beside ``ovf_band[t]``, and thread ``t`` adds into
+    ``cnn[t]``, ``ccg[t]``, ``cdiag[t]`` (the caller sums them).
     """
     cap = band.shape[0]
     n_pts = pt_xyz.shape[0]
@@ -278,12 +379,14 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
     nthreads = ovf_band.shape[0]
     empty_b = ovf_band[0, :0]
     empty_r = ovf_rhs[0, :0]
+    empty_g = ovf_bord[0, :0]
     if nthreads < 2 or j_end - j0 < max(1, min_points) * nthreads:
         j, status, bad = build_points(j0, j_end, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot,
                                       pt_start, pt_nobs, pt_smax, pt_active, obs_station, obs_xy,
                                       obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays, cap,
-                                      empty_b, empty_r, lam, behind_ok)
+                                      empty_b, empty_r, cal, bord, empty_g, cnn[0], ccg[0],
+                                      cdiag[0], lam, behind_ok)
         if status != OK or j < j_end:
             return j, status, bad
         return j_end, OK, -1
@@ -297,13 +400,16 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
     for t in prange(nthreads):
         ovf_band[t] = 0.0
         ovf_rhs[t] = 0.0
+        ovf_bord[t] = 0.0
         ob = ovf_band[t] if t < nthreads - 1 else empty_b
         orr = ovf_rhs[t] if t < nthreads - 1 else empty_r
+        og = ovf_bord[t] if t < nthreads - 1 else empty_g
         j, status, bad = build_points(cut[t], cut[t + 1], pt_xyz, pt_kind, pt_ctrl, pt_csig,
                                       pt_rot, pt_start, pt_nobs, pt_smax, pt_active, obs_station,
                                       obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays,
-                                      split[t], ob, orr, lam, behind_ok)
+                                      split[t], ob, orr, cal, bord, og, cnn[t], ccg[t],
+                                      cdiag[t], lam, behind_ok)
         res[t, 0] = j
         res[t, 1] = status
         res[t, 2] = bad
@@ -319,6 +425,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                 break
             band[rr] += ovf_band[t, r]
             rhs[rr] += ovf_rhs[t, r]
+            bord[rr] += ovf_bord[t, r]
     return j_end, OK, -1
 
 
@@ -326,7 +433,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
 def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cams,
                   ctrl_mask, max_rays, xyz_out, resid_out, stats, lam=0.0,
-                  behind_ok=False, cams_new=None):
+                  behind_ok=False, cams_new=None, dtheta=None):
     """Back-solve point corrections and compute residuals for a chunk of points.
 
     ``eps_j = Ndd_j^-1 (cdd_j - sum_s Nbar_s' delta_s)`` with the system linearised at the
@@ -338,8 +445,14 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     ``lam``: the Levenberg-Marquardt damping the normals were built with.
     ``delta`` has a row of 6 or 9 parameters per station; with 9, ``cams_new`` holds the camera
     rows moved by the intrinsics' corrections (one camera per photo), for the residuals.
+    ``dtheta`` (cameras x 8): the self-calibration step of each camera's border parameters
+    (:func:`sapgo.geometry.camera_partials`; zero where not adjusted), which enters the
+    back-solution as ``- Nbar_g' dtheta``; ``cams_new`` then holds the moved cameras.
     """
     npar = delta.shape[1]
+    e = np.empty((2, 8))
+    a_t = np.empty((2, npar))
+    b_t = np.empty((2, 3))
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays, npar)
     cams_v = cams if cams_new is None else cams_new
     eps = np.empty(3)
@@ -368,6 +481,28 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                 for u in range(npar):
                     x += nbar[q, u, c] * delta[s, u]
                 cc[c] -= x
+        if dtheta is not None:
+            kind = pt_kind[j]
+            for q in range(k):
+                s = st_all[q]
+                cam = cam_of_station[s]
+                moved = False
+                for f in range(8):
+                    if dtheta[cam, f] != 0.0:
+                        moved = True
+                if not moved:
+                    continue
+                camera_partials(eo[s], xyz, cams[cam], e)
+                linearize(eo[s], xyz, cams[cam], a_t, b_t)
+                dx = 0.0
+                dy = 0.0
+                for f in range(8):
+                    dx += e[0, f] * dtheta[cam, f]
+                    dy += e[1, f] * dtheta[cam, f]
+                p = w_all[q]
+                for c in range(3):
+                    if not (ctrl_mask[kind, c] and pt_csig[j, c] == 0.0):
+                        cc[c] -= p * (b_t[0, c] * dx + b_t[1, c] * dy)
         _solve3(lo, cc, eps)
         if lam > 0.0:
             for c in range(3):
