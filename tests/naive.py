@@ -98,7 +98,8 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
     of the (one) camera's fields adjusted too (self-calibration; raw units, derivatives by
     complex step, the normal equations scaled to a unit diagonal). Returns adjusted
     ``(eo, xyz, sigma0, iterations)``, and the camera row (f, x0, y0, k1, k2, k3, p1, p2) as
-    a fifth element when ``calibrate`` is given.
+    a fifth element and the
+    cofactors of the adjusted fields as a sixth when ``calibrate`` is given.
     """
     eo = eo.astype(float).copy()
     xyz = xyz.astype(float).copy()
@@ -156,8 +157,9 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
     vc = (xyz - ctrl)[weighted] / ctrl_sigma[weighted]
     vpv += float((vc ** 2).sum())
     redundancy = 2 * nobs + weighted.sum() - 6 * ns - 3 * npnt + fixed.sum() - ncal
-    if ncal:
-        return eo, xyz, np.sqrt(vpv / redundancy), it, cam
+    if ncal:  # and the camera parameters' cofactors (the inverse of the last normals)
+        q = scale[:, None] * np.linalg.inv(n) * scale[None, :]
+        return eo, xyz, np.sqrt(vpv / redundancy), it, cam, np.diag(q)[-ncal:]
     return eo, xyz, np.sqrt(vpv / redundancy), it
 
 

@@ -436,6 +436,24 @@ def _border_settled(blk: _Block, dtheta):
     return bool((move.max(axis=1) <= 1e-3 * blk.cam_sigma).all())
 
 
+def _calibration_report(p: Project, blk: _Block, run, sigma0):
+    """Per self-calibrated camera parameter: its value before and after, the correction and
+    its a-posteriori standard deviation (sigma0 times the root of the border's cofactor, in
+    the field's own unit)."""
+    cams0 = camera_array(p.cameras())
+    ids = p.cameras()["id"]
+    cov = run.get("border_cov")
+    rows = []
+    for col, (c, f) in enumerate(blk.border):
+        scale = float(blk.cams[c, 0]) ** int(CALIBRATION_POWERS[f])
+        sig = (sigma0 * math.sqrt(max(cov[col][col], 0.0)) / scale if cov is not None
+               else None)
+        rows.append({"camera": int(ids[c]), "parameter": CALIBRATION_FIELDS[f],
+                     "initial": float(cams0[c, f]), "adjusted": float(blk.cams[c, f]),
+                     "correction": float(blk.cams[c, f] - cams0[c, f]), "sigma": sig})
+    return rows
+
+
 def _border_pivot_error(exc: BorderPivotError, blk: _Block, p: Project):
     name = _border_names(blk, p)[exc.index]
     return SingularNormalsError(
@@ -958,9 +976,11 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         _fault("solve", it)
         delta[~blk.station_active] = 0.0
         theta = solver.theta if border is not None else None
+        border_cov = solver.border_cov if border is not None else None
         dtheta = _border_step(blk, theta) if border is not None else None
         t2 = time.perf_counter()
         t1 = t0 + (t2 - t0 - solver.seconds)
+        xb_border = (solver.y_norm2 + solver.border_decrease) if border is not None else None
         del solver
         eo_before, cams_before = blk.eo.copy(), blk.cams
         st = update(p, work, blk, delta, opts, iteration=it, lam=mu, dtheta=dtheta)
@@ -983,7 +1003,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
                 y = np.asarray(work.y[:], dtype=np.float64)
                 xb = float((y * y).sum())
             else:
-                xb = solver.y_norm2 + solver.border_decrease
+                xb = xb_border
             dsd = float((np.clip(diag, 1e-6, 1e32) * step_s ** 2).sum()) if diag is not None \
                 else 0.0
             if border is not None:
@@ -1037,6 +1057,8 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             factor = 1.0 / 3.0 if rho is None else max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             run["mu"], run["nu"] = max(mu * factor, 1e-16), 2.0
         run["cost"] = cost
+        if border_cov is not None:  # the cameras' cofactors (scaled border parameters)
+            run["border_cov"] = border_cov.tolist()
         tol_pos, tol_ang = run.get("robust_tol") or (opts.tol_position, opts.tol_angle)
         converged = bool(
             d_pos < tol_pos and st["max_point_corr"] < tol_pos and d_ang < tol_ang
@@ -1087,6 +1109,11 @@ def adjust(path, options: Options | None = None) -> Summary:
             raise SapgoError(f"{path}: a free network (no control, no priors) has no "
                              f"precision or redundancy numbers without a datum: data snooping "
                              f"and robust estimation need control points or station priors")
+        if blk.border and (opts.snooping or opts.robust is not None):
+            raise SapgoError(f"{path}: data snooping and robust estimation need the precision "
+                             f"of every observation, which is not computed with "
+                             f"self-calibration yet: calibrate the cameras first, then "
+                             f"snoop with them held")
         if blk.free and opts.method == "gauss-newton":
             raise SapgoError(f"{path}: a free network needs Levenberg-Marquardt (method auto "
                              f"or levenberg-marquardt), not gauss-newton")
@@ -1136,7 +1163,8 @@ def adjust(path, options: Options | None = None) -> Summary:
                 blk.n_points -= len(blk.rejected_points)
                 run["rejections"] = blk.rejections
                 run["planted"] = blk.planted
-                for key in ("robust_tol", "method", "mu", "nu", "cost", "initial_cost"):
+                for key in ("robust_tol", "method", "mu", "nu", "cost", "initial_cost",
+                            "border_cov"):
                     if checkpoint.get(key) is not None:
                         run[key] = checkpoint[key]
                 run["rejected_points"] = blk.rejected_points.tolist()
@@ -1400,7 +1428,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     xyz_ds, res_ds = work.xyz_current, work.res_current
     t_prec = time.perf_counter()
     correlations = HighCorrelations(opts.correlation_threshold)
-    if blk.free:  # no datum, no precision: zeros, and no report of them
+    no_precision = blk.free or bool(blk.border)
+    if no_precision:  # no datum (or self-calibration): no precision, and no report of it
         station_sigma = np.zeros((len(blk.station_ids), 6))
         psig = quality = None
         correlations = reliability = None
@@ -1409,7 +1438,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
                                                       last["sigma0"], correlations)
         _note_planted(p_read, blk, quality, run)
         reliability = reliability_statistics(opts.snooping_alpha)
-    for a, b in (p_read.chunks("observations", opts.chunk_points) if not blk.free else ()):
+    for a, b in (p_read.chunks("observations", opts.chunk_points) if not no_precision
+                 else ()):
         ob = p_read.read("observations", a, b)
         act = ob["status"] == STATUS_ACTIVE
         if len(blk.rejected):
@@ -1481,10 +1511,12 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         resumed_from_iteration=resumed_from,
         strip_comparison=strips.result(),
         frame=frame_info(p_read.frame()),
-        precision=None if blk.free else precision_summary(
+        precision=None if no_precision else precision_summary(
             station_sigma[blk.station_active], psig, p_read, opts.chunk_points),
-        correlations=None if blk.free else correlations.result(),
-        reliability=None if blk.free else reliability.result(),
+        correlations=None if no_precision else correlations.result(),
+        reliability=None if no_precision else reliability.result(),
+        calibration=_calibration_report(p_read, blk, run, last["sigma0"]) if blk.border
+        else None,
         method=run.get("method", "gn"),
         initial_cost=run.get("initial_cost"),
         final_cost=run.get("cost"),

@@ -375,7 +375,8 @@ def border_solve(factor_ds, y_ds, border_ds, cnn, ccg, n_st, band_width, step=25
     after which the band's back substitution ``delta = U^-1 y`` gives the stations. In core:
     ``step + b`` stations' border rows. Returns ``(theta, y'y, t'S^-1 t)``; the last two are
     ``x'b`` of the solution split into the band's and the border's share (for the
-    Levenberg-Marquardt gain ratio). Raises :class:`BorderPivotError` when ``S`` is not
+    Levenberg-Marquardt gain ratio), and ``S^-1`` (the border's cofactor matrix when the
+    band is the reduced normal matrix). Raises :class:`BorderPivotError` when ``S`` is not
     positive definite at ``pivot_tol``.
     """
     kb = factor_ds.shape[1]
@@ -413,13 +414,15 @@ def border_solve(factor_ds, y_ds, border_ds, cnn, ccg, n_st, band_width, step=25
         raise BorderPivotError(int(fail))
     import scipy.linalg
 
+    inv = scipy.linalg.solve_triangular(lo, np.eye(ng), lower=True) if ng else lo
+    s_inv = (inv.T @ inv) * scale[:, None] * scale[None, :]
     z = scipy.linalg.solve_triangular(lo, scale * t_vec, lower=True) if ng else t_vec
     theta = scale * scipy.linalg.solve_triangular(lo.T, z, lower=False) if ng else t_vec
     for a in range(0, n_st, step):
         b = min(n_st, a + step)
         w = np.asarray(border_ds[a:b], dtype=np.float64)
         y_ds[a:b] = np.asarray(y_ds[a:b], dtype=np.float64) - w @ theta
-    return theta, float(yy[0]), float(z @ z)
+    return theta, float(yy[0]), float(z @ z), s_inv
 
 
 # -- drivers ------------------------------------------------------------------------------
@@ -591,7 +594,7 @@ class BandSolver:
 
         ``border = (border_ds, cnn, ccg)``: a bordered band (:func:`border_solve`); the
         border's solution is left in ``theta``, ``y'y`` and ``t'S^-1 t`` in ``y_norm2`` and
-        ``border_decrease``."""
+        ``border_decrease``, ``S^-1`` in ``border_cov``."""
         if self.loaded != self.n_st:
             raise ValueError(f"{self.loaded} band rows fed for {self.n_st} stations")
         t0 = time.perf_counter()
@@ -601,7 +604,7 @@ class BandSolver:
         self._writer.wait()
         self._write(*self._take(self.n_st))
         if border is not None:
-            self.theta, self.y_norm2, self.border_decrease = border_solve(
+            self.theta, self.y_norm2, self.border_decrease, self.border_cov = border_solve(
                 self.factor_ds, self.y_ds, border[0], border[1], border[2], self.n_st,
                 self.width // self.block, self.chunk_rows, self.pivot_tol)
         # read back in blocks of at least 8 MiB (fewer, larger reads)

@@ -89,6 +89,11 @@ def cmd_import(args):
               f"points, {r['observations']} image observations (pixels); a free network; "
               f"initial cost {r['initial_cost']:.6e}")
         return 0
+    if args.format == "colmap":
+        return _import_colmap(args)
+    if args.sigma_image is not None:
+        raise ParameterError("--sigma-image applies to --format colmap (the text files give "
+                             "each camera's sigma_image)")
     from .ingest import import_text, summary_text
 
     if len(args.paths) != 1:
@@ -104,6 +109,51 @@ def cmd_import(args):
     for w in summary["warnings"]:
         _warn(w)
     print(summary_text(summary))
+    return 0
+
+
+def _int_list(text, option):
+    try:
+        return tuple(int(x) for x in text.replace(",", " ").split())
+    except ValueError:
+        raise ParameterError(f"{option} {text!r}: a list of integer ids, e.g. 1,3") from None
+
+
+def _import_colmap(args):
+    from .formats.colmap import import_colmap
+
+    if len(args.paths) != 2:
+        raise ParameterError("--format colmap takes the model's directory and the project to "
+                             "create: sapgo import --format colmap MODEL_DIR block.h5")
+    given = [o for o, v in (("--cameras", args.cameras), ("--photos", args.photos),
+                            ("--photos-matrix", args.photos_matrix),
+                            ("--measurements", args.measurements), ("--priors", args.priors),
+                            ("--prior-covariances", args.prior_covariances),
+                            ("--append", args.append), ("--fixed-intrinsics",
+                                                        args.fixed_intrinsics)) if v]
+    if given:
+        raise ParameterError(f"--format colmap does not take {', '.join(given)} (the model "
+                             f"holds the cameras, photos and measurements; --control adds "
+                             f"control)")
+    r = import_colmap(args.paths[0], args.paths[1], control=args.control, crs=args.crs,
+                      sigma_image=1.0 if args.sigma_image is None else args.sigma_image,
+                      force=args.force, memory=args.memory)
+    for w in r["warnings"]:
+        _warn(w)
+    models = ", ".join(f"{n} {m}" for m, n in r["camera_models"].items())
+    kinds = ", ".join(f"{n} {k}" for k, n in r["points_by_kind"].items() if n)
+    print(f"imported {r['path']}: {r['cameras']} camera(s) ({models}; intrinsics held), "
+          f"{r['photos']} photo(s), {r['points']} point(s) ({kinds}), {r['observations']} "
+          f"image observations (pixels), {r['points2D_without_3D']} 2D points without a 3D "
+          f"point kept; mean reprojection error {r['mean_reprojection_error']:.4f} px")
+    if r["y_scaled_cameras"]:
+        print(f"{r['y_scaled_cameras']} camera(s) with fx != fy: image y scaled by fx/fy")
+    if r["free"]:
+        print("no control: a free network (adjusted by Levenberg-Marquardt)")
+    elif r["aligned"]:
+        a = r["aligned"]
+        print(f"model aligned to {a['points']} full control points ({r['frame']}): scale "
+              f"{a['scale']:.6g}, rotation {a['rotation_deg']:.4f} deg, RMS {a['rms']:.4g} m")
     return 0
 
 
@@ -126,6 +176,10 @@ def cmd_adjust(args):
         snooping=args.snooping,
         snooping_alpha=args.alpha,
         method=args.method,
+        tol_cost=args.tol_cost,
+        calibrate=args.calibrate or (),
+        calibrate_cameras=(None if args.calibrate_cameras is None else
+                           _int_list(args.calibrate_cameras, "--calibrate-cameras")),
     )
     if args.plots:  # before a long run: matplotlib is there
         from .plots import check_matplotlib
@@ -192,7 +246,18 @@ def cmd_report(args):
 def cmd_export(args):
     from .formats import export_adjusted, export_text
 
-    if args.format == "bal":
+    if args.pixel_size is not None and args.format != "colmap":
+        raise ParameterError("--pixel-size applies to --format colmap")
+    if args.format == "colmap":
+        from .formats.colmap import export_colmap
+
+        r = export_colmap(args.project, args.directory, adjusted=args.adjusted,
+                          pixel_size=args.pixel_size)
+        models = ", ".join(f"{n} {m}" for m, n in r["models"].items())
+        print(f"wrote {'the adjusted' if args.adjusted else 'the input'} COLMAP model "
+              f"{args.directory}: {r['cameras']} cameras ({models}), {r['images']} images, "
+              f"{r['points']} points, {r['observations']} observations")
+    elif args.format == "bal":
         from .formats.bal import export_bal
 
         r = export_bal(args.project, args.directory, adjusted=args.adjusted)
@@ -311,17 +376,25 @@ def build_parser():
     m = sub.add_parser("import", help="import a block from text files (cameras, photos, image "
                                       "measurements, control)",
                        description="Import a block from whitespace-separated text files into "
-                                   "a new project (formats: docs/formats.md), or a BAL problem "
-                                   "(--format bal FILE OUTPUT). Each file option may be "
+                                   "a new project (formats: docs/formats.md), a BAL problem "
+                                   "(--format bal FILE OUTPUT) or a COLMAP text model "
+                                   "(--format colmap MODEL_DIR OUTPUT [--control FILE]). "
+                                   "Each file option may be "
                                    "repeated. The measurements are sorted within the memory "
                                    "budget, so their files may be in any order.")
     m.add_argument("paths", nargs="+", metavar="[FILE] OUTPUT",
                    help="the project file to create (e.g. block.h5); with --format bal the BAL "
-                        "file first")
-    m.add_argument("--format", choices=("text", "bal"), default="text",
-                   help="text (default: the files below) or bal (a 'Bundle Adjustment in the "
+                        "file first, with --format colmap the model's directory first")
+    m.add_argument("--format", choices=("text", "bal", "colmap"), default="text",
+                   help="text (default: the files below), bal (a 'Bundle Adjustment in the "
                         "Large' problem: one camera per photo whose f, k1, k2 are adjusted "
-                        "with it, pixels, a free network adjusted by Levenberg-Marquardt)")
+                        "with it, pixels, a free network adjusted by Levenberg-Marquardt) or "
+                        "colmap (COLMAP's text model: cameras.txt, images.txt, points3D.txt; "
+                        "pixels; a free network, or with --control aligned to the control "
+                        "and adjusted with it)")
+    m.add_argument("--sigma-image", type=float, metavar="PX",
+                   help="with --format colmap: standard error of the image coordinates, "
+                        "pixels (default 1)")
     m.add_argument("--fixed-intrinsics", action="store_true",
                    help="with --format bal: hold each photo's f, k1, k2 fixed")
     m.add_argument("--cameras", action="append", default=[], metavar="FILE",
@@ -336,7 +409,7 @@ def build_parser():
                    help="photo point x y [sigma] (mm; sigma 0 or missing = the camera's)")
     m.add_argument("--control", action="append", default=[], metavar="FILE",
                    help="point X Y Z sX sY sZ [full|horizontal|vertical|check] (m; '-' = "
-                        "unknown)")
+                        "unknown; with --format colmap the points are POINT3D_IDs)")
     m.add_argument("--priors", action="append", default=[], metavar="FILE",
                    help="exposure-station priors (GNSS/INS, orbit): photo omega phi kappa X Y "
                         "Z s_omega s_phi s_kappa sX sY sZ (angle sigmas in arc seconds, m; 0 "
@@ -394,6 +467,15 @@ def build_parser():
                    default="auto",
                    help="auto (default): Gauss-Newton, turning into Levenberg-Marquardt at the "
                         "first step that raises the cost (always for a free network)")
+    a.add_argument("--tol-cost", type=float, default=1e-6,
+                   help="Levenberg-Marquardt: converged when a step lowers the cost by less "
+                        "than this fraction (default 1e-6, Ceres' function tolerance)")
+    a.add_argument("--calibrate", default=None, metavar="PARAMS",
+                   help="self-calibration: adjust these parameters of every camera (shared "
+                        "by its photos) with the block, e.g. f,x0,y0,k1,k2 (any of f, x0, y0, "
+                        "k1, k2, k3, p1, p2)")
+    a.add_argument("--calibrate-cameras", default=None, metavar="IDS",
+                   help="with --calibrate: only these camera ids, e.g. 1,3")
     a.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its last completed iteration")
     a.add_argument("--memory", default=None, metavar="SIZE",
@@ -418,10 +500,15 @@ def build_parser():
                                       "--adjusted the adjusted photos and points)")
     e.add_argument("project")
     e.add_argument("directory", help="output directory (created); with --format bal the file")
-    e.add_argument("--format", choices=("text", "bal"), default="text",
-                   help="text files (default) or one BAL problem file")
+    e.add_argument("--format", choices=("text", "bal", "colmap"), default="text",
+                   help="text files (default), one BAL problem file, or a COLMAP text model "
+                        "(cameras.txt, images.txt, points3D.txt in the directory)")
     e.add_argument("--adjusted", action="store_true",
-                   help="adjusted_photos.txt and adjusted_points.txt in the user's CRS")
+                   help="adjusted_photos.txt and adjusted_points.txt in the user's CRS (with "
+                        "--format bal or colmap: the adjusted values in that format)")
+    e.add_argument("--pixel-size", type=float, metavar="UM",
+                   help="with --format colmap: the pixel size in micrometres, to write a "
+                        "project whose image coordinates are in mm in pixels")
     e.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg")
     e.add_argument("--orientation", choices=("tangent", "geocentric"), default="tangent",
                    help="with --adjusted and a CRS: angles to the east-north-up frame at each "

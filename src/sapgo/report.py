@@ -315,6 +315,10 @@ class Summary:
     #: Planted blunders against the rejections: ``{"planted", "found", "false_rejections",
     #: "rejected_with_point", "detectable", "found_detectable", ...}``.
     blunder_check: dict | None = None
+    #: Self-calibration: per adjusted camera parameter ``{"camera", "parameter", "initial",
+    #: "adjusted", "correction", "sigma"}`` (the parameter's own unit: f, x0, y0 image units,
+    #: k1 per unit squared, ...); None without self-calibration.
+    calibration: list | None = None
 
     def to_dict(self):
         return dataclasses.asdict(self)
@@ -382,6 +386,17 @@ class Summary:
         if self.datum == "free":
             L.append("  a free network: no control or priors fix the datum, so no precision "
                      "is computed")
+        if self.calibration:
+            unit = self.image_unit
+            L.append(f"  self-calibration (camera, parameter: initial -> adjusted +- sigma; "
+                     f"image unit {unit}):")
+            for r in self.calibration:
+                sig = "" if r["sigma"] is None else f" +- {r['sigma']:.6g}"
+                L.append(f"    camera {r['camera']} {r['parameter']:>2}: {r['initial']:.9g} -> "
+                         f"{r['adjusted']:.9g}{sig}")
+            if self.datum != "free":
+                L.append("  (the precision of stations and points is not computed with "
+                         "self-calibration yet)")
         c = self.check_points
         if c["n"]:
             L.append(
