@@ -199,7 +199,9 @@ def test_photos_own_intrinsics_reach_the_scipy_minimum(tmp_path):
 
 def test_round_trip_import_adjust_export_import(tmp_path, capsys):
     src = tmp_path / "d.h5"
-    code, text, err = run_cli(capsys, "import", "--format", "bal", DUBROVNIK, src)
+    # (dubrovnik-3-7 has 38 image coordinates: too few for 9 parameters a photo)
+    code, text, err = run_cli(capsys, "import", "--format", "bal", "--fixed-intrinsics",
+                              DUBROVNIK, src)
     assert code == 0 and "initial cost" in text, err
     code, text, err = run_cli(capsys, "adjust", src, "--no-progress", "--json",
                               tmp_path / "r.json", "--quiet")
@@ -212,7 +214,7 @@ def test_round_trip_import_adjust_export_import(tmp_path, capsys):
     assert code == 0, err
     back = read_bal(tmp_path / "out.txt")
     assert bal_cost(back) == pytest.approx(rep["final_cost"], rel=1e-9)
-    r = import_bal(tmp_path / "out.txt", tmp_path / "again.h5")
+    r = import_bal(tmp_path / "out.txt", tmp_path / "again.h5", intrinsics="fixed")
     assert r["initial_cost"] == pytest.approx(rep["final_cost"], rel=1e-9)
     # the inputs round-trip exactly (rotations through omega-phi-kappa to 1e-15)
     export_bal(src, tmp_path / "in.txt", adjusted=False)

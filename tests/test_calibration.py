@@ -12,7 +12,13 @@ from conftest import assert_one_line_error, read_records, rewrite, run_cli
 
 import naive
 import sapgo
-from sapgo.bandsolve import BandSolver, BorderPivotError, border_solve, dense_to_band
+from sapgo.bandsolve import (
+    BandSolver,
+    BorderPivotError,
+    border_back_substitute,
+    border_solve,
+    dense_to_band,
+)
 from sapgo.geometry import CALIBRATION_FIELDS, apply_calibration, camera_partials, project
 from sapgo.project import CONTROL_MASK, Project
 
@@ -74,6 +80,14 @@ def test_bordered_band_equals_the_dense_solve(chunk_rows):
     np.testing.assert_allclose(solver.theta, x[n:], rtol=0, atol=1e-13)
     np.testing.assert_allclose(solver.border_cov, np.linalg.inv(a)[n:, n:], atol=1e-14)
     assert solver.y_norm2 + solver.border_decrease == pytest.approx(b @ x, rel=1e-12)
+    # X = M^-1 B, streamed backwards: the border's share of the stations' covariances
+    border_back_substitute(fac, border, n_st, bw, step=chunk_rows)
+    xm = np.linalg.solve(a[:n, :n], a[:n, n:])
+    np.testing.assert_allclose(border.reshape(n, ng), xm, rtol=0, atol=1e-14)
+    inv = np.linalg.inv(a)
+    np.testing.assert_allclose(-xm @ solver.border_cov, inv[:n, n:], atol=1e-14)
+    np.testing.assert_allclose(np.linalg.inv(a[:n, :n]) + xm @ solver.border_cov @ xm.T,
+                               inv[:n, :n], atol=1e-13)
 
 
 def test_an_undeterminable_border_parameter_is_named():
@@ -171,7 +185,7 @@ def test_calibrate_from_the_command_line_and_bad_options(miscalibrated, tmp_path
     assert "self-calibration" in out and "camera 1  f:" in out
     rep = json.loads((tmp_path / "r.json").read_text())
     assert [r["parameter"] for r in rep["calibration"]] == ["f", "k1"]
-    assert rep["precision"] is None
+    assert rep["precision"]["stations"]["X_m"]["max"] > 0
     with Project(miscalibrated) as p:
         corr = p.solution("camera_corr")[0]
     assert corr[0] == pytest.approx(rep["calibration"][0]["correction"])
@@ -180,7 +194,8 @@ def test_calibrate_from_the_command_line_and_bad_options(miscalibrated, tmp_path
     for args, words in [(["--calibrate", "f,zoom"], "'zoom'"),
                         (["--calibrate", "f", "--calibrate-cameras", "7"], "camera id 7"),
                         (["--calibrate-cameras", "1"], "without calibrate"),
-                        (["--calibrate", "f", "--snooping"], "self-calibration")]:
+                        (["--calibrate", "f,f"], "named twice"),
+                        (["--calibrate", "f", "--calibrate-cameras", "x"], "integer ids")]:
         code, out, err = run_cli(capsys, "adjust", miscalibrated, "--no-progress", *args)
         assert_one_line_error(code, err, words)
     assert open(miscalibrated, "rb").read() == before
@@ -205,3 +220,95 @@ def test_a_killed_self_calibration_resumes_to_the_same_result(miscalibrated, tmp
     a, b = adjusted(ref), adjusted(miscalibrated)
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)
+
+
+def test_precision_with_self_calibration_equals_the_dense_inverse(miscalibrated):
+    """With the border: station, point and camera standard deviations and the observations'
+    redundancy numbers equal those of the inverse of the full normal matrix over stations,
+    points and camera parameters, computed densely (the border's rank-g term X S^-1 X' in
+    the stations, V' S^-1 V in the points, and E, X, V in every observation)."""
+    import dataclasses
+
+    from sapgo.adjust import work_path
+    from sapgo.rawfile import RawArray
+
+    calib = ("f", "x0", "y0", "k1", "p1", "p2")
+    summary = sapgo.adjust(miscalibrated, sapgo.Options(calibrate=calib, keep_scratch=True,
+                                                        **TIGHT))
+    assert summary.converged and summary.precision is not None
+    rec = read_records(miscalibrated)
+    st, pt, ob = rec["stations"], rec["points"], rec["observations"]
+    with Project(miscalibrated) as p:
+        eo = st["eo"] + p.solution("station_corr")
+        xyz = pt["xyz"] + p.solution("point_corr")
+        cam = np.array([p.cameras()[0][k] for k in ("focal_length", "x0", "y0", "k1", "k2",
+                                                      "k3", "p1", "p2")])
+        cam = cam + p.solution("camera_corr")[0]
+        ssig, psig = p.solution("station_sigma"), p.solution("point_sigma")
+    quality = RawArray(work_path(miscalibrated) / "quality.bin", (len(ob), 7), mode="r")[:]
+    ns, npnt = len(st), len(pt)
+    idx = [CALIBRATION_FIELDS.index(k) for k in calib]
+    nu = 6 * ns + 3 * npnt + len(idx)
+
+    def proj(e, x, c):
+        return naive.project(e, x, c[0], c[1], c[2], dist=tuple(c[3:]))
+
+    rows = []
+    for i in range(len(ob)):
+        s, j = ob["station"][i], ob["point"][i]
+        a, b = naive.jacobian_complex_step(eo[s], xyz[j], cam[0], cam[1], cam[2],
+                                           dist=tuple(cam[3:]))
+        row = np.zeros((2, nu))
+        row[:, 6 * s:6 * s + 6] = a
+        row[:, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b
+        for q, k in enumerate(idx):
+            c = cam.astype(complex)
+            h = 1e-30 * max(abs(cam[k]), 1e-30)
+            c[k] += 1j * h
+            row[:, 6 * ns + 3 * npnt + q] = proj(eo[s], xyz[j], c).imag / h
+        rows.append(row / ob["sigma"][i])
+    jac = np.concatenate(rows)
+    n = jac.T @ jac
+    mask = CONTROL_MASK[pt["kind"]].astype(bool)
+    for j, k in zip(*np.nonzero(mask)):
+        n[6 * ns + 3 * j + k, 6 * ns + 3 * j + k] += 1.0 / pt["control_sigma"][j, k] ** 2
+    sc = 1.0 / np.sqrt(np.diag(n))
+    q = sc[:, None] * np.linalg.inv(n * sc[:, None] * sc[None, :]) * sc[None, :]
+    s0 = summary.sigma0
+    dq = np.sqrt(np.diag(q))
+    np.testing.assert_allclose(ssig, s0 * dq[:6 * ns].reshape(-1, 6), rtol=1e-6)
+    np.testing.assert_allclose(psig, s0 * dq[6 * ns:6 * ns + 3 * npnt].reshape(-1, 3),
+                               rtol=1e-6)
+    got = {r["parameter"]: r["sigma"] for r in summary.calibration}
+    for qq, k in enumerate(calib):
+        assert got[k] == pytest.approx(s0 * dq[6 * ns + 3 * npnt + qq], rel=1e-6)
+    r = np.zeros((len(ob), 3))
+    for i in range(len(ob)):
+        jj = jac[2 * i:2 * i + 2] * ob["sigma"][i]
+        qvv = ob["sigma"][i] ** 2 * np.eye(2) - jj @ q @ jj.T
+        r[i] = [qvv[0, 0], qvv[1, 1], qvv[0, 1]] / ob["sigma"][i] ** 2
+    np.testing.assert_allclose(quality[:, :3], r, rtol=1e-5, atol=1e-8)
+    # the redundancy numbers add up to the redundancy (control takes about none)
+    assert r[:, :2].sum() == pytest.approx(summary.redundancy, abs=0.05)
+    shutil.rmtree(work_path(miscalibrated), ignore_errors=True)
+
+
+def test_data_snooping_with_self_calibration(block_cache, tmp_path):
+    """A large blunder in a miscalibrated 9-point-pattern block: data snooping with the camera
+    calibrated finds it (the redundancy numbers include the border) and nothing else."""
+    dist = (-2.0e-8, 0.0, 0.0, 0.0, 0.0)
+    path = tmp_path / "b.h5"
+    shutil.copy(block_cache("calib-blunder", strips=3, photos_per_strip=8, control_points=8,
+                            distortion=dist, blunders=1, blunder_size=(0.2, 0.2)), path)
+    with Project(path, "r+") as p:  # the camera says: no distortion
+        cams = p.file["cameras"][:]
+        cams["k1"] = 0.0
+        p.file["cameras"][:] = cams
+        assert len(p.read("truth/blunders")) == 1
+    s = sapgo.adjust(path, sapgo.Options(calibrate=("f", "k1"), snooping=True, progress=False,
+                                         max_iterations=30))
+    assert s.converged
+    assert s.blunder_check["planted"] == 1 and s.blunder_check["found"] == 1
+    assert s.blunder_check["false_rejections"] <= 1
+    k1 = {r["parameter"]: r for r in s.calibration}["k1"]
+    assert abs(k1["adjusted"] - dist[0]) < 3 * k1["sigma"]

@@ -42,6 +42,7 @@ from .bandsolve import (
     BandSolver,
     BorderPivotError,
     PivotError,
+    border_back_substitute,
     covariance_blocks,
 )
 from .errors import DatumDefectError, SapgoError, SingularNormalsError
@@ -311,6 +312,8 @@ class _Block:
     #: ``(camera index, field index)`` by column
     cal: np.ndarray = dataclasses.field(default_factory=lambda: np.full((0, 8), -1, np.int64))
     border: list = dataclasses.field(default_factory=list)
+    #: the border's cofactors ``S^-1`` of the last accepted step (ng x ng)
+    border_cov: np.ndarray | None = None
 
     @property
     def n_border(self):
@@ -818,7 +821,7 @@ class Work:
         self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=mode)
         self.y = RawArray(self.dir / "y.bin", (self.n_st, k), mode=mode)
         # self-calibration: the border columns of the band rows, then W = U'^-1 B
-        self.border = (RawArray(self.dir / "border.bin", (self.n_st, k, n_border), mode="w")
+        self.border = (RawArray(self.dir / "border.bin", (self.n_st, k, n_border), mode=mode)
                        if n_border else None)
         self.xyz = [RawArray(self.dir / f"xyz.{i}.bin", (self.n_pt, 3), mode=mode)
                     for i in (0, 1)]
@@ -1059,6 +1062,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         run["cost"] = cost
         if border_cov is not None:  # the cameras' cofactors (scaled border parameters)
             run["border_cov"] = border_cov.tolist()
+            blk.border_cov = border_cov
         tol_pos, tol_ang = run.get("robust_tol") or (opts.tol_position, opts.tol_angle)
         converged = bool(
             d_pos < tol_pos and st["max_point_corr"] < tol_pos and d_ang < tol_ang
@@ -1109,11 +1113,6 @@ def adjust(path, options: Options | None = None) -> Summary:
             raise SapgoError(f"{path}: a free network (no control, no priors) has no "
                              f"precision or redundancy numbers without a datum: data snooping "
                              f"and robust estimation need control points or station priors")
-        if blk.border and (opts.snooping or opts.robust is not None):
-            raise SapgoError(f"{path}: data snooping and robust estimation need the precision "
-                             f"of every observation, which is not computed with "
-                             f"self-calibration yet: calibrate the cameras first, then "
-                             f"snoop with them held")
         if blk.free and opts.method == "gauss-newton":
             raise SapgoError(f"{path}: a free network needs Levenberg-Marquardt (method auto "
                              f"or levenberg-marquardt), not gauss-newton")
@@ -1168,6 +1167,8 @@ def adjust(path, options: Options | None = None) -> Summary:
                     if checkpoint.get(key) is not None:
                         run[key] = checkpoint[key]
                 run["rejected_points"] = blk.rejected_points.tolist()
+                if run.get("border_cov") is not None:
+                    blk.border_cov = np.array(run["border_cov"])
                 log = checkpoint["log"]
                 for k, v in checkpoint["timings"].items():
                     timings[k] = v + (timings[k] if k == "order" else 0.0)
@@ -1236,6 +1237,11 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
         act = p_read.read_field("points", "status", a, b) == STATUS_ACTIVE
         first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
     np.cumsum(first, out=first)
+    ng = blk.n_border
+    cal = sig_b = None
+    if ng:  # self-calibration: X = M^-1 B and S^-1 (docs/theory.md section 1c)
+        border_back_substitute(work.factor, work.border, n_st, blk.band_width, opts.chunk_rows)
+        cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
     psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
     quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
                        mode="w")
@@ -1250,10 +1256,14 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
             out = np.empty((b - a, 6))
             out_r = np.empty((c.o1 - c.o0, 3))
             out_w = np.empty((c.o1 - c.o0, 3))
+            xlo = start
+            xw = (np.ascontiguousarray(work.border[xlo:min(n_st, stop + blk.band_width)],
+                                       dtype=np.float64) if ng else None)
             point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
                          c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
                          blk.camera, blk.cams, CTRL_MASK, c.max_rays, zb, base,
-                         np.ascontiguousarray(res_ds[c.o0:c.o1]), out, out_r, out_w, blk.npar)
+                         np.ascontiguousarray(res_ds[c.o0:c.o1]), out, out_r, out_w, blk.npar,
+                         cal, xw, xlo, sig_b)
             psig[a:b] = sigma0 * out[:, :3]
             if weight is None:
                 weight = np.ones(c.o1 - c.o0)
@@ -1268,6 +1278,12 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     try:
         var = covariance_blocks(work.factor, n_st, blk.band_width, opts.chunk_rows, out=cov,
                                 on_block=points_of)
+        for a in range(0, n_st, opts.chunk_points) if ng else ():  # + X S^-1 X'
+            b = min(n_st, a + opts.chunk_points)
+            x = np.asarray(work.border[a:b], dtype=np.float64)
+            blocks = cov[a:b] + np.einsum("iag,gh,ibh->iab", x, sig_b, x)
+            cov[a:b] = blocks
+            var[a:b] = np.diagonal(blocks, axis1=1, axis2=2)
         if correlations is not None:
             for a in range(0, n_st, opts.chunk_points):
                 b = min(n_st, a + opts.chunk_points)
@@ -1428,8 +1444,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     xyz_ds, res_ds = work.xyz_current, work.res_current
     t_prec = time.perf_counter()
     correlations = HighCorrelations(opts.correlation_threshold)
-    no_precision = blk.free or bool(blk.border)
-    if no_precision:  # no datum (or self-calibration): no precision, and no report of it
+    no_precision = blk.free
+    if no_precision:  # no datum, no precision: zeros, and no report of it
         station_sigma = np.zeros((len(blk.station_ids), 6))
         psig = quality = None
         correlations = reliability = None

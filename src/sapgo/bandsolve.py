@@ -353,6 +353,52 @@ def _dense_cholesky(a, tol):
     return -1
 
 
+@njit(cache=True, nogil=True)
+def _border_back_rows(fac, win, i0, n):
+    """Back substitution of the border columns, ``X = U^-1 W``, for the scalar rows of the
+    stations ``i0 ..`` of the factor rows ``fac`` (in reverse): ``win`` (scalar rows x ng)
+    holds ``W`` of these stations followed by ``X`` of the ``b`` stations after them."""
+    width = fac.shape[2]
+    kb = fac.shape[1]
+    ng = win.shape[1]
+    for ii in range(fac.shape[0] - 1, -1, -1):
+        for r in range(kb - 1, -1, -1):
+            h = kb * (i0 + ii) + r
+            lh = kb * ii + r
+            top = min(width, n - h)
+            for d in range(1, top):
+                ud = fac[ii, r, d]
+                if ud != 0.0:
+                    for c in range(ng):
+                        win[lh, c] -= ud * win[lh + d, c]
+            u0 = fac[ii, r, 0]
+            for c in range(ng):
+                win[lh, c] /= u0
+
+
+def border_back_substitute(factor_ds, border_ds, n_st, band_width, step=256):
+    """``X = M^-1 B = U^-1 W`` in place of ``W`` (``border_ds``, n x k x ng, as
+    :func:`border_solve` left it), reading the factor rows backwards ``step`` stations at a
+    time: the border's share of the stations' covariances, ``cov(delta) = M^-1 + X S^-1 X'``
+    and ``cov(delta, theta) = -X S^-1``."""
+    kb = factor_ds.shape[1]
+    ng = border_ds.shape[2]
+    n = kb * n_st
+    step = max(1, step)
+    carry = np.zeros((0, kb, ng))
+    stop = n_st
+    while stop > 0:
+        start = max(0, stop - step)
+        w = np.asarray(border_ds[start:stop], dtype=np.float64)
+        win = np.ascontiguousarray(np.concatenate([w, carry]).reshape(-1, ng))
+        fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
+        _border_back_rows(fac, win, start, n)
+        x = win.reshape(-1, kb, ng)
+        border_ds[start:stop] = x[:stop - start]
+        carry = x[:band_width].copy()
+        stop = start
+
+
 class BorderPivotError(Exception):
     """A border parameter that the block cannot determine (a non-positive pivot of the
     border's Schur complement); ``index`` is its border column."""

@@ -546,7 +546,8 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
 @njit(cache=True)
 def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                  obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
-                 ctrl_mask, max_rays, zb, base, res, out, out_r, out_w, npar=6):
+                 ctrl_mask, max_rays, zb, base, res, out, out_r, out_w, npar=6, cal=None,
+                 xw=None, xbase=0, sig_b=None):
     """Precision of the points of a chunk and the quality of their observations (stations
     of ``npar`` parameters: 6, or 9 with the photo's intrinsics).
 
@@ -564,7 +565,15 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     (``Q_sp = -sum_t Z[s, t] Nbar_t G``);
     ``out_w`` (observations x 3): normalised residuals ``v / (sigma sqrt(r))`` of the residuals
     ``res`` and the observation's 2-D statistic ``sqrt(v' Q_vv^+ v)`` (divide by sigma0);
-    inactive observations 0."""
+    inactive observations 0.
+
+    Self-calibration (docs/theory.md section 1c): ``cal`` as in :func:`build_points`,
+    ``xw[s - xbase]`` (k x ng) the rows of ``X = M^-1 B`` of the stations, ``sig_b`` (ng x ng)
+    the border's cofactors ``S^-1``. The inverse of the bordered matrix adds to the point
+    ``T += V' S^-1 V`` with ``V = sum_q X[s_q]' Nbar_q - Nbar_g``, and to an observation
+    with design row ``[A, B, E]`` the terms of ``cov(delta_s) += X_s S^-1 X_s'``,
+    ``cov(delta_s, theta) = -X_s S^-1``, ``cov(eps, theta) = G V' S^-1``,
+    ``cov(delta_s, eps) -= X_s S^-1 V G``, ``cov(theta) = S^-1``."""
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays, npar)
     g = np.empty((3, 3))
     t = np.empty((3, 3))
@@ -576,6 +585,14 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     a = np.empty((2, npar))
     b = np.empty((2, 3))
     qv = np.empty((2, 2))
+    ng = 0 if sig_b is None else sig_b.shape[0]
+    vb = np.zeros((ng, 3))        # V = sum_q X[s_q]' Nbar_q - Nbar_g
+    sv = np.zeros((ng, 3))        # S^-1 V
+    eb = np.zeros((2, ng))        # the observation's border partials
+    ec = np.empty((2, 8))
+    xs_s = np.zeros((npar, ng))   # X_s S^-1
+    ab = np.empty((2, npar))
+    bb = np.empty((2, 3))
     for i in range(out_r.shape[0]):
         for c in range(out_r.shape[1]):
             out_r[i, c] = 0.0
@@ -611,6 +628,49 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                             za = z * nbar[q, a6, c1]
                             for c2 in range(3):
                                 t[c1, c2] += za * nbar[r, b6, c2]
+        if ng > 0:
+            vb[:, :] = 0.0
+            for q in range(k):  # V: X' Nbar over the rays, minus Nbar_g (direct terms)
+                s = st_all[q]
+                xr = s - xbase
+                for u in range(npar):
+                    for cg in range(ng):
+                        xv = xw[xr, u, cg]
+                        for c in range(3):
+                            vb[cg, c] += xv * nbar[q, u, c]
+                cam = cam_of_station[s]
+                used = False
+                for f in range(8):
+                    if cal[cam, f] >= 0:
+                        used = True
+                if not used:
+                    continue
+                camera_partials(eo[s], xyz, cams[cam], ec)
+                linearize(eo[s], xyz, cams[cam], ab, bb)
+                p = w_all[q]
+                for f in range(8):
+                    cg = cal[cam, f]
+                    if cg < 0:
+                        continue
+                    for c in range(3):
+                        vb[cg, c] -= p * (ec[0, f] * bb[0, c] + ec[1, f] * bb[1, c])
+            kind = pt_kind[j]
+            for c in range(3):  # a fixed component is no unknown
+                if ctrl_mask[kind, c] and pt_csig[j, c] == 0.0:
+                    for cg in range(ng):
+                        vb[cg, c] = 0.0
+            for cg in range(ng):
+                for c in range(3):
+                    x = 0.0
+                    for c2 in range(ng):
+                        x += sig_b[cg, c2] * vb[c2, c]
+                    sv[cg, c] = x
+            for c1 in range(3):
+                for c2 in range(3):
+                    x = 0.0
+                    for cg in range(ng):
+                        x += vb[cg, c1] * sv[cg, c2]
+                    t[c1, c2] += x
         for c1 in range(3):
             for c2 in range(3):
                 v = g[c1, c2]
@@ -643,6 +703,27 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                         z = zb[sq + a6, sr + b6]
                         for c in range(3):
                             zn[a6, c] += z * nbar[r, b6, c]
+            if ng > 0:  # zn += X_s S^-1 V; the border's partials of the observation
+                xr = s - xbase
+                for a6 in range(npar):
+                    for cg in range(ng):
+                        x = 0.0
+                        for c2 in range(ng):
+                            x += xw[xr, a6, c2] * sig_b[c2, cg]
+                        xs_s[a6, cg] = x
+                    for c in range(3):
+                        x = 0.0
+                        for cg in range(ng):
+                            x += xw[xr, a6, cg] * sv[cg, c]
+                        zn[a6, c] += x
+                eb[:, :] = 0.0
+                cam = cam_of_station[s]
+                camera_partials(eo[s], xyz, cams[cam], ec)
+                for f in range(8):
+                    cg = cal[cam, f]
+                    if cg >= 0:
+                        eb[0, cg] = ec[0, f]
+                        eb[1, cg] = ec[1, f]
             for a6 in range(npar):
                 for c in range(3):
                     v = 0.0
@@ -662,6 +743,9 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                     for c1 in range(3):
                         for c2 in range(3):
                             cmm += b[m, c1] * qpp[c1, c2] * b[m2, c2]
+                    if ng > 0:
+                        cmm += _border_terms(m, m2, a, b, eb, xw[s - xbase], xs_s, sv, g,
+                                             sig_b)
                     qv[m, m2] = (sig2 if m == m2 else 0.0) - cmm
                 qvv = qv[m, m]
                 out_r[i, m] = qvv / sig2
@@ -683,6 +767,42 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                 t2 = 0.0
             out_w[i, 2] = math.sqrt(max(t2, 0.0))
             q += 1
+
+
+@njit(cache=True)
+def _border_terms(m, m2, a, b, eb, xs, xs_s, sv, g, sig_b):
+    """The border's share of ``[A B E] Q [A B E]'`` (rows ``m, m2``) for an observation at a
+    station with ``X_s`` (``xs``), ``X_s S^-1`` (``xs_s``), ``S^-1 V`` (``sv``): ``A X_s S^-1
+    X_s' A'`` and, both ways, ``A cov(delta_s, theta) E' = -A X_s S^-1 E'``,
+    ``B cov(eps, theta) E' = B G V' S^-1 E'``, then ``E S^-1 E'``."""
+    npar = a.shape[1]
+    ng = eb.shape[1]
+    x = 0.0
+    for a6 in range(npar):
+        for b6 in range(npar):
+            z = 0.0
+            for cg in range(ng):
+                z += xs_s[a6, cg] * xs[b6, cg]
+            x += a[m, a6] * z * a[m2, b6]
+    for cg in range(ng):
+        # A cov(delta, theta) and B cov(eps, theta), rows m and m2
+        am = 0.0
+        am2 = 0.0
+        for a6 in range(npar):
+            am -= a[m, a6] * xs_s[a6, cg]
+            am2 -= a[m2, a6] * xs_s[a6, cg]
+        bm = 0.0
+        bm2 = 0.0
+        for c1 in range(3):
+            gv = 0.0
+            for c2 in range(3):
+                gv += g[c1, c2] * sv[cg, c2]
+            bm += b[m, c1] * gv
+            bm2 += b[m2, c1] * gv
+        x += (am + bm) * eb[m2, cg] + (am2 + bm2) * eb[m, cg]
+        for cg2 in range(ng):
+            x += eb[m, cg] * sig_b[cg, cg2] * eb[m2, cg2]
+    return x
 
 
 class PointChunk:

@@ -394,9 +394,6 @@ class Summary:
                 sig = "" if r["sigma"] is None else f" +- {r['sigma']:.6g}"
                 L.append(f"    camera {r['camera']} {r['parameter']:>2}: {r['initial']:.9g} -> "
                          f"{r['adjusted']:.9g}{sig}")
-            if self.datum != "free":
-                L.append("  (the precision of stations and points is not computed with "
-                         "self-calibration yet)")
         c = self.check_points
         if c["n"]:
             L.append(
