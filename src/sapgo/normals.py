@@ -274,6 +274,22 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
 
 
 @njit(cache=True, nogil=True)
+def _ray_border(eo, xyz, c, cal_row, e, a, b):
+    """A ray of a camera with calibrated parameters (``cal_row``, the camera's row of
+    ``cal``): its border partials ``e`` (2 x 8) and collinearity partials ``a``, ``b``;
+    False (nothing computed) when the camera is not calibrated."""
+    used = False
+    for f in range(8):
+        if cal_row[f] >= 0:
+            used = True
+    if not used:
+        return False
+    camera_partials(eo, xyz, c, e)
+    linearize(eo, xyz, c, a, b)
+    return True
+
+
+@njit(cache=True, nogil=True)
 def _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal, xyz, a_all,
                   l_all, w_all, st_all, g, lo, h, base, split, bord, ovf_bord, cnn, ccg,
                   cdiag, slot, tcols, ngp, ggp, e, a_t, b_t):
@@ -287,14 +303,8 @@ def _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, c
     for q in range(k):
         s = st_all[q]
         cam = cam_of_station[s]
-        used = False
-        for f in range(8):
-            if cal[cam, f] >= 0:
-                used = True
-        if not used:
+        if not _ray_border(eo[s], xyz, cams[cam], cal[cam], e, a_t, b_t):
             continue
-        camera_partials(eo[s], xyz, cams[cam], e)
-        linearize(eo[s], xyz, cams[cam], a_t, b_t)
         p = w_all[q]
         a = a_all[q]
         r = s - base
@@ -639,14 +649,8 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                         for c in range(3):
                             vb[cg, c] += xv * nbar[q, u, c]
                 cam = cam_of_station[s]
-                used = False
-                for f in range(8):
-                    if cal[cam, f] >= 0:
-                        used = True
-                if not used:
+                if not _ray_border(eo[s], xyz, cams[cam], cal[cam], ec, ab, bb):
                     continue
-                camera_partials(eo[s], xyz, cams[cam], ec)
-                linearize(eo[s], xyz, cams[cam], ab, bb)
                 p = w_all[q]
                 for f in range(8):
                     cg = cal[cam, f]
