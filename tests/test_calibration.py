@@ -121,8 +121,19 @@ def miscalibrated(block_cache, tmp_path):
     return path
 
 
+_DENSE = {}
+
+
 def dense_calibrated(path, calibrate):
+    """The dense least-squares solution (computed once per block and parameter set)."""
     rec = read_records(path)
+    key = (rec["observations"].tobytes(), rec["cameras"].tobytes(), tuple(calibrate))
+    if key not in _DENSE:
+        _DENSE[key] = _dense_calibrated(rec, calibrate)
+    return _DENSE[key]
+
+
+def _dense_calibrated(rec, calibrate):
     st, pt, ob = rec["stations"], rec["points"], rec["observations"]
     cam = rec["cameras"][0]
     return naive.dense_bundle_adjustment(
