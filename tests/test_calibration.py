@@ -323,3 +323,21 @@ def test_data_snooping_with_self_calibration(block_cache, tmp_path):
     assert s.blunder_check["false_rejections"] <= 1
     k1 = {r["parameter"]: r for r in s.calibration}["k1"]
     assert abs(k1["adjusted"] - dist[0]) < 3 * k1["sigma"]
+
+
+def test_ordering_again_keeps_the_cameras_and_station_precision(miscalibrated):
+    """Re-ordering an adjusted, self-calibrated project keeps /solution/camera_corr and the
+    stations' standard deviations (moved with their stations)."""
+    sapgo.adjust(miscalibrated, sapgo.Options(calibrate=("f", "k1"), progress=False))
+
+    def by_id(path):
+        with Project(path) as p:
+            ids = p.read_field("stations", "id")
+            return (p.solution("camera_corr"), p.solution("station_sigma")[np.argsort(ids)],
+                    p.solution("station_corr")[np.argsort(ids)])
+
+    before = by_id(miscalibrated)
+    assert before[0][0, 0] != 0.0 and (before[1] > 0).all()
+    sapgo.order_project(miscalibrated, "down_strip")
+    for a, b in zip(before, by_id(miscalibrated)):
+        np.testing.assert_array_equal(a, b)

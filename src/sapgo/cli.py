@@ -76,6 +76,9 @@ def cmd_order(args):
 
 
 def cmd_import(args):
+    if args.sigma_image is not None and args.format != "colmap":
+        raise ParameterError("--sigma-image applies to --format colmap (a cameras file gives "
+                             "each camera's sigma_image, a BAL problem has 1 pixel)")
     if args.format == "bal":
         from .formats.bal import import_bal
 
@@ -91,9 +94,6 @@ def cmd_import(args):
         return 0
     if args.format == "colmap":
         return _import_colmap(args)
-    if args.sigma_image is not None:
-        raise ParameterError("--sigma-image applies to --format colmap (the text files give "
-                             "each camera's sigma_image)")
     from .ingest import import_text, summary_text
 
     if len(args.paths) != 1:

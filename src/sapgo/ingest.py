@@ -1054,7 +1054,6 @@ class TextControl:
                                "priors", "prior_covariances"), [])
         files["control"] = paths
         self._imp = imp = _Import(None, files, "deg", memory, Path(work), None, crs)
-        imp.s.update(kinds=dict.fromkeys(KIND_NAMES, 0))
         if imp.crs is not None:  # the frame at the centre of the points known in X and Y
             xyz = []
             for path in paths:

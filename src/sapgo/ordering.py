@@ -36,6 +36,7 @@ from .errors import ParameterError
 from .extsort import DEFAULT_MEMORY, ExternalSorter, parse_memory, rechunk
 from .project import (
     CHUNK_RECORDS,
+    KEYED_GROUPS,
     KIND_CONTROL,
     KIND_VERTICAL,
     OBSERVATION_DTYPE,
@@ -542,10 +543,13 @@ def _order(p, work, method, memory, chunk):
             for k, v in p.file["solution"].attrs.items():
                 sol.attrs[k] = v
             for dname, (parent, shape) in SOLUTION_LAYOUT.items():
-                n = {"stations": n_st, "points": n_pt}.get(parent, p.n_observations)
+                n = {"stations": n_st, "points": n_pt,
+                     "cameras": p.n_cameras}.get(parent, p.n_observations)
                 sol.create_dataset(dname, (n,) + shape, "<f8",
                                    chunks=(max(1, min(n, CHUNK_RECORDS)),) + shape)
             sol["station_corr"][...] = p.solution("station_corr")[perm]
+            sol["station_sigma"][...] = p.solution("station_sigma")[perm]
+            sol["camera_corr"][...] = p.solution("camera_corr")  # cameras keep their order
             if "report" in p.file["solution"]:
                 sol.create_dataset("report", data=p.file["solution/report"][()])
         with ExternalSorter(map_dtype, ["old"], memory // 4, work, "map") as map_sort:
@@ -608,6 +612,9 @@ def _order(p, work, method, memory, chunk):
             w.append("truth/stations", p.read("truth/stations")[perm])
             if "truth/blunders" in p.file:  # keyed by ids: unchanged by the order
                 w.append("truth/blunders", p.read("truth/blunders"))
+        for group in KEYED_GROUPS:  # keyed by ids: unchanged by the order
+            if group in p.file:
+                p.file.copy(p.file[group], w.file, group)
         if has_solution:
             w.file.move("solution.new", "solution")
         w.finish()  # replaces the project (still open here for reading: POSIX keeps it)

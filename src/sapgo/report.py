@@ -435,7 +435,8 @@ class Summary:
             r = self.reliability
             m = r["mdb_um"]
             mdb = (f"; minimal detectable blunder (alpha {r['alpha']:g}, power "
-                   f"{r['power']:.0%}) median {m['median']:.0f} um, 90 % {m['p90']:.0f} um"
+                   f"{r['power']:.0%}) median {self._img(m['median'])}, 90 % "
+                   f"{self._img(m['p90'])}"
                    if m["median"] is not None else "")
             L.append(f"  reliability: mean redundancy number {r['mean_redundancy_number']:.2f}"
                      f"{mdb}; {r['uncontrolled']} observations uncontrolled in one direction")
