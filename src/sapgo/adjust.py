@@ -190,6 +190,8 @@ class Options:
             raise SapgoError("self-calibration: a camera parameter is named twice")
         if self.calibrate_cameras is not None:
             self.calibrate_cameras = tuple(int(c) for c in self.calibrate_cameras)
+            if len(set(self.calibrate_cameras)) != len(self.calibrate_cameras):
+                raise SapgoError("self-calibration: a camera id is named twice")
             if not self.calibrate:
                 raise SapgoError("calibrate_cameras without calibrate: name the camera "
                                  "parameters to adjust")
@@ -314,6 +316,10 @@ class _Block:
     border: list = dataclasses.field(default_factory=list)
     #: the border's cofactors ``S^-1`` of the last accepted step (ng x ng)
     border_cov: np.ndarray | None = None
+    #: the factor in the work files is not the undamped one of the current state (a
+    #: Levenberg-Marquardt step, a rejected step, a resumed run): the precision sweep builds
+    #: and factors the normals once more, undamped, first
+    refactor: bool = False
 
     @property
     def n_border(self):
@@ -381,6 +387,12 @@ def _load_block(p: Project) -> _Block:
     return blk
 
 
+#: Self-calibration: at most this many border unknowns (cameras x parameters). The border's
+#: block is dense (g x g in core, g^3 to factor, g^2 work per observation in the precision
+#: sweep, g doubles per station parameter on disk).
+MAX_BORDER = 256
+
+
 def _set_calibration(blk: _Block, p: Project, opts: Options):
     """The border of a self-calibration (``Options.calibrate``): a column per adjusted field
     of every calibrated camera that has an active photo."""
@@ -408,6 +420,13 @@ def _set_calibration(blk: _Block, p: Project, opts: Options):
                 raise SapgoError(f"{p.path}: self-calibration of camera id {cid}: none of "
                                  f"its photos can be adjusted")
             chosen.append(int(hit[0]))
+    if len(chosen) * len(opts.calibrate) > MAX_BORDER:
+        raise SapgoError(
+            f"{p.path}: self-calibration of {len(chosen)} cameras x {len(opts.calibrate)} "
+            f"parameters = {len(chosen) * len(opts.calibrate)} global unknowns (at most "
+            f"{MAX_BORDER}: the border is dense); choose the cameras with "
+            f"--calibrate-cameras, or, with a camera per photo, adjust the photos' own "
+            f"intrinsics (import a BAL problem without --fixed-intrinsics)")
     for c in chosen:
         for name in opts.calibrate:
             f = CALIBRATION_FIELDS.index(name)
@@ -445,7 +464,8 @@ def _calibration_report(p: Project, blk: _Block, run, sigma0):
     the field's own unit)."""
     cams0 = camera_array(p.cameras())
     ids = p.cameras()["id"]
-    cov = run.get("border_cov")
+    # (a free network has no precision: its damped cofactors mean nothing)
+    cov = None if blk.free else blk.border_cov
     rows = []
     for col, (c, f) in enumerate(blk.border):
         scale = float(blk.cams[c, 0]) ** int(CALIBRATION_POWERS[f])
@@ -1041,6 +1061,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             "solve_s": t2 - t1,
             "update_s": t3 - t2,
         })
+        blk.refactor = lm or not ok
         if lm or not ok:
             log[-1]["mu"] = mu
             log[-1]["rho"] = rho
@@ -1169,6 +1190,7 @@ def adjust(path, options: Options | None = None) -> Summary:
                 run["rejected_points"] = blk.rejected_points.tolist()
                 if run.get("border_cov") is not None:
                     blk.border_cov = np.array(run["border_cov"])
+                blk.refactor = True
                 log = checkpoint["log"]
                 for k, v in checkpoint["timings"].items():
                     timings[k] = v + (timings[k] if k == "order" else 0.0)
@@ -1216,6 +1238,23 @@ def adjust(path, options: Options | None = None) -> Summary:
     return summary
 
 
+def _undamped_factor(p: Project, work, blk: _Block, opts: Options):
+    """Build and factor the normals of the current state without damping (the work files'
+    factor, ``y`` and border), for the precision sweep after Levenberg-Marquardt steps."""
+    solver = BandSolver(len(blk.station_ids), blk.band_width, work.factor, work.y,
+                        opts.chunk_rows, opts.pivot_tolerance, block=blk.npar)
+    try:
+        _, border = build(p, work, blk, opts, sink=solver.feed)
+        solver.finish(None if border is None else (work.border, border[0], border[1]))
+    except PivotError as exc:
+        raise _pivot_error(exc, blk, p) from None
+    except BorderPivotError as exc:
+        raise _border_pivot_error(exc, blk, p) from None
+    if border is not None:
+        blk.border_cov = solver.border_cov
+    blk.refactor = False
+
+
 def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     """Precision and observation quality from the last iteration's factor.
 
@@ -1237,10 +1276,14 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
         act = p_read.read_field("points", "status", a, b) == STATUS_ACTIVE
         first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
     np.cumsum(first, out=first)
+    if blk.refactor:
+        _undamped_factor(p_read, work, blk, opts)
     ng = blk.n_border
-    cal = sig_b = None
-    if ng:  # self-calibration: X = M^-1 B and S^-1 (docs/theory.md section 1c)
-        border_back_substitute(work.factor, work.border, n_st, blk.band_width, opts.chunk_rows)
+    cal = sig_b = xb_ds = None
+    if ng:  # self-calibration: X = M^-1 B (its own file: W stays, the sweep can run again)
+        xb_ds = RawArray(work.dir / "xborder.bin", (n_st, blk.npar, ng), mode="w")
+        border_back_substitute(work.factor, work.border, n_st, blk.band_width, opts.chunk_rows,
+                               out=xb_ds)
         cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
     psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
     quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
@@ -1257,7 +1300,7 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
             out_r = np.empty((c.o1 - c.o0, 3))
             out_w = np.empty((c.o1 - c.o0, 3))
             xlo = start
-            xw = (np.ascontiguousarray(work.border[xlo:min(n_st, stop + blk.band_width)],
+            xw = (np.ascontiguousarray(xb_ds[xlo:min(n_st, stop + blk.band_width)],
                                        dtype=np.float64) if ng else None)
             point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
                          c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
@@ -1280,7 +1323,7 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
                                 on_block=points_of)
         for a in range(0, n_st, opts.chunk_points) if ng else ():  # + X S^-1 X'
             b = min(n_st, a + opts.chunk_points)
-            x = np.asarray(work.border[a:b], dtype=np.float64)
+            x = np.asarray(xb_ds[a:b], dtype=np.float64)
             blocks = cov[a:b] + np.einsum("iag,gh,ibh->iab", x, sig_b, x)
             cov[a:b] = blocks
             var[a:b] = np.diagonal(blocks, axis1=1, axis2=2)
@@ -1292,6 +1335,8 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
                 correlations.add("stations", blk.station_ids[a:b], rho)
     finally:
         cov.close()
+        if xb_ds is not None:
+            xb_ds.close()
     station_sigma = sigma0 * np.sqrt(np.maximum(var[:, :6], 0.0))
     station_sigma[~blk.station_active] = 0.0
     return station_sigma, psig, quality

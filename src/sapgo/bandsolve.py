@@ -376,11 +376,12 @@ def _border_back_rows(fac, win, i0, n):
                 win[lh, c] /= u0
 
 
-def border_back_substitute(factor_ds, border_ds, n_st, band_width, step=256):
-    """``X = M^-1 B = U^-1 W`` in place of ``W`` (``border_ds``, n x k x ng, as
-    :func:`border_solve` left it), reading the factor rows backwards ``step`` stations at a
-    time: the border's share of the stations' covariances, ``cov(delta) = M^-1 + X S^-1 X'``
-    and ``cov(delta, theta) = -X S^-1``."""
+def border_back_substitute(factor_ds, border_ds, n_st, band_width, step=256, out=None):
+    """``X = M^-1 B = U^-1 W`` from ``W`` (``border_ds``, n x k x ng, as :func:`border_solve`
+    left it) into ``out`` (default: in place), reading the factor rows backwards ``step``
+    stations at a time: the border's share of the stations' covariances,
+    ``cov(delta) = M^-1 + X S^-1 X'`` and ``cov(delta, theta) = -X S^-1``."""
+    out = border_ds if out is None else out
     kb = factor_ds.shape[1]
     ng = border_ds.shape[2]
     n = kb * n_st
@@ -394,7 +395,7 @@ def border_back_substitute(factor_ds, border_ds, n_st, band_width, step=256):
         fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
         _border_back_rows(fac, win, start, n)
         x = win.reshape(-1, kb, ng)
-        border_ds[start:stop] = x[:stop - start]
+        out[start:stop] = x[:stop - start]
         carry = x[:band_width].copy()
         stop = start
 

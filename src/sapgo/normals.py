@@ -697,6 +697,10 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                 continue
             s = obs_station[i]
             linearize(eo[s], xyz, cams[cam_of_station[s]], a, b)
+            for c in range(3):  # a fixed component is no unknown (qpp holds a placeholder)
+                if ctrl_mask[kind, c] and pt_csig[j, c] == 0.0:
+                    b[0, c] = 0.0
+                    b[1, c] = 0.0
             sq = npar * s - base
             # Q_sp = -(sum_r Z[s, s_r] Nbar_r) G
             zn[:, :] = 0.0

@@ -24,7 +24,7 @@ exactly: ``M = diag(1, -1, -1) R`` (sapgo's camera looks along -w with image y u
 ``y = s (H/2 - v)`` with ``s = fx / fy`` (sapgo has one focal length: the y axis is scaled
 so that ``fy s = fx``); focal length ``f = fx``, principal point ``x0 = cx - W/2``,
 ``y0 = s (H/2 - cy)``, Brown distortion in pixels ``k1 / f^2``, ``k2 / f^4``, ``k3 = 0``,
-``p1 = p2_colmap / f``, ``p2 = -p1_colmap / f``. The y residuals are then ``s`` times
+``p1 = p2_colmap / f``, ``p2 = -p1_colmap / f``. The y residuals are then ``-s`` times
 COLMAP's (the geometry is exact; only the weight of y differs by ``s^2``, a few 1e-3 at most
 for real cameras).
 
@@ -642,7 +642,8 @@ def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=F
         full = np.flatnonzero((kind == KIND_CONTROL) & ~raw)
         spread = (np.linalg.svd(xyz[full] - xyz[full].mean(axis=0), compute_uv=False)
                   if len(full) >= 3 else np.zeros(3))
-        if len(full) >= 3 and spread[1] > 1e-9 * spread[0]:
+        # (nearly on a line: the rotation about it would be set by the noise)
+        if len(full) >= 3 and spread[1] > 1e-3 * spread[0]:
             s, q, t, rms = similarity(xyz[full], ctrl[full])
             xyz = s * xyz @ q.T + t
             eo = np.column_stack([opk_of(rotation_matrices(eo[:, :3]) @ q.T),
@@ -652,8 +653,8 @@ def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=F
                        "shift": [float(v) for v in t], "rms": rms}
         elif crs is not None:
             raise DataError(f"{len(full)} full control point(s) of the control files are 3D "
-                            f"points of the model (not on a line): at least 3 are needed to "
-                            f"bring the model into the frame of --crs")
+                            f"points of the model: at least 3, not on or near a line, are "
+                            f"needed to bring the model into the frame of --crs")
         else:
             warnings.append(f"fewer than 3 full control points (not on a line): the model is "
                             f"not aligned to the control; its coordinates are taken to be in "
@@ -877,8 +878,15 @@ def export_colmap(project_path, out_dir, adjusted=False, pixel_size=None):
     u = x_px + w_h[:, 0] / 2
     v = w_h[:, 1] / 2 - y_px / y_scale[cam_st[ob["station"]]]
     st_order = np.argsort(st_id, kind="stable")
-    m_st = st_order[np.searchsorted(st_id[st_order], more["image_id"])] if len(more) else \
-        np.zeros(0, np.int64)
+    m_st = np.zeros(0, np.int64)
+    if len(more):
+        pos = np.minimum(np.searchsorted(st_id[st_order], more["image_id"]), len(st_id) - 1)
+        bad = st_id[st_order[pos]] != more["image_id"]
+        if bad.any():
+            raise DataError(f"{project_path}: /colmap: a 2D point of image "
+                            f"{int(more['image_id'][np.argmax(bad)])}, which is not a photo of "
+                            f"the project (the project was changed after the COLMAP import)")
+        m_st = st_order[pos]
     all_st = np.concatenate([ob["station"], m_st])
     all_idx = np.concatenate([o_index, more["index"]])
     all_uv = np.concatenate([np.column_stack([u, v]), np.column_stack([more["x"],
