@@ -1,6 +1,6 @@
 """Self-calibration as a bordered band: what the border costs, and what it recovers.
 
-Run:  python benchmarks/calibration.py [--strips 20 --photos 500]   (results/calibration.json)
+Run:  python benchmarks/calibration.py [--strips 20 --photos 500 --control 500]   (results/calibration.json)
 
 A block is generated with a lens whose images carry radial and decentring distortion
 (k1 -2e-8 mm^-2, k2 3e-13 mm^-4, p1 1.5e-6, p2 -1e-6 mm^-1: about 0.2 mm at the format
@@ -76,12 +76,15 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--strips", type=int, default=20)
     ap.add_argument("--photos", type=int, default=500)
+    ap.add_argument("--control", type=int, default=500,
+                    help="control points (the rest of the grid points that fall on the "
+                         "control rows are check points)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="sapgo-calib-"))
     try:
         true_path = tmp / "true.h5"
         sapgo.generate_block(true_path, strips=args.strips, photos_per_strip=args.photos,
-                             distortion=DIST)
+                             control_points=args.control, distortion=DIST)
         sapgo.order_project(true_path)
         with sapgo.Project(true_path) as p:
             truth = camera_array(p.cameras())[0]
@@ -125,6 +128,7 @@ def main():
         shutil.rmtree(tmp, ignore_errors=True)
     out = {"machine": platform.machine(), "cpu_count": __import__("os").cpu_count(),
            "block": {"strips": args.strips, "photos_per_strip": args.photos,
+                     "control_points": args.control,
                      "photos": n_st, "points": n_pt, "observations": n_obs},
            "distortion": DIST, "true_camera": truth.tolist(), "runs": runs}
     res = ROOT / "benchmarks" / "results" / "calibration.json"
