@@ -56,3 +56,81 @@ def test_a_band_has_no_fill_outside_the_band_and_a_cycle_fills_its_last_column()
     # to n-1, n-3 fill-in blocks in the last row
     c = symbolic_counts(n, (np.append(s, 0), np.append(t, n - 1)), np.arange(n))
     assert c["fill_in_blocks"] == n - 3 and c["band_width"] == n
+
+
+# Rostom (seeds/000) Table 2: the numerical example (6 x 20 km, 1:10 000, 23 cm photos),
+# independent models. (p, q, cross, ordering, s, g): T, m, F.I., W, D as the paper prints
+# them, except where the paper is wrong (see ERRATA): the counts come from the graph.
+TABLE2 = [
+    (0.6, 0.2, False, "across_strip", 4, 24, 92, 381, 132, 6, 8),
+    (0.6, 0.2, False, "down_strip", 12, 8, 84, 365, 330, 9, 14),
+    (0.6, 0.6, False, "across_strip", 6, 24, 138, 873, 264, 9, 12),
+    (0.6, 0.6, False, "down_strip", 22, 8, 154, 1065, 1230, 16, 21),
+    (0.6, 0.6, True, "across_strip", 6, 24, 258, 3294, 1884, 24, 27),
+    (0.6, 0.6, True, "down_strip", 22, 8, 322, 4318, 4290, 32, 37),
+    (0.8, 0.2, False, "across_strip", 4, 44, 168, 1104, 486, 10, 12),
+    (0.8, 0.2, False, "down_strip", 12, 13, 132, 899, 792, 14, 22),
+    # ->S1: the paper's W is 45 (8s - 3); this ordering gives its F.I. exactly and W = 47
+    (0.8, 0.6, True, "across_strip", 6, 44, 472, 10312, 8097, 47, 55),
+    (0.8, 0.6, True, "down_strip", 22, 13, 515, 11586, 10296, 51, 59),
+    # the paper prints m = 2534; its own formula 13sg - 41s - 15g + 48 gives 2574
+    (0.8, 0.6, False, "across_strip", 6, 44, 252, 2574, 972, 15, 18),
+    (0.8, 0.6, False, "down_strip", 22, 13, 242, 2669, 2952, 25, 33),
+    (0.8, 0.8, False, "across_strip", 11, 44, 462, 8289, 3402, 27, 33),
+    (0.8, 0.8, False, "down_strip", 44, 13, 484, 9454, 11952, 47, 55),
+]
+
+
+@pytest.mark.parametrize("case", TABLE2, ids=lambda c: f"{c[0]:.0%}-{c[1]:.0%}"
+                         f"{'+C' if c[2] else ''}-{c[3]}")
+def test_rostom_table_2_is_reproduced_from_the_graph(case):
+    from sapgo.plan import design_network, evaluate
+
+    p, q, cross, order, s, g, t, m, fi, w, d = case
+    r = evaluate(design_network(s, g, p, q, units="models", cross=cross))["orderings"][order]
+    assert (r["dimension"], r["nonzero_blocks"], r["fill_in_blocks"], r["band_width_m"],
+            r["band_width_b"]) == (t, m, fi, w, d)
+    # the storage of Table 2: envelope m + F.I. (the fill fills it), TW and TD
+    assert r["storage_blocks"]["envelope"] == m + fi == r["storage_blocks"]["sparse"]
+    assert r["storage_blocks"]["band"] == t * w and r["storage_blocks"]["partitioned_band"] == t * d
+
+
+@pytest.mark.parametrize("s, g", [(3, 5), (5, 9), (7, 12)])
+def test_rostom_table_1_formulas_hold_for_homogeneous_networks(s, g):
+    """Table 1's closed formulas (60 % forelap, 20 % sidelap; 80 / 20) against the graph."""
+    from sapgo.plan import design_network, evaluate
+
+    e = evaluate(design_network(s, g, 0.6, 0.2, units="models"))["orderings"]
+    assert e["across_strip"]["nonzero_blocks"] == 5 * s * g - 8 * s - 3 * g + 5
+    assert e["across_strip"]["fill_in_blocks"] == (g - 2) * (s - 1) * (s - 2)
+    assert e["down_strip"]["fill_in_blocks"] == (s - 1) * (g - 2) * (g - 3)
+    assert e["across_strip"]["band_width_m"] == s + 2 and e["down_strip"]["band_width_m"] == g + 1
+    assert e["across_strip"]["band_width_b"] == 2 * s
+    assert e["down_strip"]["band_width_b"] == 2 * (g - 1)
+    e = evaluate(design_network(s, g, 0.8, 0.2, units="models"))["orderings"]
+    assert e["across_strip"]["dimension"] == s * (g - 2)
+    assert e["across_strip"]["nonzero_blocks"] == 8 * s * g - 25 * s - 5 * g + 16
+    assert e["down_strip"]["fill_in_blocks"] == (s - 1) * (g - 4) * (g - 5)
+    assert e["across_strip"]["fill_in_blocks"] == (2 * g - 7) * (s - 1) * (s - 2)
+
+
+def test_the_plan_of_a_generated_project_is_the_band_width_adjust_uses(block_cache):
+    """sapgo-p-3: the recommended ordering's band width (photos) is the one ordering finds."""
+    import sapgo
+    from sapgo.plan import evaluate, project_network
+    from sapgo.project import Project
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    src = block_cache("p3", preset="sapgo-p-3")
+    e = evaluate(project_network(src))
+    rec = e["orderings"][e["recommended"]]
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "p3.h5"
+        shutil.copy(src, path)
+        sapgo.order_project(path)
+        with Project(path) as p:
+            assert p.band_width == rec["band_width_m"] == 12
+    assert e["recommended"] == "across_strip" and e["units"] == "photos"
+    assert rec["dimension"] == 500 and rec["unknowns"] == 3000

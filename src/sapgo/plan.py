@@ -1,0 +1,293 @@
+"""``sapgo plan``: the reduced matrix's pattern, band width, fill-in and storage before a
+single measurement (Rostom, seeds/000), for the orderings of a network.
+
+A *network* is a set of units (photos of 6 parameters for the bundle, or independent models
+of 7) on a grid of strips and columns, and the pairs of units that share a point: the
+non-zero blocks of the reduced normal matrix ``M``. It comes from a flight design
+(:func:`design_network`) or from an existing project (:func:`project_network`). For every
+ordering (:func:`orderings`) the counts come from the symbolic factorisation of the actual
+graph (:mod:`sapgo.symbolic`), never from closed formulas.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import reverse_cuthill_mckee, shortest_path
+
+from .errors import ParameterError
+from .symbolic import symbolic_counts
+
+#: The orderings compared (Rostom's ->G down the strips, ->S across them, along the
+#: diagonals of the grid, reverse Cuthill-McKee on the graph, and a spiral from the outside).
+ORDERINGS = ("down_strip", "across_strip", "diagonal", "rcm", "spiral")
+
+
+@dataclasses.dataclass
+class Network:
+    """Units and the pairs of them that share a point.
+
+    ``x``, ``y``: the unit's centre along and across the strips (in a design: photo sides;
+    in a project: photo columns and strip numbers); ``s``, ``t``: the connected pairs (each
+    once); ``params``: unknowns per unit (6 photos, 7 models); ``kind``: "photos" or
+    "models"."""
+
+    x: np.ndarray
+    y: np.ndarray
+    s: np.ndarray
+    t: np.ndarray
+    params: int = 6
+    kind: str = "photos"
+
+    @property
+    def n(self):
+        return len(self.x)
+
+
+def _key(v):
+    """Line labels of coordinates that are equal up to rounding."""
+    return np.unique(np.round(np.asarray(v, np.float64), 6), return_inverse=True)[1]
+
+
+def orderings(net: Network):
+    """``{name: (perm, lines)}`` for :data:`ORDERINGS`: ``perm[k]`` is the unit numbered
+    k-th, ``lines[i]`` the line of unit ``i`` (Rostom's lines L(k): the strips for ->G, the
+    columns across them for ->S, the anti-diagonals, Cuthill-McKee's level sets, the rings of
+    the spiral), numbered in the order's direction."""
+    n = net.n
+    x, y = net.x, net.y
+    kx, ky = _key(x), _key(y)
+    out = {
+        "down_strip": (np.lexsort((x, ky)), ky),
+        "across_strip": (np.lexsort((y, kx)), kx),
+    }
+    kd = _key(x + y)
+    out["diagonal"] = (np.lexsort((y, kd)), kd)
+    g = sp.csr_matrix((np.ones(2 * len(net.s), np.int8),
+                       (np.concatenate([net.s, net.t]), np.concatenate([net.t, net.s]))),
+                      shape=(n, n))
+    if n:
+        perm = reverse_cuthill_mckee(g, symmetric_mode=True).astype(np.int64)
+        # levels: the graph distance from the order's last unit (reverse Cuthill-McKee
+        # numbers level by level from there)
+        dist = shortest_path(g, unweighted=True, indices=int(perm[-1]))
+        dist[~np.isfinite(dist)] = dist[np.isfinite(dist)].max() + 1 if np.isfinite(
+            dist).any() else 0
+        lv = dist.max() - dist
+        lv = _key(lv)
+    else:
+        perm, lv = np.zeros(0, np.int64), np.zeros(0, np.int64)
+    out["rcm"] = (perm, lv)
+    # spiral: ring by ring from the outside inwards, each ring by angle from its corner
+    if n:
+        ix, iy = kx, ky
+        ring = np.minimum.reduce([ix, ix.max() - ix, iy, iy.max() - iy])
+        cx, cy = ix.max() / 2.0, iy.max() / 2.0
+        angle = np.mod(np.arctan2(iy - cy, ix - cx) - math.pi, 2 * math.pi)
+        out["spiral"] = (np.lexsort((angle, ring)), ring)
+    else:
+        out["spiral"] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    return out
+
+
+def partitioned_band_width(net: Network, lines):
+    """Rostom's D: the band width in blocks when the band is stored in whole sub-matrices
+    b(k, k+t) of lines: per line k, the sizes of the lines from k to the farthest line a unit
+    of k is joined to, summed; the largest over k."""
+    if net.n == 0:
+        return 0
+    size = np.bincount(lines)
+    reach = np.arange(len(size))
+    ls, lt = lines[net.s], lines[net.t]
+    lo, hi = np.minimum(ls, lt), np.maximum(ls, lt)
+    np.maximum.at(reach, lo, hi)
+    csum = np.concatenate([[0], np.cumsum(size)])
+    return int((csum[reach + 1] - csum[np.arange(len(size))]).max())
+
+
+def evaluate(net: Network, rate_flops=None):
+    """The counts of every ordering and the recommended one (the least solve work).
+
+    Per ordering: ``dimension`` (unknowns of ``M``), ``nonzero_blocks`` (lower triangle with
+    the diagonal), ``band_width_b`` (units, the diagonal included, as SAPGO counts it),
+    ``band_width_m`` (scalar rows: ``params`` times that), ``fill_in_blocks``,
+    ``factor_blocks``, the storage of the three schemes in blocks and in bytes (band,
+    envelope, sparse: the factor's blocks plus a 4-byte index each), the flops of the band
+    Cholesky (``n (p b)^2 p / ...``: :func:`band_flops`) and, with ``rate_flops``, the
+    predicted solve time."""
+    p = net.params
+    res = {}
+    for name, (perm, lines) in orderings(net).items():
+        c = symbolic_counts(net.n, (net.s, net.t), perm)
+        blk = 8 * p * p
+        w = c["band_width"]
+        d = partitioned_band_width(net, lines)
+        flops = band_flops(net.n, w, p)
+        envelope = c["envelope_blocks"]
+        r = {
+            "dimension": net.n,          # T: blocks (units); the unknowns are p T
+            "unknowns": p * net.n,
+            "nonzero_blocks": c["nonzero_blocks"],
+            "band_width_b": d,           # D: in whole sub-matrices b(k, k+t) of lines
+            "band_width_m": w,           # W: in blocks m, the diagonal included
+            "fill_in_blocks": c["fill_in_blocks"],
+            "factor_blocks": c["factor_blocks"],
+            "lines": int(lines.max() + 1) if net.n else 0,
+            # blocks of each storage scheme (Rostom's TW, TD and the envelope m + F.I.;
+            # sparse: the factor's blocks, here equal to the envelope's when it fills it)
+            "storage_blocks": {"band": net.n * w, "partitioned_band": net.n * d,
+                               "envelope": envelope, "sparse": c["factor_blocks"]},
+            "storage_bytes": {"band": blk * net.n * w, "partitioned_band": blk * net.n * d,
+                              "envelope": blk * envelope,
+                              "sparse": (blk + 4) * c["factor_blocks"] + 8 * (net.n + 1)},
+            "band_flops": flops,
+        }
+        if rate_flops:
+            r["predicted_solve_s"] = flops / rate_flops
+        res[name] = r
+    best = min(res, key=lambda k: (res[k]["band_flops"], res[k]["fill_in_blocks"]))
+    return {"units": net.kind, "parameters_per_unit": p, "n_units": net.n,
+            "orderings": res, "recommended": best}
+
+
+def measure_rate(band_width, params=6, seconds=0.5):
+    """This machine's rate of the band solver (flops per second) at a band width: a random
+    positive definite band of enough units to run about ``seconds`` factored by
+    :class:`sapgo.bandsolve.BandSolver` in core (as ``sapgo adjust`` runs it)."""
+    import time
+
+    from .bandsolve import solve_in_core
+
+    b = max(1, int(band_width))
+    per_unit = band_flops(4 * b, b, params) / (4 * b)
+    n = int(min(200000, max(4 * b, 2e9 * seconds / max(per_unit, 1.0) / 4)))
+    rng = np.random.default_rng(0)
+    band = rng.uniform(-1.0, 1.0, (n, params, params * b)) * 0.1 / b
+    idx = np.arange(params)
+    band[:, idx, idx] = params * b  # diagonally dominant: positive definite
+    rhs = rng.uniform(size=(n, params))
+    solve_in_core(band[: min(n, 8 * b)], rhs[: min(n, 8 * b)])  # compile and warm
+    t0 = time.perf_counter()
+    solve_in_core(band, rhs)
+    dt = time.perf_counter() - t0
+    return band_flops(n, b, params) / dt
+
+
+def band_flops(n, b, p=6):
+    """Floating-point operations of the band Cholesky of ``n`` units of ``p`` parameters and
+    band width ``b`` (units, the diagonal included): per scalar column with ``h`` entries
+    below the diagonal (the half band ``u = p b - 1``, fewer in the last columns), ``h (h + 1)``
+    for the update of the trailing triangle and ``h + 1`` for the column itself."""
+    m = p * n
+    u = p * b - 1
+    h = np.minimum(u, m - 1 - np.arange(m)).astype(np.float64)
+    return float((h * h + 2 * h + 1).sum())
+
+
+def design_network(strips, photos_per_strip, forelap=0.6, sidelap=0.2, units="photos",
+                   cross=False, model_step=None):
+    """The network of a homogeneous flight design (Rostom, seeds/000 sections 1-4).
+
+    With the photo side as unit, photo ``(k, j)`` (strip ``k``, photo ``j``) covers
+    ``[j bx, j bx + 1] x [k by, k by + 1]``, ``bx = 1 - forelap``, ``by = 1 - sidelap``.
+    Units: the photos (bundle, 6 parameters), or the models (independent models, 7) of photos
+    ``j`` and ``j + step`` of a strip (``model_step``: 1, or 2 from 75 % forelap on: "models
+    from a strip are constructed from every other photograph", for p = 80 %) and, with
+    ``cross``, the cross models of photo ``j`` of strips ``k`` and ``k + 1`` (a sidelap of
+    50 % or more). Two units are joined when their areas (a photo's footprint, a model's
+    stereo overlap) overlap with a positive area: tie points in every common area."""
+    check_design(strips, photos_per_strip, forelap, sidelap)
+    if units not in ("photos", "models"):
+        raise ParameterError(f"units {units!r}: photos or models")
+    if cross and (units != "models" or sidelap < 0.5):
+        raise ParameterError("cross models (+C) are models between the strips: they need "
+                             "--units models and a sidelap of 50 % or more")
+    bx, by = 1.0 - forelap, 1.0 - sidelap
+    rect = []
+    if units == "photos":
+        for k in range(strips):
+            for j in range(photos_per_strip):
+                rect.append((j * bx, j * bx + 1, k * by, k * by + 1))
+    else:
+        step = model_step or (2 if forelap >= 0.75 else 1)
+        if 1.0 - step * bx <= 0:
+            raise ParameterError(f"photos {step} apart do not overlap at {forelap:.0%} "
+                                 f"forelap: no models")
+        for k in range(strips):
+            for i in range(photos_per_strip - step):
+                rect.append(((i + step) * bx, i * bx + 1, k * by, k * by + 1))
+        if cross:
+            for k in range(strips - 1):
+                for j in range(photos_per_strip):
+                    rect.append((j * bx, j * bx + 1, (k + 1) * by, k * by + 1))
+    r = np.array(rect, np.float64).reshape(-1, 4)
+    n = len(r)
+    s_all, t_all = [], []
+    eps = 1e-9
+    for a in range(0, n, 2048):  # pairs by blocks of rows
+        q = r[a:a + 2048]
+        ox = np.minimum(q[:, None, 1], r[None, :, 1]) - np.maximum(q[:, None, 0], r[None, :, 0])
+        oy = np.minimum(q[:, None, 3], r[None, :, 3]) - np.maximum(q[:, None, 2], r[None, :, 2])
+        i, j = np.nonzero((ox > eps) & (oy > eps))
+        i = i + a
+        keep = i < j
+        s_all.append(i[keep])
+        t_all.append(j[keep])
+    s = np.concatenate(s_all) if s_all else np.zeros(0, np.int64)
+    t = np.concatenate(t_all) if t_all else np.zeros(0, np.int64)
+    return Network(x=(r[:, 0] + r[:, 1]) / 2, y=(r[:, 2] + r[:, 3]) / 2, s=s, t=t,
+                   params=6 if units == "photos" else 7, kind=units)
+
+
+def project_network(path, chunk=None):
+    """The network of an existing project: its active photos (6 parameters each) and the
+    pairs that observe a common point (its actual topology, irregular or not). ``x`` is
+    the photo's position along the flight lines in bases, ``y`` its strip (the strips
+    ordered across the flight direction)."""
+    from .ordering import _flight_axes
+    from .plots import station_pairs
+    from .project import CHUNK_RECORDS, STATUS_ACTIVE, Project
+
+    with Project(path) as p:
+        st = p.read("stations")
+        pairs = [q[q[:, 0] != q[:, 1]] for q in station_pairs(p, chunk or CHUNK_RECORDS)]
+    active = st["status"] == STATUS_ACTIVE
+    idx = np.flatnonzero(active)
+    local = np.full(len(st), -1, np.int64)
+    local[idx] = np.arange(len(idx))
+    pr = np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64)
+    pr = np.unique(pr, axis=0)
+    pr = pr[active[pr[:, 0]] & active[pr[:, 1]]]
+    xy = st["eo"][idx, 3:5]
+    strip = st["strip"][idx].astype(np.int64)
+    along, across = _flight_axes(xy, strip)
+    u, v = xy @ along, xy @ across
+    known = bool((strip >= 0).all()) and len(idx) > 0
+    if known:
+        labels = np.unique(strip, return_inverse=True)[1]
+        mean_v = np.bincount(labels, v) / np.bincount(labels)
+        rank = np.empty(len(mean_v), np.int64)
+        rank[np.argsort(mean_v)] = np.arange(len(mean_v))
+        y = rank[labels].astype(np.float64)
+        order = np.lexsort((u, labels))
+        same = np.diff(labels[order]) == 0
+        gaps = np.diff(u[order])[same]
+    else:
+        y = np.zeros(len(idx))
+        gaps = np.diff(np.sort(u))
+    gaps = gaps[gaps > 0]
+    base = float(np.median(gaps)) if len(gaps) else 1.0
+    x = np.round((u - (u.min() if len(u) else 0.0)) / base * 2) / 2  # half bases
+    return Network(x=x, y=y, s=local[pr[:, 0]], t=local[pr[:, 1]], params=6, kind="photos")
+
+
+def check_design(strips, photos_per_strip, forelap, sidelap):
+    if strips < 1 or photos_per_strip < 2:
+        raise ParameterError("a flight design needs at least 1 strip of 2 photos")
+    if not 0.5 <= forelap < 1.0:
+        raise ParameterError(f"forelap {forelap}: between 0.5 and 1 (a fraction, e.g. 0.6)")
+    if not 0.0 <= sidelap < 1.0:
+        raise ParameterError(f"sidelap {sidelap}: between 0 and 1 (a fraction, e.g. 0.2)")
