@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from sapgo.symbolic import symbolic_counts
+from sapgo.symbolic import factor_pattern, symbolic_counts
 
 
 def dense_reference(n, s, t, perm, seed=0):
@@ -23,7 +23,7 @@ def dense_reference(n, s, t, perm, seed=0):
     return {"factor_blocks": int(nz.sum()), "nonzero_blocks": int(pattern.sum()),
             "fill_in_blocks": int(nz.sum() - pattern.sum()),
             "envelope_blocks": int((np.arange(n) - first + 1).sum()),
-            "row_counts": nz.sum(axis=1)}
+            "row_counts": nz.sum(axis=1), "pattern": nz}
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -42,6 +42,9 @@ def test_symbolic_factorisation_equals_a_numeric_cholesky(seed):
         for k in ("factor_blocks", "nonzero_blocks", "fill_in_blocks", "envelope_blocks"):
             assert got[k] == ref[k], k
         np.testing.assert_array_equal(got["row_counts"], ref["row_counts"])
+        rows, cols, fill = factor_pattern(n, (s, t), perm)
+        assert len(rows) == ref["factor_blocks"] and fill.sum() == ref["fill_in_blocks"]
+        assert (ref["pattern"][rows, cols]).all()
         inv = np.empty(n, np.int64)
         inv[perm] = np.arange(n)
         assert got["band_width"] == 1 + (np.abs(inv[s] - inv[t]).max() if len(s) else 0)
@@ -134,3 +137,39 @@ def test_the_plan_of_a_generated_project_is_the_band_width_adjust_uses(block_cac
             assert p.band_width == rec["band_width_m"] == 12
     assert e["recommended"] == "across_strip" and e["units"] == "photos"
     assert rec["dimension"] == 500 and rec["unknowns"] == 3000
+
+
+def test_plan_from_the_command_line(tmp_path, capsys):
+    import json
+
+    from conftest import run_cli
+
+    code, out, err = run_cli(capsys, "plan", "--strips", "3", "--photos-per-strip", "5",
+                             "--units", "models", "--json", tmp_path / "p.json", "--plot",
+                             tmp_path / "m.png", "--no-timing")
+    assert code == 0, err
+    rep = json.loads((tmp_path / "p.json").read_text())
+    assert set(rep["orderings"]) == {"down_strip", "across_strip", "diagonal", "rcm", "spiral"}
+    s = rep["orderings"]["across_strip"]
+    assert (s["dimension"], s["nonzero_blocks"], s["fill_in_blocks"], s["band_width_b"],
+            s["band_width_m"]) == (12, 41, 6, 6, 5)  # Rostom's Figure 12 network
+    assert rep["recommended"] == "across_strip" and (tmp_path / "m.png").stat().st_size > 0
+    assert "across_strip" in out
+    code, out, err = run_cli(capsys, "plan", "--strips", "2", "--photos-per-strip", "4",
+                             "--json", tmp_path / "t.json")
+    assert code == 0, err
+    r = json.loads((tmp_path / "t.json").read_text())["orderings"]["down_strip"]
+    assert r["predicted_solve_s"] > 0 and r["rate_flops"] > 1e6
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--strips", "3"], "--photos-per-strip"),
+    (["--strips", "3", "--photos-per-strip", "5", "--cross"], "cross models"),
+    (["--strips", "3", "--photos-per-strip", "5", "--forelap", "30"], "forelap"),
+    (["--strips", "3", "--photos-per-strip", "5", "--sidelap", "x"], "--sidelap 'x'"),
+])
+def test_bad_plan_options(capsys, args, words):
+    from conftest import assert_one_line_error, run_cli
+
+    code, out, err = run_cli(capsys, "plan", *args)
+    assert_one_line_error(code, err, words)

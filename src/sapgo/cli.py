@@ -314,6 +314,68 @@ def cmd_info(args):
     return 0
 
 
+def _fraction(text, option):
+    """An overlap given as a fraction (0.6) or a percentage (60)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise ParameterError(f"{option} {text!r}: a percentage (60) or a fraction (0.6)") \
+            from None
+    return v / 100.0 if v > 1.0 else v
+
+
+def cmd_plan(args):
+    from .plan import design_network, evaluate, measure_rate, project_network, write_pattern
+
+    design = [args.strips, args.photos_per_strip]
+    if args.project and any(v is not None for v in design):
+        raise ParameterError("sapgo plan takes either a project or a flight design "
+                             "(--strips, --photos-per-strip), not both")
+    if args.project:
+        net = project_network(args.project)
+        source = {"project": str(args.project)}
+    else:
+        if None in design:
+            raise ParameterError("a flight design needs --strips and --photos-per-strip "
+                                 "(or give a project)")
+        forelap = _fraction(args.forelap, "--forelap")
+        sidelap = _fraction(args.sidelap, "--sidelap")
+        net = design_network(args.strips, args.photos_per_strip, forelap, sidelap,
+                             args.units, args.cross, args.model_step)
+        source = {"design": {"strips": args.strips, "photos_per_strip": args.photos_per_strip,
+                             "forelap": forelap, "sidelap": sidelap, "units": args.units,
+                             "cross_models": args.cross}}
+    result = evaluate(net)
+    if not args.no_timing and net.n:
+        widths = {r["band_width_m"] for r in result["orderings"].values()}
+        rates = {w: measure_rate(w, net.params) for w in sorted(widths)}
+        for r in result["orderings"].values():
+            r["rate_flops"] = rates[r["band_width_m"]]
+            r["predicted_solve_s"] = r["band_flops"] / r["rate_flops"]
+    result.update(source)
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2))
+    if args.plot:
+        write_pattern(net, args.plot, args.plot_ordering or result["recommended"])
+    unit = "models (7 parameters)" if net.kind == "models" else "photos (6 parameters)"
+    print(f"{net.n} {unit}, {len(net.s)} joined pairs")
+    head = (f"{'ordering':14s} {'T':>7s} {'m':>9s} {'W':>6s} {'D':>6s} {'F.I.':>10s} "
+            f"{'band MB':>9s} {'envelope MB':>12s} {'sparse MB':>10s} {'solve s':>9s}")
+    print(head)
+    for name, r in result["orderings"].items():
+        b = r["storage_bytes"]
+        t = f"{r['predicted_solve_s']:9.3f}" if "predicted_solve_s" in r else f"{'-':>9s}"
+        mark = " *" if name == result["recommended"] else ""
+        print(f"{name:14s} {r['dimension']:7d} {r['nonzero_blocks']:9d} "
+              f"{r['band_width_m']:6d} {r['band_width_b']:6d} {r['fill_in_blocks']:10d} "
+              f"{b['band'] / 1e6:9.2f} {b['envelope'] / 1e6:12.2f} {b['sparse'] / 1e6:10.2f} "
+              f"{t}{mark}")
+    print(f"recommended: {result['recommended']} (the least work for the band solver; T units, "
+          f"m non-zero blocks, W band width in blocks, D in whole sub-matrices of lines, F.I. "
+          f"fill-in blocks)")
+    return 0
+
+
 def _output_options(parser):
     parser.add_argument("--csv", metavar="DIR",
                         help="write photos.csv, points.csv and observations.csv (residuals, "
@@ -514,6 +576,32 @@ def build_parser():
                    help="with --adjusted and a CRS: angles to the east-north-up frame at each "
                         "photo (default) or to the body-fixed axes")
     e.set_defaults(func=cmd_export)
+
+    pl = sub.add_parser(
+        "plan", help="predict the reduced matrix's pattern, band width, fill-in, storage and "
+                     "solve time of a flight design or a project, for each ordering")
+    pl.add_argument("project", nargs="?", help="an existing project (its actual network)")
+    pl.add_argument("--strips", type=int, help="flight design: number of strips")
+    pl.add_argument("--photos-per-strip", type=int, help="flight design: photos per strip")
+    pl.add_argument("--forelap", default="60", help="forelap, %% or fraction (default 60)")
+    pl.add_argument("--sidelap", default="20", help="sidelap, %% or fraction (default 20)")
+    pl.add_argument("--units", choices=("photos", "models"), default="photos",
+                    help="photos (bundle, 6 parameters) or independent models (7)")
+    pl.add_argument("--cross", action="store_true",
+                    help="with --units models: cross models between the strips (+C; a "
+                         "sidelap of 50 %% or more)")
+    pl.add_argument("--model-step", type=int, default=None,
+                    help="models from photos this many apart (default 1; 2 from 75 %% "
+                         "forelap on, as Rostom assumes for 80 %%)")
+    pl.add_argument("--json", metavar="PATH", help="write the counts as JSON")
+    pl.add_argument("--plot", metavar="PNG",
+                    help="draw the pattern of M with its fill-in (needs matplotlib)")
+    pl.add_argument("--plot-ordering", choices=("down_strip", "across_strip", "diagonal",
+                                                "rcm", "spiral"),
+                    help="the ordering drawn (default: the recommended one)")
+    pl.add_argument("--no-timing", action="store_true",
+                    help="do not measure this machine's solver rate (no predicted times)")
+    pl.set_defaults(func=cmd_plan)
 
     i = sub.add_parser("info", help="describe a project file")
     i.add_argument("project")

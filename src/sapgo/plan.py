@@ -291,3 +291,34 @@ def check_design(strips, photos_per_strip, forelap, sidelap):
         raise ParameterError(f"forelap {forelap}: between 0.5 and 1 (a fraction, e.g. 0.6)")
     if not 0.0 <= sidelap < 1.0:
         raise ParameterError(f"sidelap {sidelap}: between 0 and 1 (a fraction, e.g. 0.2)")
+
+
+def write_pattern(net: Network, path, ordering):
+    """Draw the pattern of ``M`` with its fill-in for an ordering (Rostom's Figure 12): the
+    non-zero blocks, the fill-in of the factor, and the lines' sub-matrices b(k, k+t)."""
+    from .plots import _pyplot
+    from .symbolic import factor_pattern
+
+    perm, lines = orderings(net)[ordering]
+    rows, cols, fill = factor_pattern(net.n, (net.s, net.t), perm)
+    plt = _pyplot()
+    n = net.n
+    fig, ax = plt.subplots(figsize=(7, 7))
+    size = max(1.0, 4000.0 / max(n, 1))
+    for sel, colour, label in ((~fill, "#1f4e79", "non-zero block of M"),
+                               (fill, "#f4b183", "fill-in")):
+        ax.scatter(np.concatenate([cols[sel], rows[sel]]),
+                   np.concatenate([rows[sel], cols[sel]]), s=size, marker="s", c=colour,
+                   linewidths=0, label=label)
+    bounds = np.flatnonzero(np.diff(lines[perm])) + 0.5
+    for b in bounds:
+        ax.axhline(b, color="0.8", lw=0.5)
+        ax.axvline(b, color="0.8", lw=0.5)
+    ax.set_xlim(-0.5, n - 0.5)
+    ax.set_ylim(n - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_title(f"pattern of M, {ordering}: {n} {net.kind}, "
+                 f"{int((~fill).sum())} blocks (lower), {int(fill.sum())} fill-in")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -46,19 +46,24 @@ def _csr(n, s, t):
 
 
 @njit(cache=True)
-def _symbolic(n, indptr, indices, perm, inv):
+def _symbolic(n, indptr, indices, perm, inv, cols=np.zeros(0, np.int64),
+              starts=np.zeros(0, np.int64)):
     """Row counts of ``L`` (diagonal included) and the first column of every row, for the
     order ``perm`` (``perm[k]`` = node eliminated k-th, ``inv`` its inverse): Liu's
     row-subtree traversal over the elimination tree, built on the fly with path
-    compression (``ancestor``)."""
+    compression (``ancestor``). With ``cols`` and ``starts`` (from a first pass's counts)
+    the columns of every row of ``L`` are recorded too."""
     parent = np.full(n, -1, np.int64)
     ancestor = np.full(n, -1, np.int64)
     mark = np.full(n, -1, np.int64)
     count = np.ones(n, np.int64)
     first = np.arange(n)
+    record = cols.shape[0] > 0
     for i in range(n):
         node = perm[i]
         mark[i] = i
+        if record:  # the diagonal first, then the row subtree
+            cols[starts[i]] = i
         for p in range(indptr[node], indptr[node + 1]):
             j = inv[indices[p]]
             if j >= i:
@@ -78,6 +83,8 @@ def _symbolic(n, indptr, indices, perm, inv):
             k = j
             while mark[k] != i:
                 mark[k] = i
+                if record:
+                    cols[starts[i] + count[i]] = k
                 count[i] += 1
                 if first[i] > k:
                     first[i] = k
@@ -125,3 +132,27 @@ def symbolic_counts(n, edges, perm):
         "row_counts": count,
         "first_column": first,
     }
+
+
+def factor_pattern(n, edges, perm):
+    """The pattern of the block Cholesky factor for the order ``perm``: ``(rows, cols,
+    fill)``, the lower-triangle positions (logical numbers, diagonal included) and whether
+    each is fill-in (zero in ``M``)."""
+    c = symbolic_counts(n, edges, perm)
+    s, t = (np.asarray(x, np.int64) for x in edges)
+    perm = np.asarray(perm, np.int64)
+    inv = np.empty(n, np.int64)
+    inv[perm] = np.arange(n)
+    keep = s != t
+    s, t = s[keep], t[keep]
+    key = np.unique(np.minimum(s, t) * max(n, 1) + np.maximum(s, t))
+    s, t = key // max(n, 1), key % max(n, 1)
+    indptr, indices = _csr(n, s, t)
+    starts = np.concatenate([[0], np.cumsum(c["row_counts"])[:-1]]).astype(np.int64)
+    cols = np.empty(int(c["row_counts"].sum()), np.int64)
+    _symbolic(n, indptr, indices, perm, inv, cols, starts)
+    rows = np.repeat(np.arange(n), c["row_counts"])
+    a, b = inv[s], inv[t]
+    orig = np.unique(np.maximum(a, b) * max(n, 1) + np.minimum(a, b))
+    fill = ~np.isin(rows * max(n, 1) + cols, orig) & (rows != cols)
+    return rows, cols, fill
