@@ -173,3 +173,23 @@ def test_bad_plan_options(capsys, args, words):
 
     code, out, err = run_cli(capsys, "plan", *args)
     assert_one_line_error(code, err, words)
+
+
+def test_irregular_designs():
+    """Shifted strips (Rostom section 7.1: a model joined to two, not three, models of the
+    next strip), strips of different lengths, starts and scales."""
+    from sapgo.plan import design_network, evaluate
+
+    s, g = 4, 10
+    n = g - 1
+    for shift, per_pair in ((0.0, 3 * n - 2), (0.5, 2 * n - 1)):
+        net = design_network(s, g, 0.6, 0.2, "models", shift=shift)
+        r = evaluate(net)["orderings"]["across_strip"]
+        assert r["nonzero_blocks"] == s * n + s * (n - 1) + (s - 1) * per_pair
+    net = design_network(3, 10, 0.6, 0.2, "photos", lengths=[10, 8, 12], starts=[0, 2, -1],
+                         scales=[1, 1, 1.3])
+    assert net.n == 30 and net.params == 6
+    e = evaluate(net)
+    assert e["recommended"] == "across_strip"
+    assert e["orderings"]["across_strip"]["band_width_m"] < \
+        e["orderings"]["down_strip"]["band_width_m"]

@@ -340,8 +340,19 @@ def cmd_plan(args):
                                  "(or give a project)")
         forelap = _fraction(args.forelap, "--forelap")
         sidelap = _fraction(args.sidelap, "--sidelap")
+        lists = {k: (None if v is None else [x for x in v.replace(",", " ").split()])
+                 for k, v in (("lengths", args.strip_lengths), ("starts", args.strip_starts),
+                              ("scales", args.scales))}
+        try:
+            lists = {k: None if v is None else [float(x) for x in v] for k, v in lists.items()}
+        except ValueError:
+            raise ParameterError("--strip-lengths, --strip-starts and --scales take a number "
+                                 "per strip, e.g. 10,8,12") from None
         net = design_network(args.strips, args.photos_per_strip, forelap, sidelap,
-                             args.units, args.cross, args.model_step)
+                             args.units, args.cross, args.model_step, args.shift,
+                             None if lists["lengths"] is None else
+                             [int(v) for v in lists["lengths"]],
+                             lists["starts"], lists["scales"])
         source = {"design": {"strips": args.strips, "photos_per_strip": args.photos_per_strip,
                              "forelap": forelap, "sidelap": sidelap, "units": args.units,
                              "cross_models": args.cross}}
@@ -593,6 +604,16 @@ def build_parser():
     pl.add_argument("--model-step", type=int, default=None,
                     help="models from photos this many apart (default 1; 2 from 75 %% "
                          "forelap on, as Rostom assumes for 80 %%)")
+    pl.add_argument("--shift", type=float, default=0.0,
+                    help="irregular design: every other strip shifted by this fraction of "
+                         "the base")
+    pl.add_argument("--strip-lengths", metavar="N,N,...",
+                    help="irregular design: photos of each strip")
+    pl.add_argument("--strip-starts", metavar="X,X,...",
+                    help="irregular design: where each strip starts, in bases")
+    pl.add_argument("--scales", metavar="C,C,...",
+                    help="irregular design: each strip's photo scale relative to the others "
+                         "(its footprint's side)")
     pl.add_argument("--json", metavar="PATH", help="write the counts as JSON")
     pl.add_argument("--plot", metavar="PNG",
                     help="draw the pattern of M with its fill-in (needs matplotlib)")

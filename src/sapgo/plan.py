@@ -192,41 +192,60 @@ def band_flops(n, b, p=6):
 
 
 def design_network(strips, photos_per_strip, forelap=0.6, sidelap=0.2, units="photos",
-                   cross=False, model_step=None):
-    """The network of a homogeneous flight design (Rostom, seeds/000 sections 1-4).
+                   cross=False, model_step=None, shift=0.0, lengths=None, starts=None,
+                   scales=None):
+    """The network of a flight design (Rostom, seeds/000 sections 1-4 and 7).
 
     With the photo side as unit, photo ``(k, j)`` (strip ``k``, photo ``j``) covers
-    ``[j bx, j bx + 1] x [k by, k by + 1]``, ``bx = 1 - forelap``, ``by = 1 - sidelap``.
-    Units: the photos (bundle, 6 parameters), or the models (independent models, 7) of photos
-    ``j`` and ``j + step`` of a strip (``model_step``: 1, or 2 from 75 % forelap on: "models
-    from a strip are constructed from every other photograph", for p = 80 %) and, with
-    ``cross``, the cross models of photo ``j`` of strips ``k`` and ``k + 1`` (a sidelap of
-    50 % or more). Two units are joined when their areas (a photo's footprint, a model's
-    stereo overlap) overlap with a positive area: tie points in every common area."""
+    ``[x_kj, x_kj + c_k] x [y_k, y_k + c_k]``: ``x_kj = (start_k + j) bx c_k`` plus
+    ``shift bx`` on every other strip, ``y_k = k by``, ``bx = 1 - forelap``,
+    ``by = 1 - sidelap``, ``c_k`` the strip's relative photo scale (``scales``; 1: all
+    photos of one scale). ``lengths`` and ``starts`` (photos, bases) give strips of
+    different lengths and starts; ``shift`` (a fraction of the base) shifts every other
+    strip. Units: the photos (bundle, 6 parameters), or the models (independent models, 7)
+    of photos ``j`` and ``j + step`` of a strip (``model_step``: 1, or 2 from 75 % forelap
+    on: "models from a strip are constructed from every other photograph", for p = 80 %)
+    and, with ``cross``, the cross models of photo ``j`` of strips ``k`` and ``k + 1`` (a
+    sidelap of 50 % or more, strips of one scale, not shifted). Two units are joined when
+    their areas (a photo's footprint, a model's stereo overlap) overlap with a positive area:
+    tie points in every common area."""
     check_design(strips, photos_per_strip, forelap, sidelap)
     if units not in ("photos", "models"):
         raise ParameterError(f"units {units!r}: photos or models")
-    if cross and (units != "models" or sidelap < 0.5):
+    lengths = _per_strip(lengths, strips, photos_per_strip, "lengths", int)
+    starts = _per_strip(starts, strips, 0.0, "starts", float)
+    scales = _per_strip(scales, strips, 1.0, "scales", float)
+    if min(lengths) < 2 or min(scales) <= 0:
+        raise ParameterError("every strip needs at least 2 photos and a positive scale")
+    if cross and (units != "models" or sidelap < 0.5 or shift or len(set(scales)) > 1):
         raise ParameterError("cross models (+C) are models between the strips: they need "
-                             "--units models and a sidelap of 50 % or more")
+                             "--units models, a sidelap of 50 % or more, strips of one scale "
+                             "and no shift")
     bx, by = 1.0 - forelap, 1.0 - sidelap
+
+    def photo(k, j):
+        c = scales[k]
+        x0 = (starts[k] + j) * bx * c + (shift * bx if k % 2 else 0.0)
+        return x0, x0 + c, k * by, k * by + c
+
     rect = []
     if units == "photos":
         for k in range(strips):
-            for j in range(photos_per_strip):
-                rect.append((j * bx, j * bx + 1, k * by, k * by + 1))
+            rect += [photo(k, j) for j in range(lengths[k])]
     else:
         step = model_step or (2 if forelap >= 0.75 else 1)
         if 1.0 - step * bx <= 0:
             raise ParameterError(f"photos {step} apart do not overlap at {forelap:.0%} "
                                  f"forelap: no models")
         for k in range(strips):
-            for i in range(photos_per_strip - step):
-                rect.append(((i + step) * bx, i * bx + 1, k * by, k * by + 1))
+            for i in range(lengths[k] - step):
+                a, b = photo(k, i), photo(k, i + step)
+                rect.append((b[0], a[1], a[2], a[3]))
         if cross:
             for k in range(strips - 1):
-                for j in range(photos_per_strip):
-                    rect.append((j * bx, j * bx + 1, (k + 1) * by, k * by + 1))
+                for j in range(min(lengths[k], lengths[k + 1])):
+                    a, b = photo(k, j), photo(k + 1, j)
+                    rect.append((max(a[0], b[0]), min(a[1], b[1]), b[2], a[3]))
     r = np.array(rect, np.float64).reshape(-1, 4)
     n = len(r)
     s_all, t_all = [], []
@@ -244,6 +263,15 @@ def design_network(strips, photos_per_strip, forelap=0.6, sidelap=0.2, units="ph
     t = np.concatenate(t_all) if t_all else np.zeros(0, np.int64)
     return Network(x=(r[:, 0] + r[:, 1]) / 2, y=(r[:, 2] + r[:, 3]) / 2, s=s, t=t,
                    params=6 if units == "photos" else 7, kind=units)
+
+
+def _per_strip(values, strips, default, name, cast):
+    if values is None:
+        return [cast(default)] * strips
+    values = [cast(v) for v in values]
+    if len(values) != strips:
+        raise ParameterError(f"{name}: {len(values)} values for {strips} strips")
+    return values
 
 
 def project_network(path, chunk=None):
