@@ -155,27 +155,35 @@ def evaluate(net: Network, rate_flops=None):
 
 def measure_rate(band_width, params=6, seconds=0.3, memory=200e6):
     """This machine's rate of the band solver (flops per second) at a band width: a random
-    positive definite band factored and solved by :func:`sapgo.bandsolve.solve_in_core`, the
-    same kernels as ``sapgo adjust`` (best of two runs of about ``seconds`` each, at most
-    ``memory`` bytes of band rows)."""
+    positive definite band fed to :class:`sapgo.bandsolve.BandSolver` in segments of 256
+    stations and solved, as ``sapgo adjust`` does it (best of two runs of about ``seconds``
+    each, at most ``memory`` bytes of band rows)."""
     import time
 
-    from .bandsolve import solve_in_core
+    from .bandsolve import BandSolver
 
     b = max(1, int(band_width))
     per_unit = band_flops(4 * b, b, params) / (4 * b)
     n = int(5e9 * seconds / max(per_unit, 1.0))
-    n = max(4 * b, min(n, int(memory / (8.0 * params * params * b))))
+    n = max(4 * b, min(n, int(memory / (16.0 * params * params * b))))
     rng = np.random.default_rng(0)
     band = rng.uniform(-1.0, 1.0, (n, params, params * b)) * 0.1 / b
     idx = np.arange(params)
     band[:, idx, idx] = params * b  # diagonally dominant: positive definite
     rhs = rng.uniform(size=(n, params))
-    solve_in_core(band[: min(n, 8 * b)], rhs[: min(n, 8 * b)])  # compile and warm
+    fac, y = np.empty_like(band), np.empty_like(rhs)
+
+    def run(m):
+        solver = BandSolver(m, b, fac, y, 256, block=params)
+        for i0 in range(0, m, 256):
+            solver.feed(band[i0:min(m, i0 + 256)], rhs[i0:min(m, i0 + 256)])
+        solver.finish()
+
+    run(min(n, 8 * b))  # compile and warm
     best = math.inf
     for _ in range(2):
         t0 = time.perf_counter()
-        solve_in_core(band, rhs)
+        run(n)
         best = min(best, time.perf_counter() - t0)
     return band_flops(n, b, params) / best
 
@@ -279,7 +287,7 @@ def project_network(path, chunk=None):
     pairs that observe a common point (its actual topology, irregular or not). ``x`` is
     the photo's position along the flight lines in bases, ``y`` its strip (the strips
     ordered across the flight direction)."""
-    from .ordering import _flight_axes
+    from .ordering import _columns, _flight_axes
     from .plots import station_pairs
     from .project import CHUNK_RECORDS, STATUS_ACTIVE, Project
 
@@ -312,7 +320,8 @@ def project_network(path, chunk=None):
         gaps = np.diff(np.sort(u))
     gaps = gaps[gaps > 0]
     base = float(np.median(gaps)) if len(gaps) else 1.0
-    x = np.round((u - (u.min() if len(u) else 0.0)) / base * 2) / 2  # half bases
+    # photo columns counted photo by photo along each strip (no drift over long strips)
+    x = _columns(u, y.astype(np.int64), base).astype(np.float64)
     return Network(x=x, y=y, s=local[pr[:, 0]], t=local[pr[:, 1]], params=6, kind="photos")
 
 

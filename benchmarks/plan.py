@@ -1,0 +1,76 @@
+"""``sapgo plan`` against ``sapgo adjust``: predicted band width and solve time, measured.
+
+Run:  python benchmarks/plan.py   (writes results/plan.json; a few minutes)
+
+For generated projects (the SAPGO-P presets and larger blocks) the plan of the project
+(its actual network, :func:`sapgo.plan.project_network`) predicts the band width of the
+economical ordering and the solve time per iteration from this machine's measured rate;
+``adjust`` then orders the project and runs three iterations, and its band width and solve
+time per iteration (factorisation and substitutions) are recorded beside the prediction.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import sapgo
+from sapgo.plan import evaluate, measure_rate, project_network
+
+ROOT = Path(__file__).resolve().parents[1]
+BLOCKS = {
+    "sapgo-p-1": dict(preset="sapgo-p-1"),
+    "sapgo-p-2": dict(preset="sapgo-p-2"),
+    "sapgo-p-3": dict(preset="sapgo-p-3"),
+    "sapgo-p-4": dict(preset="sapgo-p-4"),
+    "10 x 100": dict(strips=10, photos_per_strip=100, control_points=100),
+    "20 x 500": dict(strips=20, photos_per_strip=500, control_points=400),
+    "40 x 250": dict(strips=40, photos_per_strip=250, control_points=400),
+    "5 x 2000": dict(strips=5, photos_per_strip=2000, control_points=400),
+}
+
+
+def main():
+    tmp = Path(tempfile.mkdtemp(prefix="sapgo-plan-"))
+    rows = []
+    try:
+        for name, params in BLOCKS.items():
+            path = tmp / "b.h5"
+            sapgo.generate_block(path, **params)
+            t0 = time.perf_counter()
+            e = evaluate(project_network(path))
+            rec = e["orderings"][e["recommended"]]
+            rate = measure_rate(rec["band_width_m"])
+            t_plan = time.perf_counter() - t0
+            predicted = rec["band_flops"] / rate
+            s = sapgo.adjust(path, sapgo.Options(progress=False, max_iterations=3))
+            measured = s.timings_per_iteration_s["solve"]
+            row = {"block": name, "photos": rec["dimension"], "recommended": e["recommended"],
+                   "band_width_planned": rec["band_width_m"], "band_width_adjust": s.band_width,
+                   "ordering_adjust": s.ordering, "fill_in_blocks": rec["fill_in_blocks"],
+                   "rate_gflops": rate / 1e9, "predicted_solve_s": predicted,
+                   "measured_solve_s": measured, "ratio": predicted / measured,
+                   "plan_s": t_plan}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    out = {"machine": platform.machine(), "rows": rows}
+    (ROOT / "benchmarks" / "results" / "plan.json").write_text(json.dumps(out, indent=1))
+    print()
+    print("| block | photos | ordering (plan / adjust) | band width (plan / adjust) | "
+          "predicted solve | measured solve | predicted / measured | plan time |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['block']} | {r['photos']} | {r['recommended']} / {r['ordering_adjust']} | "
+              f"{r['band_width_planned']} / {r['band_width_adjust']} | "
+              f"{r['predicted_solve_s']:.3f} s | {r['measured_solve_s']:.3f} s | "
+              f"{r['ratio']:.2f} | {r['plan_s']:.2f} s |")
+
+
+if __name__ == "__main__":
+    main()
