@@ -156,10 +156,9 @@ def evaluate(net: Network, rate_flops=None):
 def measure_rate(band_width, params=6, seconds=0.3, memory=200e6):
     """This machine's rate of the band solver (flops per second) at a band width: a random
     positive definite band fed to :class:`sapgo.bandsolve.BandSolver` in segments of 256
-    stations and solved, as ``sapgo adjust`` does it (best of two runs of about ``seconds``
-    each, at most ``memory`` bytes of band rows)."""
-    import time
-
+    stations, its factor rows written to a work file and read back by the back
+    substitution, as ``sapgo adjust`` does it (the solver's own time, best of two runs of
+    about ``seconds`` each, at most ``memory`` bytes of band rows)."""
     from .bandsolve import BandSolver
 
     b = max(1, int(band_width))
@@ -171,20 +170,29 @@ def measure_rate(band_width, params=6, seconds=0.3, memory=200e6):
     idx = np.arange(params)
     band[:, idx, idx] = params * b  # diagonally dominant: positive definite
     rhs = rng.uniform(size=(n, params))
-    fac, y = np.empty_like(band), np.empty_like(rhs)
+    import tempfile
+    from pathlib import Path
 
-    def run(m):
-        solver = BandSolver(m, b, fac, y, 256, block=params)
-        for i0 in range(0, m, 256):
-            solver.feed(band[i0:min(m, i0 + 256)], rhs[i0:min(m, i0 + 256)])
-        solver.finish()
+    from .rawfile import RawArray
 
-    run(min(n, 8 * b))  # compile and warm
-    best = math.inf
-    for _ in range(2):
-        t0 = time.perf_counter()
-        run(n)
-        best = min(best, time.perf_counter() - t0)
+    with tempfile.TemporaryDirectory(prefix="sapgo-rate-") as d:
+        # the factor rows go to a work file and come back for the back substitution
+        fac = RawArray(Path(d) / "factor.bin", band.shape, mode="w")
+        y = RawArray(Path(d) / "y.bin", rhs.shape, mode="w")
+
+        def run(m):
+            solver = BandSolver(m, b, fac, y, 256, block=params)
+            for i0 in range(0, m, 256):
+                solver.feed(band[i0:min(m, i0 + 256)], rhs[i0:min(m, i0 + 256)])
+            solver.finish()
+            return solver.seconds
+
+        try:
+            run(min(n, 8 * b))  # compile and warm
+            best = min(run(n) for _ in range(2))
+        finally:
+            fac.close()
+            y.close()
     return band_flops(n, b, params) / best
 
 
