@@ -193,3 +193,45 @@ def test_irregular_designs():
     assert e["recommended"] == "across_strip"
     assert e["orderings"]["across_strip"]["band_width_m"] < \
         e["orderings"]["down_strip"]["band_width_m"]
+
+
+# Table 1's formulas (T, m; F.I., W, D for ->S and ->G) for every case, where they are valid
+# (W needs s >= 3 at 60 % sidelap and s >= 5 at 80 %; 80/80 also s >= 4 for m and F.I.).
+TABLE1 = {
+    (0.6, 0.6, False): lambda s, g: dict(
+        T=s * (g - 1), m=8 * s * g - 13 * s - 9 * g + 15,
+        S=((g - 2) * (s - 2) * (s - 3), s + 3, 2 * s),
+        G=((2 * s - 3) * (g - 2) * (g - 3), 2 * g, 3 * (g - 1))),
+    (0.6, 0.6, True): lambda s, g: dict(
+        T=2 * s * g - (s + g), m=32 * s * g - 46 * s - 46 * g + 66,
+        S=((7 * g - 11) * (s - 2) * (s - 3), 4 * s, 5 * s - 3),
+        G=((7 * s - 11) * (g - 2) * (g - 3), 4 * g, 5 * g - 3)),
+    (0.8, 0.6, False): lambda s, g: dict(
+        T=s * (g - 2), m=13 * s * g - 41 * s - 15 * g + 48,
+        S=((2 * g - 7) * (s - 2) * (s - 3), 2 * s + 3, 3 * s),
+        G=((2 * s - 3) * (g - 4) * (g - 5), 2 * g - 1, 3 * (g - 2))),
+    (0.8, 0.8, False): lambda s, g: dict(
+        T=s * (g - 2), m=23 * s * g - 73 * s - 50 * g + 160,
+        S=((2 * g - 7) * (s - 4) * (s - 5), 2 * s + 5, 3 * s),
+        G=((4 * s - 10) * (g - 4) * (g - 5), 4 * g - 5, 5 * (g - 2))),
+    (0.8, 0.6, True): lambda s, g: dict(  # ->S1: F.I. and D as printed, W = 8s - 1 (see above)
+        T=2 * s * (g - 1) - g, m=55 * s * g - 151 * s - 80 * g + 218,
+        S=((10 * g - 22) * (s - 2) * (s - 3) + (g - 5) * (4 * s * s - 13 * s + 13), 8 * s - 1,
+           5 * (2 * s - 1)),
+        G=((7 * s - 11) * (g - 4) * (g - 5), 4 * g - 1, 5 * g - 6)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(TABLE1), ids=lambda c: f"{c[0]:.0%}-{c[1]:.0%}"
+                         f"{'+C' if c[2] else ''}")
+@pytest.mark.parametrize("s, g", [(5, 9), (6, 12), (7, 10)])
+def test_rostom_table_1_formulas_for_every_case(case, s, g):
+    from sapgo.plan import design_network, evaluate
+
+    p, q, cross = case
+    want = TABLE1[case](s, g)
+    e = evaluate(design_network(s, g, p, q, units="models", cross=cross))["orderings"]
+    for name, key in (("across_strip", "S"), ("down_strip", "G")):
+        r = e[name]
+        assert (r["dimension"], r["nonzero_blocks"]) == (want["T"], want["m"])
+        assert (r["fill_in_blocks"], r["band_width_m"], r["band_width_b"]) == want[key], name
