@@ -235,3 +235,16 @@ def test_rostom_table_1_formulas_for_every_case(case, s, g):
         r = e[name]
         assert (r["dimension"], r["nonzero_blocks"]) == (want["T"], want["m"])
         assert (r["fill_in_blocks"], r["band_width_m"], r["band_width_b"]) == want[key], name
+
+
+def test_a_flight_design_plans_what_the_generated_block_of_that_design_has(block_cache):
+    """The bundle design (photos, 60 % / 20 %) against a generated 5 x 40 block of the same
+    design: the same non-zero blocks, band widths and fill-in for every ordering."""
+    from sapgo.plan import design_network, evaluate, project_network
+
+    src = block_cache("5x40", strips=5, photos_per_strip=40)
+    got = evaluate(project_network(src))["orderings"]
+    want = evaluate(design_network(5, 40, 0.6, 0.2, "photos"))["orderings"]
+    for name in want:
+        for key in ("dimension", "nonzero_blocks", "band_width_m", "fill_in_blocks"):
+            assert got[name][key] == want[name][key], (name, key)
