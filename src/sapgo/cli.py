@@ -359,10 +359,10 @@ def cmd_plan(args):
     result = evaluate(net)
     if not args.no_timing and net.n:
         widths = {r["band_width_m"] for r in result["orderings"].values()}
-        rates = {w: measure_rate(w, net.params) for w in sorted(widths)}
+        rates = {w: measure_rate(w, net.params, with_overhead=True) for w in sorted(widths)}
         for r in result["orderings"].values():
-            r["rate_flops"] = rates[r["band_width_m"]]
-            r["predicted_solve_s"] = r["band_flops"] / r["rate_flops"]
+            r["rate_flops"], r["solver_overhead_s"] = rates[r["band_width_m"]]
+            r["predicted_solve_s"] = r["solver_overhead_s"] + r["band_flops"] / r["rate_flops"]
     result.update(source)
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2))

@@ -153,12 +153,14 @@ def evaluate(net: Network, rate_flops=None):
             "orderings": res, "recommended": best}
 
 
-def measure_rate(band_width, params=6, seconds=0.3, memory=200e6):
+def measure_rate(band_width, params=6, seconds=0.3, memory=200e6, with_overhead=False):
     """This machine's rate of the band solver (flops per second) at a band width: a random
     positive definite band fed to :class:`sapgo.bandsolve.BandSolver` in segments of 256
     stations, its factor rows written to a work file and read back by the back
-    substitution, as ``sapgo adjust`` does it (the solver's own time, best of two runs of
-    about ``seconds`` each, at most ``memory`` bytes of band rows)."""
+    substitution, as ``sapgo adjust`` does it (the solver's own time, best of four runs of
+    about ``seconds`` each, at most ``memory`` bytes of band rows). ``with_overhead``:
+    ``(rate, overhead_s)``, the solver's fixed cost of a solve from a second, small run, so
+    that a solve takes ``overhead_s + flops / rate``."""
     from .bandsolve import BandSolver
 
     b = max(1, int(band_width))
@@ -189,11 +191,18 @@ def measure_rate(band_width, params=6, seconds=0.3, memory=200e6):
 
         try:
             run(min(n, 8 * b))  # compile and warm
-            best = min(run(n) for _ in range(2))
+            best = min(run(n) for _ in range(4))
+            small = min(n - 1, max(b, 64))
+            t_small = min(run(small) for _ in range(3))
         finally:
             fac.close()
             y.close()
-    return band_flops(n, b, params) / best
+    # the rate from the large run (its fixed costs are negligible there); the overhead, the
+    # solver's fixed cost of a solve that the millisecond solves of small blocks are made
+    # of, from the small run
+    rate = band_flops(n, b, params) / best
+    overhead = max(0.0, t_small - band_flops(small, b, params) / rate)
+    return (rate, overhead) if with_overhead else rate
 
 
 def band_flops(n, b, p=6):
