@@ -272,22 +272,44 @@ def design_network(strips, photos_per_strip, forelap=0.6, sidelap=0.2, units="ph
                     a, b = photo(k, j), photo(k + 1, j)
                     rect.append((max(a[0], b[0]), min(a[1], b[1]), b[2], a[3]))
     r = np.array(rect, np.float64).reshape(-1, 4)
-    n = len(r)
-    s_all, t_all = [], []
-    eps = 1e-9
-    for a in range(0, n, 2048):  # pairs by blocks of rows
-        q = r[a:a + 2048]
-        ox = np.minimum(q[:, None, 1], r[None, :, 1]) - np.maximum(q[:, None, 0], r[None, :, 0])
-        oy = np.minimum(q[:, None, 3], r[None, :, 3]) - np.maximum(q[:, None, 2], r[None, :, 2])
-        i, j = np.nonzero((ox > eps) & (oy > eps))
-        i = i + a
-        keep = i < j
-        s_all.append(i[keep])
-        t_all.append(j[keep])
-    s = np.concatenate(s_all) if s_all else np.zeros(0, np.int64)
-    t = np.concatenate(t_all) if t_all else np.zeros(0, np.int64)
+    s, t = _overlapping_pairs(r)
     return Network(x=(r[:, 0] + r[:, 1]) / 2, y=(r[:, 2] + r[:, 3]) / 2, s=s, t=t,
                    params=6 if units == "photos" else 7, kind=units)
+
+
+def _overlapping_pairs(r, eps=1e-9):
+    """The pairs ``i < j`` of rectangles ``r`` (n x 4: x0, x1, y0, y1) that overlap with a
+    positive area. The rectangles go into cells as large as the largest of them, so only a
+    cell and its neighbours need comparing: O(n) pairs for a flight design of any size."""
+    n = len(r)
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    wx = float((r[:, 1] - r[:, 0]).max())
+    wy = float((r[:, 3] - r[:, 2]).max())
+    cx = np.floor((r[:, 0] - r[:, 0].min()) / wx).astype(np.int64)
+    cy = np.floor((r[:, 2] - r[:, 2].min()) / wy).astype(np.int64)
+    ncy = int(cy.max()) + 3
+    cell = (cx + 1) * ncy + (cy + 1)
+    order = np.argsort(cell, kind="stable")
+    sorted_cells = cell[order]
+    s_all, t_all = [], []
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            target = cell + dx * ncy + dy
+            lo = np.searchsorted(sorted_cells, target, "left")
+            hi = np.searchsorted(sorted_cells, target, "right")
+            cnt = hi - lo
+            i = np.repeat(np.arange(n), cnt)
+            j = order[np.repeat(lo, cnt) + (np.arange(cnt.sum()) - np.repeat(
+                np.cumsum(cnt) - cnt, cnt))]
+            keep = i < j
+            i, j = i[keep], j[keep]
+            ox = np.minimum(r[i, 1], r[j, 1]) - np.maximum(r[i, 0], r[j, 0])
+            oy = np.minimum(r[i, 3], r[j, 3]) - np.maximum(r[i, 2], r[j, 2])
+            hit = (ox > eps) & (oy > eps)
+            s_all.append(i[hit])
+            t_all.append(j[hit])
+    return np.concatenate(s_all), np.concatenate(t_all)
 
 
 def _per_strip(values, strips, default, name, cast):
@@ -351,32 +373,38 @@ def check_design(strips, photos_per_strip, forelap, sidelap):
         raise ParameterError(f"sidelap {sidelap}: between 0 and 1 (a fraction, e.g. 0.2)")
 
 
-def write_pattern(net: Network, path, ordering):
+def write_pattern(net: Network, path, ordering, max_cells=600):
     """Draw the pattern of ``M`` with its fill-in for an ordering (Rostom's Figure 12): the
-    non-zero blocks, the fill-in of the factor, and the lines' sub-matrices b(k, k+t)."""
+    non-zero blocks, the fill-in of the factor, and the boundaries of the lines. Networks of
+    more than ``max_cells`` units are drawn in ``max_cells`` x ``max_cells`` cells (a cell is
+    non-zero if any block in it is, else fill-in if any is)."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
     from .plots import _pyplot
     from .symbolic import factor_pattern
 
     perm, lines = orderings(net)[ordering]
     rows, cols, fill = factor_pattern(net.n, (net.s, net.t), perm)
-    plt = _pyplot()
     n = net.n
+    cells = max(1, min(n, max_cells))
+    img = np.zeros((cells, cells), np.int8)
+    ri, ci = rows * cells // max(n, 1), cols * cells // max(n, 1)
+    value = np.where(fill, 1, 2).astype(np.int8)
+    np.maximum.at(img, (ri, ci), value)
+    img = np.maximum(img, img.T)
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 7))
-    size = max(1.0, 4000.0 / max(n, 1))
-    for sel, colour, label in ((~fill, "#1f4e79", "non-zero block of M"),
-                               (fill, "#f4b183", "fill-in")):
-        ax.scatter(np.concatenate([cols[sel], rows[sel]]),
-                   np.concatenate([rows[sel], cols[sel]]), s=size, marker="s", c=colour,
-                   linewidths=0, label=label)
-    bounds = np.flatnonzero(np.diff(lines[perm])) + 0.5
-    for b in bounds:
-        ax.axhline(b, color="0.8", lw=0.5)
-        ax.axvline(b, color="0.8", lw=0.5)
-    ax.set_xlim(-0.5, n - 0.5)
-    ax.set_ylim(n - 0.5, -0.5)
-    ax.set_aspect("equal")
+    cmap = ListedColormap(["white", "#f4b183", "#1f4e79"])
+    ax.imshow(img, cmap=cmap, vmin=0, vmax=2, interpolation="nearest",
+              extent=(-0.5, n - 0.5, n - 0.5, -0.5))
+    if n <= max_cells:
+        for b in np.flatnonzero(np.diff(lines[perm])) + 0.5:
+            ax.axhline(b, color="0.8", lw=0.5)
+            ax.axvline(b, color="0.8", lw=0.5)
     ax.set_title(f"pattern of M, {ordering}: {n} {net.kind}, "
                  f"{int((~fill).sum())} blocks (lower), {int(fill.sum())} fill-in")
-    ax.legend(loc="upper right", fontsize=8)
+    ax.legend(handles=[Patch(color="#1f4e79", label="non-zero block of M"),
+                       Patch(color="#f4b183", label="fill-in")], loc="upper right", fontsize=8)
     fig.savefig(path, dpi=120)
     plt.close(fig)
