@@ -39,9 +39,9 @@ BAD_LAYOUT = 3  # the records do not follow the logical order the band width was
 @njit(cache=True)
 def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
-                  ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, lam=0.0,
+                  ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, b_all, lam=0.0,
                   behind_ok=False):
-    """Linearise point ``j``: fill its rays' A, l, p, Nbar and its 3x3 system nn, cc.
+    """Linearise point ``j``: fill its rays' A, B, l, p, Nbar and its 3x3 system nn, cc.
 
     Returns the number of active rays ``k`` (negative when a point is behind a camera).
     ``xyz`` receives the point's current coordinates (fixed control components replaced by
@@ -79,6 +79,7 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
                 nn[r, c] += p * (b[0, r] * b[0, c] + b[1, r] * b[1, c])
             cc[r] += p * (b[0, r] * l0 + b[1, r] * l1)
         a_all[k] = a
+        b_all[k] = b
         l_all[k, 0] = l0
         l_all[k, 1] = l1
         w_all[k] = p
@@ -171,7 +172,7 @@ def _workspace(max_rays, npar=6):
     return (np.empty((max_rays, npar, 3)), np.empty((max_rays, 2, npar)),
             np.empty((max_rays, 2)),
             np.empty(max_rays), np.empty(max_rays, np.int64), np.empty((3, 3)), np.empty(3),
-            np.zeros((3, 3)), np.empty(3))
+            np.zeros((3, 3)), np.empty(3), np.empty((max_rays, 2, 3)))
 
 
 @njit(cache=True, nogil=True)
@@ -197,7 +198,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     """
     cap = band.shape[0]
     npar = band.shape[1]
-    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays, npar)
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all = _workspace(max_rays, npar)
     g = np.empty((max_rays, npar, 3))
     h = np.empty(3)
     col = np.empty(3)
@@ -208,8 +209,6 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     ngp = np.empty((ng, 3))              # Nbar of the border: sum p E' B
     ggp = np.empty((ng, 3))              # Ndd^-1 Nbar_g'
     e = np.empty((2, 8))
-    a_t = np.empty((2, npar))
-    b_t = np.empty((2, 3))
     for j in range(j0, j_stop):
         if pt_active[j] != 0:
             continue
@@ -218,7 +217,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc, lam, behind_ok)
+                          st_all, nn, cc, b_all, lam, behind_ok)
         if k < 0:
             return j, BEHIND_CAMERA, j
         bw = band.shape[2] // npar
@@ -269,15 +268,15 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
         if ng > 0:
             _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal, xyz,
                           a_all, l_all, w_all, st_all, g, lo, h, base, split, bord, ovf_bord,
-                          cnn, ccg, cdiag, slot, tcols, ngp, ggp, e, a_t, b_t)
+                          cnn, ccg, cdiag, slot, tcols, ngp, ggp, e, b_all)
     return j_stop, OK, -1
 
 
 @njit(cache=True, nogil=True)
-def _ray_border(eo, xyz, c, cal_row, e, a, b):
-    """A ray of a camera with calibrated parameters (``cal_row``, the camera's row of
-    ``cal``): its border partials ``e`` (2 x 8) and collinearity partials ``a``, ``b``;
-    False (nothing computed) when the camera is not calibrated."""
+def _ray_border(eo, xyz, c, cal_row, e):
+    """The border partials ``e`` (2 x 8) of a ray of a camera with calibrated parameters
+    (``cal_row``, the camera's row of ``cal``); False (nothing computed) when the camera is
+    not calibrated."""
     used = False
     for f in range(8):
         if cal_row[f] >= 0:
@@ -285,14 +284,13 @@ def _ray_border(eo, xyz, c, cal_row, e, a, b):
     if not used:
         return False
     camera_partials(eo, xyz, c, e)
-    linearize(eo, xyz, c, a, b)
     return True
 
 
 @njit(cache=True, nogil=True)
 def _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal, xyz, a_all,
                   l_all, w_all, st_all, g, lo, h, base, split, bord, ovf_bord, cnn, ccg,
-                  cdiag, slot, tcols, ngp, ggp, e, a_t, b_t):
+                  cdiag, slot, tcols, ngp, ggp, e, b_all):
     """Point ``j``'s share of the border (see :func:`build_points`): the direct terms of its
     ``k`` rays, ``p A'E`` into the border columns of their band rows, ``p E'E`` and ``p E'l``
     into the border block, then its elimination, ``-G_q Nbar_g'``, ``-Nbar_g Ndd^-1 Nbar_g'``
@@ -303,7 +301,7 @@ def _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, c
     for q in range(k):
         s = st_all[q]
         cam = cam_of_station[s]
-        if not _ray_border(eo[s], xyz, cams[cam], cal[cam], e, a_t, b_t):
+        if not _ray_border(eo[s], xyz, cams[cam], cal[cam], e):
             continue
         p = w_all[q]
         a = a_all[q]
@@ -326,7 +324,7 @@ def _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, c
             ccg[c1] += p * (ex * l_all[q, 0] + ey * l_all[q, 1])
             cdiag[c1] += p * (ex * ex + ey * ey)
             for c in range(3):
-                ngp[sl, c] += p * (ex * b_t[0, c] + ey * b_t[1, c])
+                ngp[sl, c] += p * (ex * b_all[q, 0, c] + ey * b_all[q, 1, c])
             for f2 in range(8):
                 c2 = cal[cam, f2]
                 if c2 >= 0:
@@ -461,9 +459,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     """
     npar = delta.shape[1]
     e = np.empty((2, 8))
-    a_t = np.empty((2, npar))
-    b_t = np.empty((2, 3))
-    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays, npar)
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all = _workspace(max_rays, npar)
     cams_v = cams if cams_new is None else cams_new
     eps = np.empty(3)
     e_new = np.empty(6)
@@ -474,7 +470,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc, lam, behind_ok)
+                          st_all, nn, cc, b_all, lam, behind_ok)
         if k < 0 or not _chol3(nn, lo):
             stats[7] = j + 1
             stats[8] = BEHIND_CAMERA if k < 0 else SINGULAR_POINT
@@ -503,7 +499,6 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                 if not moved:
                     continue
                 camera_partials(eo[s], xyz, cams[cam], e)
-                linearize(eo[s], xyz, cams[cam], a_t, b_t)
                 dx = 0.0
                 dy = 0.0
                 for f in range(8):
@@ -512,7 +507,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                 p = w_all[q]
                 for c in range(3):
                     if not (ctrl_mask[kind, c] and pt_csig[j, c] == 0.0):
-                        cc[c] -= p * (b_t[0, c] * dx + b_t[1, c] * dy)
+                        cc[c] -= p * (b_all[q, 0, c] * dx + b_all[q, 1, c] * dy)
         _solve3(lo, cc, eps)
         if lam > 0.0:
             for c in range(3):
@@ -584,7 +579,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     with design row ``[A, B, E]`` the terms of ``cov(delta_s) += X_s S^-1 X_s'``,
     ``cov(delta_s, theta) = -X_s S^-1``, ``cov(eps, theta) = G V' S^-1``,
     ``cov(delta_s, eps) -= X_s S^-1 V G``, ``cov(theta) = S^-1``."""
-    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz = _workspace(max_rays, npar)
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all = _workspace(max_rays, npar)
     g = np.empty((3, 3))
     t = np.empty((3, 3))
     qpp = np.empty((3, 3))
@@ -601,8 +596,6 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     eb = np.zeros((2, ng))        # the observation's border partials
     ec = np.empty((2, 8))
     xs_s = np.zeros((npar, ng))   # X_s S^-1
-    ab = np.empty((2, npar))
-    bb = np.empty((2, 3))
     for i in range(out_r.shape[0]):
         for c in range(out_r.shape[1]):
             out_r[i, c] = 0.0
@@ -615,7 +608,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
             continue
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
-                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc)
+                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, b_all)
         if k < 0 or not _chol3(nn, lo):
             for c in range(out.shape[1]):
                 out[j, c] = np.nan
@@ -649,7 +642,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                         for c in range(3):
                             vb[cg, c] += xv * nbar[q, u, c]
                 cam = cam_of_station[s]
-                if not _ray_border(eo[s], xyz, cams[cam], cal[cam], ec, ab, bb):
+                if not _ray_border(eo[s], xyz, cams[cam], cal[cam], ec):
                     continue
                 p = w_all[q]
                 for f in range(8):
@@ -657,7 +650,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                     if cg < 0:
                         continue
                     for c in range(3):
-                        vb[cg, c] -= p * (ec[0, f] * bb[0, c] + ec[1, f] * bb[1, c])
+                        vb[cg, c] -= p * (ec[0, f] * b_all[q, 0, c] + ec[1, f] * b_all[q, 1, c])
             kind = pt_kind[j]
             for c in range(3):  # a fixed component is no unknown
                 if ctrl_mask[kind, c] and pt_csig[j, c] == 0.0:
