@@ -325,7 +325,7 @@ def _fraction(text, option):
 
 
 def cmd_plan(args):
-    from .plan import design_network, evaluate, measure_rate, project_network, write_pattern
+    from .plan import design_network, evaluate, project_network, write_pattern
 
     design = [args.strips, args.photos_per_strip]
     if args.project and any(v is not None for v in design):
@@ -356,13 +356,7 @@ def cmd_plan(args):
         source = {"design": {"strips": args.strips, "photos_per_strip": args.photos_per_strip,
                              "forelap": forelap, "sidelap": sidelap, "units": args.units,
                              "cross_models": args.cross}}
-    result = evaluate(net)
-    if not args.no_timing and net.n:
-        widths = {r["band_width_m"] for r in result["orderings"].values()}
-        rates = {w: measure_rate(w, net.params, with_overhead=True) for w in sorted(widths)}
-        for r in result["orderings"].values():
-            r["rate_flops"], r["solver_overhead_s"] = rates[r["band_width_m"]]
-            r["predicted_solve_s"] = r["solver_overhead_s"] + r["band_flops"] / r["rate_flops"]
+    result = evaluate(net, timing=not args.no_timing)
     result.update(source)
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2))

@@ -13,12 +13,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import reverse_cuthill_mckee, shortest_path
 
 from .errors import ParameterError
+from .rawfile import RawArray
 from .symbolic import symbolic_counts
 
 #: The orderings compared (Rostom's ->G down the strips, ->S across them, along the
@@ -108,7 +111,7 @@ def partitioned_band_width(net: Network, lines):
     return int((csum[reach + 1] - csum[np.arange(len(size))]).max())
 
 
-def evaluate(net: Network, rate_flops=None):
+def evaluate(net: Network, timing=False, seconds=1.0):
     """The counts of every ordering and the recommended one (the least solve work).
 
     Per ordering: ``dimension`` (unknowns of ``M``), ``nonzero_blocks`` (lower triangle with
@@ -116,8 +119,9 @@ def evaluate(net: Network, rate_flops=None):
     ``band_width_m`` (scalar rows: ``params`` times that), ``fill_in_blocks``,
     ``factor_blocks``, the storage of the three schemes in blocks and in bytes (band,
     envelope, sparse: the factor's blocks plus a 4-byte index each), the flops of the band
-    Cholesky (``n (p b)^2 p / ...``: :func:`band_flops`) and, with ``rate_flops``, the
-    predicted solve time."""
+    Cholesky (:func:`band_flops`) and, with ``timing``, the predicted solve time on this
+    machine (:func:`solve_time`, once per band width, about ``seconds`` each):
+    ``predicted_solve_s``, ``rate_flops``, ``timed_units``."""
     p = net.params
     res = {}
     for name, (perm, lines) in orderings(net).items():
@@ -145,64 +149,92 @@ def evaluate(net: Network, rate_flops=None):
                               "sparse": (blk + 4) * c["factor_blocks"] + 8 * (net.n + 1)},
             "band_flops": flops,
         }
-        if rate_flops:
-            r["predicted_solve_s"] = flops / rate_flops
         res[name] = r
+    if timing and net.n:
+        times = {w: solve_time(net.n, w, p, seconds)
+                 for w in sorted({r["band_width_m"] for r in res.values()})}
+        for r in res.values():
+            t = times[r["band_width_m"]]
+            r.update(predicted_solve_s=t["predicted_s"], rate_flops=t["rate_flops"],
+                     timed_units=t["timed_units"])
     best = min(res, key=lambda k: (res[k]["band_flops"], res[k]["fill_in_blocks"]))
     return {"units": net.kind, "parameters_per_unit": p, "n_units": net.n,
             "orderings": res, "recommended": best}
 
 
-def measure_rate(band_width, params=6, seconds=0.3, memory=200e6, with_overhead=False):
-    """This machine's rate of the band solver (flops per second) at a band width: a random
-    positive definite band fed to :class:`sapgo.bandsolve.BandSolver` in segments of 256
-    stations, its factor rows written to a work file and read back by the back
-    substitution, as ``sapgo adjust`` does it (the solver's own time, best of four runs of
-    about ``seconds`` each, at most ``memory`` bytes of band rows). ``with_overhead``:
-    ``(rate, overhead_s)``, the solver's fixed cost of a solve from a second, small run, so
-    that a solve takes ``overhead_s + flops / rate``."""
+#: bytes passed over before every timed solve (twice a large last-level cache)
+_FLUSH_BYTES = 64 << 20
+
+
+def solve_time(n_units, band_width, params=6, seconds=1.0, memory=400e6):
+    """The time of one solve of ``n_units`` units of ``params`` parameters at a band width
+    (blocks), measured on this machine as ``sapgo adjust`` runs the solver: a random
+    positive definite band of that shape fed to :class:`sapgo.bandsolve.BandSolver` in
+    segments of 256 stations, its factor rows written to a work file and read back by the
+    back substitution (the solver's own time, the fastest of several runs, in about
+    ``seconds`` in all), each run with caches as cold as after adjust's build.
+
+    A block small enough (at most ``memory`` bytes of band rows, a run of at most a quarter
+    of ``seconds``) is solved at its own size, fixed costs and all. A larger one is solved at
+    the largest size ``n1`` that is, and its time extrapolated in proportion to the band
+    flops (:func:`band_flops`; at that size the fixed costs are negligible). Returns
+    ``{"predicted_s", "rate_flops", "timed_units", "extrapolated"}``."""
     from .bandsolve import BandSolver
 
     b = max(1, int(band_width))
-    per_unit = band_flops(4 * b, b, params) / (4 * b)
-    n = int(5e9 * seconds / max(per_unit, 1.0))
-    n = max(4 * b, min(n, int(memory / (16.0 * params * params * b))))
+    n_units = int(n_units)
+    if n_units <= 0:
+        return {"predicted_s": 0.0, "rate_flops": 0.0, "timed_units": 0, "extrapolated": False}
+    cap = max(min(n_units, 2), int(memory / (8.0 * params * params * b)))
     rng = np.random.default_rng(0)
-    band = rng.uniform(-1.0, 1.0, (n, params, params * b)) * 0.1 / b
-    idx = np.arange(params)
-    band[:, idx, idx] = params * b  # diagonally dominant: positive definite
-    rhs = rng.uniform(size=(n, params))
-    import tempfile
-    from pathlib import Path
-
-    from .rawfile import RawArray
-
     with tempfile.TemporaryDirectory(prefix="sapgo-rate-") as d:
-        # the factor rows go to a work file and come back for the back substitution
+        # (allocated once for the largest run; the runs take its first rows)
+        n_max = min(n_units, cap)
+        band = rng.uniform(-1.0, 1.0, (n_max, params, params * b)) * 0.1 / b
+        idx = np.arange(params)
+        band[:, idx, idx] = params * b  # diagonally dominant: positive definite
+        rhs = rng.uniform(size=(n_max, params))
         fac = RawArray(Path(d) / "factor.bin", band.shape, mode="w")
         y = RawArray(Path(d) / "y.bin", rhs.shape, mode="w")
 
+        # adjust's solve follows its build, which has passed over the points and the band
+        # rows: every timed run starts with caches cold, after a pass over a buffer larger
+        # than the caches (not timed)
+        flush = np.zeros(_FLUSH_BYTES // 8)
+
         def run(m):
+            np.add(flush, 1.0, out=flush)
             solver = BandSolver(m, b, fac, y, 256, block=params)
             for i0 in range(0, m, 256):
                 solver.feed(band[i0:min(m, i0 + 256)], rhs[i0:min(m, i0 + 256)])
             solver.finish()
             return solver.seconds
 
+        def best(m, budget):
+            times = [run(m)]  # (the first run also touches the work files)
+            while len(times) < 3 or (sum(times) < budget and len(times) < 50):
+                times.append(run(m))
+            return min(times[1:])
+
         try:
-            run(min(n, 8 * b))  # compile and warm
-            best = min(run(n) for _ in range(4))
-            small = min(n - 1, max(b, 64))
-            t_small = min(run(small) for _ in range(3))
+            n1 = min(n_max, 8 * b)
+            run(n1)  # compile and warm
+            t1 = run(n1)
+            for _ in range(4):  # grow to the size whose run takes a quarter of the time
+                want = min(n_max, int(0.25 * seconds * n1 / max(t1, 1e-9)))
+                if want <= 1.2 * n1:
+                    break
+                n1 = want
+                t1 = run(n1)
+            t1 = best(n1, seconds)
         finally:
             fac.close()
             y.close()
-    # the rate from the large run (its fixed costs are negligible there); the overhead, the
-    # solver's fixed cost of a solve that the millisecond solves of small blocks are made
-    # of, from the small run
-    rate = band_flops(n, b, params) / best
-    overhead = max(0.0, t_small - band_flops(small, b, params) / rate)
-    return (rate, overhead) if with_overhead else rate
+    # a block of n1 units or fewer is timed at its own size, fixed costs and all; a larger
+    # one from n1 units, where the fixed costs are negligible: the time grows with the flops
+    rate = band_flops(n1, b, params) / t1
+    return {"predicted_s": band_flops(n_units, b, params) / rate, "rate_flops": rate,
+            "timed_units": n1, "extrapolated": n1 < n_units}
 
 
 def band_flops(n, b, p=6):
