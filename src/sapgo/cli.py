@@ -47,6 +47,10 @@ def cmd_generate(args):
     from .generate import generate_block
 
     angle = args.station_angle_perturbation
+    irregular = {}
+    if any(v is not None for v in (args.shift, args.strip_lengths, args.strip_starts,
+                                   args.scales)):
+        irregular = dict(shift=args.shift, **_design_lists(args))
     info = generate_block(
         args.output, preset=args.preset, strips=args.strips,
         photos_per_strip=args.photos_per_strip, pattern=args.pattern,
@@ -55,7 +59,7 @@ def cmd_generate(args):
         station_position_perturbation=args.station_position_perturbation,
         station_angle_perturbation=angle, control_perturbation=args.control_perturbation,
         terrain_relief=args.terrain_relief, seed=args.seed,
-        distortion=args.distortion, blunders=args.blunders,
+        distortion=args.distortion, blunders=args.blunders, **irregular,
     )
     print(f"generated {info['path']}: {info['photos']} photos in {info['strips']} strips, "
           f"{info['points']} points ({info['control_points']} control, "
@@ -324,6 +328,38 @@ def _fraction(text, option):
     return v / 100.0 if v > 1.0 else v
 
 
+def _design_lists(args):
+    """The irregular design's per-strip lists (--strip-lengths, --strip-starts, --scales)."""
+    out = {}
+    for key, text in (("lengths", args.strip_lengths), ("starts", args.strip_starts),
+                      ("scales", args.scales)):
+        try:
+            out[key] = None if text is None else [float(x) for x in
+                                                  text.replace(",", " ").split()]
+        except ValueError:
+            raise ParameterError("--strip-lengths, --strip-starts and --scales take a number "
+                                 "per strip, e.g. 10,8,12") from None
+    if out["lengths"] is not None:
+        if any(v != int(v) for v in out["lengths"]):
+            raise ParameterError("--strip-lengths takes whole numbers of photos, e.g. 10,8,12")
+        out["lengths"] = [int(v) for v in out["lengths"]]
+    return out
+
+
+def _design_arguments(parser):
+    """The options of an irregular flight design (sapgo plan and sapgo generate)."""
+    parser.add_argument("--shift", type=float,
+                        help="irregular design: every other strip shifted by this fraction of "
+                             "the base")
+    parser.add_argument("--strip-lengths", metavar="N,N,...",
+                        help="irregular design: photos of each strip")
+    parser.add_argument("--strip-starts", metavar="X,X,...",
+                        help="irregular design: where each strip starts, in bases")
+    parser.add_argument("--scales", metavar="C,C,...",
+                        help="irregular design: each strip's photo scale relative to the others "
+                             "(its footprint's side)")
+
+
 def cmd_plan(args):
     from .plan import design_network, evaluate, project_network, write_pattern
 
@@ -340,19 +376,10 @@ def cmd_plan(args):
                                  "(or give a project)")
         forelap = _fraction(args.forelap, "--forelap")
         sidelap = _fraction(args.sidelap, "--sidelap")
-        lists = {k: (None if v is None else [x for x in v.replace(",", " ").split()])
-                 for k, v in (("lengths", args.strip_lengths), ("starts", args.strip_starts),
-                              ("scales", args.scales))}
-        try:
-            lists = {k: None if v is None else [float(x) for x in v] for k, v in lists.items()}
-        except ValueError:
-            raise ParameterError("--strip-lengths, --strip-starts and --scales take a number "
-                                 "per strip, e.g. 10,8,12") from None
+        lists = _design_lists(args)
         net = design_network(args.strips, args.photos_per_strip, forelap, sidelap,
-                             args.units, args.cross, args.model_step, args.shift,
-                             None if lists["lengths"] is None else
-                             [int(v) for v in lists["lengths"]],
-                             lists["starts"], lists["scales"])
+                             args.units, args.cross, args.model_step, args.shift or 0.0,
+                             lists["lengths"], lists["starts"], lists["scales"])
         source = {"design": {"strips": args.strips, "photos_per_strip": args.photos_per_strip,
                              "forelap": forelap, "sidelap": sidelap, "units": args.units,
                              "cross_models": args.cross}}
@@ -362,7 +389,7 @@ def cmd_plan(args):
         Path(args.json).write_text(json.dumps(result, indent=2))
     if args.plot:
         write_pattern(net, args.plot, args.plot_ordering or result["recommended"])
-    unit = "models (7 parameters)" if net.kind == "models" else "photos (6 parameters)"
+    unit = f"{net.kind} ({net.params} parameters)"
     print(f"{net.n} {unit}, {len(net.s)} joined pairs")
     head = (f"{'ordering':14s} {'T':>7s} {'m':>9s} {'W':>6s} {'D':>6s} {'F.I.':>10s} "
             f"{'band MB':>9s} {'envelope MB':>12s} {'sparse MB':>10s} {'solve s':>9s}")
@@ -375,6 +402,12 @@ def cmd_plan(args):
               f"{r['band_width_m']:6d} {r['band_width_b']:6d} {r['fill_in_blocks']:10d} "
               f"{b['band'] / 1e6:9.2f} {b['envelope'] / 1e6:12.2f} {b['sparse'] / 1e6:10.2f} "
               f"{t}{mark}")
+    if "adjust" in result:
+        a = result["adjust"]
+        t = f", predicted solve {a['predicted_solve_s']:.3f} s" if "predicted_solve_s" in a \
+            else ""
+        print(f"sapgo order will choose {a['ordering']}: band width W {a['band_width_m']}, "
+              f"fill-in {a['fill_in_blocks']} blocks{t}")
     print(f"recommended: {result['recommended']} (the least work for the band solver; T units, "
           f"m non-zero blocks, W band width in blocks, D in whole sub-matrices of lines, F.I. "
           f"fill-in blocks)")
@@ -429,6 +462,7 @@ def build_parser():
                    help="plant N blunders of 30 to 100 um in random image observations (listed "
                         "in /truth/blunders; default 0)")
     g.add_argument("--seed", type=int, help="random seed (default 1)")
+    _design_arguments(g)
     g.set_defaults(func=cmd_generate)
 
     o = sub.add_parser("order", help="order stations and points to minimise the band width")
@@ -598,22 +632,14 @@ def build_parser():
     pl.add_argument("--model-step", type=int, default=None,
                     help="models from photos this many apart (default 1; 2 from 75 %% "
                          "forelap on, as Rostom assumes for 80 %%)")
-    pl.add_argument("--shift", type=float, default=0.0,
-                    help="irregular design: every other strip shifted by this fraction of "
-                         "the base")
-    pl.add_argument("--strip-lengths", metavar="N,N,...",
-                    help="irregular design: photos of each strip")
-    pl.add_argument("--strip-starts", metavar="X,X,...",
-                    help="irregular design: where each strip starts, in bases")
-    pl.add_argument("--scales", metavar="C,C,...",
-                    help="irregular design: each strip's photo scale relative to the others "
-                         "(its footprint's side)")
+    _design_arguments(pl)
     pl.add_argument("--json", metavar="PATH", help="write the counts as JSON")
     pl.add_argument("--plot", metavar="PNG",
                     help="draw the pattern of M with its fill-in (needs matplotlib)")
     pl.add_argument("--plot-ordering", choices=("down_strip", "across_strip", "diagonal",
-                                                "rcm", "spiral"),
-                    help="the ordering drawn (default: the recommended one)")
+                                                "rcm", "spiral", "adjust"),
+                    help="the ordering drawn (default: the recommended one; adjust: the "
+                         "order 'sapgo order' gives a project)")
     pl.add_argument("--no-timing", action="store_true",
                     help="do not measure this machine's solver rate (no predicted times)")
     pl.set_defaults(func=cmd_plan)

@@ -221,23 +221,21 @@ def _columns(u, labels, base):
     return column
 
 
-def candidate_orders(xy, strip, active, edges):
-    """Candidate logical orders of the active stations: ``{name: perm}``.
+def grid_coordinates(xy, strip):
+    """The stations on the grid of the block: ``(u, v, column, labels, strip_key)``.
 
-    ``perm`` lists station record numbers in logical order (active stations only).
-    """
-    idx = np.flatnonzero(active)
-    if len(idx) == 0:
-        return {"record": idx}
-    xy = xy[idx]
-    st = strip[idx]
-    along, across = _flight_axes(xy, st)
+    ``u``, ``v``: positions along and across the flight lines; ``column``: photo columns
+    counted photo by photo along each strip (:func:`_columns`); ``labels``: strip numbers
+    0, 1, ... (from ``strip``, or, where the strips are unknown, a new strip wherever the
+    across-track gap exceeds half a base); ``strip_key``: each station's strip position
+    across the flight lines (its strip's mean ``v``)."""
+    along, across = _flight_axes(xy, strip)
     u = xy @ along
     v = xy @ across
-    known = bool((st >= 0).all())
+    known = bool((strip >= 0).all())
     # photo spacing along the strips: median gap between neighbours sorted along track
     if known:
-        _, labels = np.unique(st, return_inverse=True)
+        _, labels = np.unique(strip, return_inverse=True)
         order = np.lexsort((u, labels))
         same = np.diff(labels[order]) == 0
         gaps = np.diff(u[order])[same]
@@ -253,12 +251,46 @@ def candidate_orders(xy, strip, active, edges):
         strip_key = np.empty(len(v))
         strip_key[vs] = breaks
         labels = strip_key.astype(np.int64)
-    column = _columns(u, labels, base)
+    return u, v, _columns(u, labels, base), labels, strip_key
+
+
+def grid_orders(kx, ky, across):
+    """The diagonal and spiral orders of units on a grid of line numbers ``kx`` (columns
+    along the strips) and ``ky`` (strips, in order across them); ``across`` breaks ties
+    within a diagonal. ``{name: (perm, lines)}``: the diagonal lines ``kx + ky``, and the
+    spiral's rings from the outside inwards (each ring by angle from its corner)."""
+    kd = kx + ky
+    out = {"diagonal": (np.lexsort((across, kd)), kd)}
+    if len(kx):
+        ring = np.minimum.reduce([kx, kx.max() - kx, ky, ky.max() - ky])
+        cx, cy = kx.max() / 2.0, ky.max() / 2.0
+        angle = np.mod(np.arctan2(ky - cy, kx - cx) - math.pi, 2 * math.pi)
+        out["spiral"] = (np.lexsort((angle, ring)), ring)
+    else:
+        out["spiral"] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    return out
+
+
+def candidate_orders(xy, strip, active, edges):
+    """Candidate logical orders of the active stations: ``{name: perm}``.
+
+    ``perm`` lists station record numbers in logical order (active stations only).
+    """
+    idx = np.flatnonzero(active)
+    if len(idx) == 0:
+        return {"record": idx}
+    xy = xy[idx]
+    u, v, column, labels, strip_key = grid_coordinates(xy, strip[idx])
     cands = {
         "across_strip": idx[np.lexsort((v, column))],
         "across_strip_by_position": idx[np.lexsort((v, u))],
         "down_strip": idx[np.lexsort((u, strip_key))],
     }
+    # along the diagonals of the grid, and a spiral from the outside (Rostom's orderings)
+    kx = np.unique(column, return_inverse=True)[1]
+    ky = np.unique(strip_key, return_inverse=True)[1]
+    for name, (perm, _) in grid_orders(kx, ky, v).items():
+        cands[name] = idx[perm]
     # sweeps across the block in 12 directions: for blocks of crossing flight lines
     for deg in range(0, 180, 15):
         a = math.radians(deg)
@@ -467,6 +499,26 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS):
     return result
 
 
+def score_orders(cands, active, edges):
+    """``{name: (band_width, profile, perm, pos)}`` of the candidate orders (the inactive
+    stations appended at the end): ``perm`` the records in logical order, ``pos`` each
+    record's logical number."""
+    n_st = len(active)
+    tail = np.flatnonzero(~active)
+    scored = {}
+    for name, perm in cands.items():
+        full = np.concatenate([perm, tail])
+        pos = np.empty(n_st, np.int64)
+        pos[full] = np.arange(n_st)
+        scored[name] = (band_width_of(pos, edges), profile_of(pos, edges), full, pos)
+    return scored
+
+
+def best_order(scored):
+    """The order ``sapgo order`` applies: the least band width, then the least profile."""
+    return min(scored, key=lambda k: scored[k][:2])
+
+
 def _order(p, work, method, memory, chunk):
     stations = p.read("stations")
     n_st, n_pt = p.n_stations, p.n_points
@@ -477,14 +529,8 @@ def _order(p, work, method, memory, chunk):
     cands = candidate_orders(stations["eo"][:, 3:5], stations["strip"], st_active, edges)
     if method != "best" and method not in cands:
         raise ParameterError(f"unknown ordering {method!r}; choose from best, {', '.join(cands)}")
-    tail = np.flatnonzero(~st_active)
-    scored = {}
-    for name, perm in cands.items():
-        full = np.concatenate([perm, tail])
-        pos = np.empty(n_st, np.int64)
-        pos[full] = np.arange(n_st)
-        scored[name] = (band_width_of(pos, edges), profile_of(pos, edges), full, pos)
-    name = min(scored, key=lambda k: scored[k][:2]) if method == "best" else method
+    scored = score_orders(cands, st_active, edges)
+    name = best_order(scored) if method == "best" else method
     b, _, perm, pos = scored[name]
     candidates = {k: int(v[0]) for k, v in scored.items()}
     del edges

@@ -22,6 +22,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee, shortest_path
 
 from .errors import ParameterError
 from .rawfile import RawArray
+from .ordering import grid_orders
 from .symbolic import symbolic_counts
 
 #: The orderings compared (Rostom's ->G down the strips, ->S across them, along the
@@ -44,6 +45,8 @@ class Network:
     t: np.ndarray
     params: int = 6
     kind: str = "photos"
+    #: a project's: ``(name, perm)``, the order ``sapgo order`` gives it
+    adjust_order: tuple | None = None
 
     @property
     def n(self):
@@ -67,8 +70,6 @@ def orderings(net: Network):
         "down_strip": (np.lexsort((x, ky)), ky),
         "across_strip": (np.lexsort((y, kx)), kx),
     }
-    kd = kx + ky  # (by line numbers: the same in a design and in a project)
-    out["diagonal"] = (np.lexsort((y, kd)), kd)
     g = sp.csr_matrix((np.ones(2 * len(net.s), np.int8),
                        (np.concatenate([net.s, net.t]), np.concatenate([net.t, net.s]))),
                       shape=(n, n))
@@ -84,15 +85,9 @@ def orderings(net: Network):
     else:
         perm, lv = np.zeros(0, np.int64), np.zeros(0, np.int64)
     out["rcm"] = (perm, lv)
-    # spiral: ring by ring from the outside inwards, each ring by angle from its corner
-    if n:
-        ix, iy = kx, ky
-        ring = np.minimum.reduce([ix, ix.max() - ix, iy, iy.max() - iy])
-        cx, cy = ix.max() / 2.0, iy.max() / 2.0
-        angle = np.mod(np.arctan2(iy - cy, ix - cx) - math.pi, 2 * math.pi)
-        out["spiral"] = (np.lexsort((angle, ring)), ring)
-    else:
-        out["spiral"] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    # (diagonal and spiral by line numbers: the same in a design and in a project)
+    out.update(grid_orders(kx, ky, y))
+    out = {k: out[k] for k in ORDERINGS}
     return out
 
 
@@ -121,7 +116,9 @@ def evaluate(net: Network, timing=False, seconds=1.0):
     envelope, sparse: the factor's blocks plus a 4-byte index each), the flops of the band
     Cholesky (:func:`band_flops`) and, with ``timing``, the predicted solve time on this
     machine (:func:`solve_time`, once per band width, about ``seconds`` each):
-    ``predicted_solve_s``, ``rate_flops``, ``timed_units``."""
+    ``predicted_solve_s``, ``rate_flops``, ``timed_units``. The network of a project also
+    gets ``adjust``: the order ``sapgo order`` will give it (``ordering``, of its own
+    candidates, which include these five), its band width, fill-in, flops and time."""
     p = net.params
     res = {}
     for name, (perm, lines) in orderings(net).items():
@@ -150,16 +147,29 @@ def evaluate(net: Network, timing=False, seconds=1.0):
             "band_flops": flops,
         }
         res[name] = r
+    best = min(res, key=lambda k: (res[k]["band_flops"], res[k]["fill_in_blocks"]))
+    out = {"units": net.kind, "parameters_per_unit": p, "n_units": net.n,
+           "orderings": res, "recommended": best}
+    rows = list(res.values())
+    if net.adjust_order is not None:
+        # a project: the order sapgo order will give it (its own candidates, the least band
+        # width), and so the band width and the work of sapgo adjust
+        name, perm = net.adjust_order
+        c = symbolic_counts(net.n, (net.s, net.t), perm)
+        out["adjust"] = {"ordering": name, "band_width_m": c["band_width"],
+                         "fill_in_blocks": c["fill_in_blocks"],
+                         "band_flops": band_flops(net.n, c["band_width"], p)}
+        rows.append(out["adjust"])
+        if out["adjust"]["band_flops"] < res[best]["band_flops"]:
+            out["recommended"] = name  # (sapgo order --method NAME, or its default)
     if timing and net.n:
         times = {w: solve_time(net.n, w, p, seconds)
-                 for w in sorted({r["band_width_m"] for r in res.values()})}
-        for r in res.values():
+                 for w in sorted({r["band_width_m"] for r in rows})}
+        for r in rows:
             t = times[r["band_width_m"]]
             r.update(predicted_solve_s=t["predicted_s"], rate_flops=t["rate_flops"],
                      timed_units=t["timed_units"])
-    best = min(res, key=lambda k: (res[k]["band_flops"], res[k]["fill_in_blocks"]))
-    return {"units": net.kind, "parameters_per_unit": p, "n_units": net.n,
-            "orderings": res, "recommended": best}
+    return out
 
 
 #: bytes passed over before every timed solve (twice a large last-level cache)
@@ -248,6 +258,25 @@ def band_flops(n, b, p=6):
     return float((h * h + 2 * h + 1).sum())
 
 
+def design_footprints(strips, photos_per_strip, forelap=0.6, sidelap=0.2, shift=0.0,
+                      lengths=None, starts=None, scales=None):
+    """The photos of a flight design (see :func:`design_network`): ``(strip, index,
+    footprint)``, the footprint ``(x0, x1, y0, y1)`` in photo sides, strip by strip."""
+    check_design(strips, photos_per_strip, forelap, sidelap)
+    lengths = _per_strip(lengths, strips, photos_per_strip, "lengths", int)
+    starts = _per_strip(starts, strips, 0.0, "starts", float)
+    scales = _per_strip(scales, strips, 1.0, "scales", float)
+    if min(lengths) < 2 or min(scales) <= 0:
+        raise ParameterError("every strip needs at least 2 photos and a positive scale")
+    bx, by = 1.0 - forelap, 1.0 - sidelap
+    strip = np.repeat(np.arange(strips), lengths)
+    index = np.concatenate([np.arange(n) for n in lengths])
+    c = np.asarray(scales, np.float64)[strip]
+    x0 = (np.asarray(starts, np.float64)[strip] + index) * bx * c + shift * bx * (strip % 2)
+    y0 = strip * by
+    return strip, index, np.column_stack([x0, x0 + c, y0, y0 + c])
+
+
 def design_network(strips, photos_per_strip, forelap=0.6, sidelap=0.2, units="photos",
                    cross=False, model_step=None, shift=0.0, lengths=None, starts=None,
                    scales=None):
@@ -266,29 +295,25 @@ def design_network(strips, photos_per_strip, forelap=0.6, sidelap=0.2, units="ph
     sidelap of 50 % or more, strips of one scale, not shifted). Two units are joined when
     their areas (a photo's footprint, a model's stereo overlap) overlap with a positive area:
     tie points in every common area."""
-    check_design(strips, photos_per_strip, forelap, sidelap)
     if units not in ("photos", "models"):
         raise ParameterError(f"units {units!r}: photos or models")
-    lengths = _per_strip(lengths, strips, photos_per_strip, "lengths", int)
-    starts = _per_strip(starts, strips, 0.0, "starts", float)
+    strip, _, foot = design_footprints(strips, photos_per_strip, forelap, sidelap, shift,
+                                       lengths, starts, scales)
     scales = _per_strip(scales, strips, 1.0, "scales", float)
-    if min(lengths) < 2 or min(scales) <= 0:
-        raise ParameterError("every strip needs at least 2 photos and a positive scale")
     if cross and (units != "models" or sidelap < 0.5 or shift or len(set(scales)) > 1):
         raise ParameterError("cross models (+C) are models between the strips: they need "
                              "--units models, a sidelap of 50 % or more, strips of one scale "
                              "and no shift")
-    bx, by = 1.0 - forelap, 1.0 - sidelap
+    bx = 1.0 - forelap
+    first = np.concatenate([[0], np.cumsum(np.bincount(strip, minlength=strips))])
+    lengths = np.diff(first)
 
     def photo(k, j):
-        c = scales[k]
-        x0 = (starts[k] + j) * bx * c + (shift * bx if k % 2 else 0.0)
-        return x0, x0 + c, k * by, k * by + c
+        return tuple(foot[first[k] + j])
 
     rect = []
     if units == "photos":
-        for k in range(strips):
-            rect += [photo(k, j) for j in range(lengths[k])]
+        rect = list(map(tuple, foot))
     else:
         step = model_step or (2 if forelap >= 0.75 else 1)
         if 1.0 - step * bx <= 0:
@@ -354,46 +379,44 @@ def _per_strip(values, strips, default, name, cast):
 
 
 def project_network(path, chunk=None):
-    """The network of an existing project: its active photos (6 parameters each) and the
-    pairs that observe a common point (its actual topology, irregular or not). ``x`` is
-    the photo's position along the flight lines in bases, ``y`` its strip (the strips
-    ordered across the flight direction)."""
-    from .ordering import _columns, _flight_axes
-    from .plots import station_pairs
-    from .project import CHUNK_RECORDS, STATUS_ACTIVE, Project
+    """The network of an existing project: its photos (the parameters of its stations: 6, or
+    9 with their own intrinsics) and the pairs that observe a common point, after the
+    exclusion rules of ``sapgo order`` (its actual topology, irregular or not). ``x`` is the
+    photo's column along the flight lines, ``y`` its strip (the strips ordered across the
+    flight direction); ``adjust_order`` is the order ``sapgo order`` (and so ``sapgo
+    adjust``) gives the project: its name and the units in that order."""
+    from .ordering import (
+        _station_activity,
+        best_order,
+        candidate_orders,
+        grid_coordinates,
+        score_orders,
+    )
+    from .project import CHUNK_RECORDS, Project
 
     with Project(path) as p:
         st = p.read("stations")
-        pairs = [q[q[:, 0] != q[:, 1]] for q in station_pairs(p, chunk or CHUNK_RECORDS)]
-    active = st["status"] == STATUS_ACTIVE
+        params = 9 if p.attr("station_intrinsics", "") == "adjusted" else 6
+        active, (s, t) = _station_activity(p, chunk or CHUNK_RECORDS)
     idx = np.flatnonzero(active)
     local = np.full(len(st), -1, np.int64)
     local[idx] = np.arange(len(idx))
-    pr = np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64)
-    pr = np.unique(pr, axis=0)
-    pr = pr[active[pr[:, 0]] & active[pr[:, 1]]]
-    xy = st["eo"][idx, 3:5]
-    strip = st["strip"][idx].astype(np.int64)
-    along, across = _flight_axes(xy, strip)
-    u, v = xy @ along, xy @ across
-    known = bool((strip >= 0).all()) and len(idx) > 0
-    if known:
-        labels = np.unique(strip, return_inverse=True)[1]
-        mean_v = np.bincount(labels, v) / np.bincount(labels)
-        rank = np.empty(len(mean_v), np.int64)
-        rank[np.argsort(mean_v)] = np.arange(len(mean_v))
-        y = rank[labels].astype(np.float64)
-        order = np.lexsort((u, labels))
-        same = np.diff(labels[order]) == 0
-        gaps = np.diff(u[order])[same]
+    keep = active[s] & active[t]
+    s, t = np.asarray(s[keep], np.int64), np.asarray(t[keep], np.int64)
+    xy = st["eo"][:, 3:5]
+    if len(idx):
+        _, _, column, _, strip_key = grid_coordinates(xy[idx], st["strip"][idx])
+        y = np.unique(strip_key, return_inverse=True)[1].astype(np.float64)
+        x = column.astype(np.float64)
+        scored = score_orders(candidate_orders(xy, st["strip"], active, (s, t)), active,
+                              (s, t))
+        name = best_order(scored)
+        chosen = (name, local[scored[name][2][:len(idx)]])
     else:
-        y = np.zeros(len(idx))
-        gaps = np.diff(np.sort(u))
-    gaps = gaps[gaps > 0]
-    base = float(np.median(gaps)) if len(gaps) else 1.0
-    # photo columns counted photo by photo along each strip (no drift over long strips)
-    x = _columns(u, y.astype(np.int64), base).astype(np.float64)
-    return Network(x=x, y=y, s=local[pr[:, 0]], t=local[pr[:, 1]], params=6, kind="photos")
+        x = y = np.zeros(0)
+        chosen = ("record", np.zeros(0, np.int64))
+    return Network(x=x, y=y, s=local[s], t=local[t], params=params, kind="photos",
+                   adjust_order=chosen)
 
 
 def check_design(strips, photos_per_strip, forelap, sidelap):
@@ -407,7 +430,9 @@ def check_design(strips, photos_per_strip, forelap, sidelap):
 
 def write_pattern(net: Network, path, ordering, max_cells=600):
     """Draw the pattern of ``M`` with its fill-in for an ordering (Rostom's Figure 12): the
-    non-zero blocks, the fill-in of the factor, and the boundaries of the lines. Networks of
+    non-zero blocks, the fill-in of the factor, and the boundaries of the lines. A
+    project's network also takes ``"adjust"`` (or its name): the order ``sapgo order``
+    gives it. Networks of
     more than ``max_cells`` units are drawn in ``max_cells`` x ``max_cells`` cells (a cell is
     non-zero if any block in it is, else fill-in if any is)."""
     from matplotlib.colors import ListedColormap
@@ -416,7 +441,15 @@ def write_pattern(net: Network, path, ordering, max_cells=600):
     from .plots import _pyplot
     from .symbolic import factor_pattern
 
-    perm, lines = orderings(net)[ordering]
+    if ordering == "adjust" or ordering not in ORDERINGS:
+        if net.adjust_order is None or ordering not in ("adjust", net.adjust_order[0]):
+            raise ParameterError(f"no ordering {ordering!r} to draw: choose from "
+                                 f"{', '.join(ORDERINGS)}"
+                                 + (", adjust" if net.adjust_order is not None else ""))
+        ordering, perm = net.adjust_order
+        lines = None
+    else:
+        perm, lines = orderings(net)[ordering]
     rows, cols, fill = factor_pattern(net.n, (net.s, net.t), perm)
     n = net.n
     cells = max(1, min(n, max_cells))
@@ -430,7 +463,7 @@ def write_pattern(net: Network, path, ordering, max_cells=600):
     cmap = ListedColormap(["white", "#f4b183", "#1f4e79"])
     ax.imshow(img, cmap=cmap, vmin=0, vmax=2, interpolation="nearest",
               extent=(-0.5, n - 0.5, n - 0.5, -0.5))
-    if n <= max_cells:
+    if n <= max_cells and lines is not None:
         for b in np.flatnonzero(np.diff(lines[perm])) + 0.5:
             ax.axhline(b, color="0.8", lw=0.5)
             ax.axvline(b, color="0.8", lw=0.5)

@@ -58,6 +58,8 @@ def generate_block(path, preset=None, progress=None, **overrides):
 
     if preset in SCENES:
         return _generate_scene(path, preset, **overrides)
+    if any(overrides.get(k) is not None for k in FLIGHT_DESIGN):
+        return _generate_flight(path, preset, **overrides)
     spec = block_spec(preset, **overrides)
     creator = {"command": "generate", "preset": preset, "spec": dataclasses.asdict(spec)}
     enabled = sys.stderr.isatty() if progress is None else progress
@@ -80,6 +82,46 @@ def generate_block(path, preset=None, progress=None, **overrides):
         "observations": counts["observations"],
         "blunders": counts["blunders"],
     }
+
+
+#: The parameters of an irregular flight design (any of them makes a flight-design block).
+FLIGHT_DESIGN = ("shift", "lengths", "starts", "scales")
+
+
+def _generate_flight(path, preset, strips=None, photos_per_strip=None, forelap=None,
+                     sidelap=None, control_points=None, sigma_image=None, terrain_relief=None,
+                     seed=None, shift=None, lengths=None, starts=None, scales=None,
+                     **overrides):
+    """A block of an irregular flight design (:func:`sapgo.generate.flight.flight_scene`):
+    shifted strips, strips of their own lengths, starts and scales."""
+    from .flight import flight_scene
+
+    unused = {k for k, v in overrides.items() if v is not None}
+    if preset is not None or unused:
+        given = sorted(unused | ({"preset"} if preset is not None else set()))
+        raise ParameterError(f"an irregular flight design (shift, strip lengths, starts, "
+                             f"scales) takes strips, photos per strip, forelap, sidelap, "
+                             f"control points, sigma image, terrain relief and seed, not "
+                             f"{', '.join(given)}")
+    d = BlockSpec()
+    design = dict(strips=strips or d.strips, photos_per_strip=photos_per_strip or
+                  d.photos_per_strip, forelap=d.forelap if forelap is None else forelap,
+                  sidelap=d.sidelap if sidelap is None else sidelap, shift=shift or 0.0,
+                  lengths=lengths, starts=starts, scales=scales)
+    scene = flight_scene(**design, control_points=control_points,
+                         sigma_image=d.sigma_image if sigma_image is None else sigma_image,
+                         relief=30.0 if terrain_relief is None else terrain_relief,
+                         seed=1 if seed is None else seed)
+    creator = {"command": "generate", "flight_design": design, "seed": scene.seed}
+    with ProjectWriter(Path(path), {"creator": json.dumps(creator),
+                                    "history": append_history("[]", creator)},
+                       truth=True) as w:
+        counts = write_scene(scene, w)
+        w.finish()
+    return {"path": str(path), "preset": None, "photos": counts["photos"],
+            "strips": counts["strips"], "points": counts["points"],
+            "control_points": counts["control"], "check_points": 0,
+            "observations": counts["observations"], "cameras": counts["cameras"]}
 
 
 def _generate_scene(path, preset, seed=None, **overrides):
