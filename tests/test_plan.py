@@ -1,9 +1,14 @@
 """sapgo plan: the reduced matrix's pattern, fill-in and storage from the network alone."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from sapgo.symbolic import factor_pattern, symbolic_counts
+
+
+DATA_BAL = Path(__file__).parent / "data" / "problem-49-7776-pre.txt.gz"
 
 
 def dense_reference(n, s, t, perm, seed=0):
@@ -248,3 +253,126 @@ def test_a_flight_design_plans_what_the_generated_block_of_that_design_has(block
     for name in want:
         for key in ("dimension", "nonzero_blocks", "band_width_m", "fill_in_blocks"):
             assert got[name][key] == want[name][key], (name, key)
+
+
+def _flight_project(path, tilt=0.0, relief=0.0, points_per_photo=100, **design):
+    from sapgo.generate.flight import flight_scene
+    from sapgo.generate.scene import write_scene
+    from sapgo.project import ProjectWriter
+
+    scene = flight_scene(**design, tilt=tilt, relief=relief, points_per_photo=points_per_photo)
+    with ProjectWriter(path, {}, truth=True) as w:
+        write_scene(scene, w)
+        w.finish()
+    return path
+
+
+def _pairs(net):
+    return {(min(a, b), max(a, b)) for a, b in zip(net.s.tolist(), net.t.tolist())}
+
+
+@pytest.mark.parametrize("design, ppp", [
+    (dict(strips=4, photos_per_strip=10, shift=0.5), 100),
+    (dict(strips=4, photos_per_strip=10, lengths=[10, 7, 9, 5], starts=[0, 2, 1, 4]), 100),
+    (dict(strips=4, photos_per_strip=10, scales=[1.0, 0.8, 1.2, 1.0], sidelap=0.3), 1000),
+    (dict(strips=3, photos_per_strip=9, forelap=0.8, sidelap=0.6), 100),
+])
+def test_an_irregular_flight_design_plans_the_topology_of_its_generated_block(tmp_path, design,
+                                                                              ppp):
+    """Shifted strips, strips of other lengths and starts, strips of other scales: the
+    design's network (footprints that overlap with a positive area) is exactly the network
+    of the block generated from that design (vertical photos over flat ground, points in
+    every common area: the narrowest overlap of the scales' case, 4 % of a photo, needs a
+    denser grid), and the counts of the orderings that depend on the graph alone agree."""
+    from sapgo.plan import design_network, evaluate, project_network
+
+    path = _flight_project(tmp_path / "f.h5", points_per_photo=ppp, **design)
+    want, got = design_network(**design), project_network(path)
+    assert got.n == want.n
+    assert _pairs(got) == _pairs(want)
+    e_want, e_got = evaluate(want)["orderings"], evaluate(got)["orderings"]
+    assert e_got["down_strip"] == e_want["down_strip"]
+    assert all(e_got[k]["nonzero_blocks"] == e_want[k]["nonzero_blocks"] for k in e_want)
+
+
+def test_the_plan_of_irregular_projects_predicts_the_order_and_band_width_of_sapgo_order(
+        tmp_path, block_cache):
+    """A shifted block of strips of other lengths (tilted photos over hills), SAPGO-MFL-2 (two
+    areas flown across each other and a diagonal strip) and a BAL problem (9 parameters a
+    photo): the plan names the order sapgo order then applies, with its band width."""
+    import shutil
+
+    import sapgo
+    from sapgo.formats.bal import import_bal
+    from sapgo.plan import evaluate, project_network
+    from sapgo.project import Project
+
+    irregular = _flight_project(tmp_path / "irr.h5", tilt=0.5, relief=30.0, strips=5,
+                                photos_per_strip=14, shift=0.5,
+                                lengths=[14, 10, 14, 8, 12], starts=[0, 3, 0, 5, 1])
+    mfl = tmp_path / "mfl2.h5"
+    shutil.copy(block_cache("mfl2", preset="sapgo-mfl-2"), mfl)
+    bal = tmp_path / "bal.h5"
+    import_bal(DATA_BAL, bal)
+    for path, params in ((irregular, 6), (mfl, 6), (bal, 9)):
+        e = evaluate(project_network(path))
+        assert e["parameters_per_unit"] == params
+        plan = e["adjust"]
+        r = sapgo.order_project(path)
+        with Project(path) as p:
+            assert (r.ordering, p.band_width) == (plan["ordering"], plan["band_width_m"]), path
+        # the plan recommends what is least work, and never more than sapgo order applies
+        best = e["orderings"].get(e["recommended"], plan)
+        assert best["band_flops"] <= plan["band_flops"]
+        assert min(o["band_width_m"] for o in e["orderings"].values()) >= plan["band_width_m"]
+
+
+def test_solve_time_is_timed_at_the_block_size_or_extrapolated_from_a_smaller_run():
+    from sapgo.plan import band_flops, solve_time
+
+    small = solve_time(40, 5, seconds=0.2)
+    assert small["timed_units"] == 40 and not small["extrapolated"]
+    assert small["predicted_s"] > 0
+    assert small["rate_flops"] == pytest.approx(band_flops(40, 5) / small["predicted_s"])
+    big = solve_time(200_000, 12, seconds=0.2)
+    assert big["extrapolated"] and 96 <= big["timed_units"] < 200_000
+    assert big["predicted_s"] == pytest.approx(band_flops(200_000, 12) / big["rate_flops"])
+    seven = solve_time(30, 4, params=7, seconds=0.1)  # independent models: 7 x 7 blocks
+    assert seven["timed_units"] == 30 and seven["predicted_s"] > 0
+
+
+def test_irregular_designs_from_the_command_line(tmp_path, capsys):
+    """sapgo generate of an irregular design, sapgo plan of it (the order sapgo order will
+    choose, drawn with --plot-ordering adjust), sapgo order --method diagonal / spiral."""
+    import json
+
+    from conftest import assert_one_line_error, run_cli
+
+    from sapgo.project import Project
+
+    path = tmp_path / "irr.h5"
+    code, out, err = run_cli(capsys, "generate", path, "--strips", "3", "--photos-per-strip",
+                             "8", "--shift", "0.5", "--strip-lengths", "8,6,8",
+                             "--strip-starts", "0,1,0", "--control-points", "8")
+    assert code == 0, err
+    assert "22 photos in 3 strips" in out
+    code, out, err = run_cli(capsys, "plan", path, "--no-timing", "--json", tmp_path / "p.json",
+                             "--plot", tmp_path / "m.png", "--plot-ordering", "adjust")
+    assert code == 0, err
+    rep = json.loads((tmp_path / "p.json").read_text())
+    assert "sapgo order will choose " + rep["adjust"]["ordering"] in out
+    assert rep["project"] == str(path) and (tmp_path / "m.png").stat().st_size > 0
+    for method in ("diagonal", "spiral"):
+        code, out, err = run_cli(capsys, "order", path, "--method", method)
+        assert code == 0, err
+        with Project(path) as p:
+            assert p.attr("ordering") == method
+    for args, words in (
+            (["--shift", "0.5", "--pattern", "25"], ("irregular flight design", "pattern")),
+            (["--strip-lengths", "8,x"], ("--strip-lengths",)),
+            (["--strip-lengths", "8,6.5"], ("whole numbers",)),
+            (["--strips", "2", "--scales", "1,1,1"], ("scales", "3 values for 2 strips")),
+            (["--preset", "sapgo-p-1", "--shift", "0.5"], ("preset",))):
+        code, out, err = run_cli(capsys, "generate", tmp_path / "bad.h5", *args)
+        assert_one_line_error(code, err, *words)
+        assert not (tmp_path / "bad.h5").exists()

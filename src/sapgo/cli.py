@@ -468,8 +468,9 @@ def build_parser():
     o = sub.add_parser("order", help="order stations and points to minimise the band width")
     o.add_argument("project")
     o.add_argument("--method", default="best",
-                   help="best (default), across_strip, down_strip, reverse_cuthill_mckee, "
-                        "across_strip_by_position")
+                   help="best (default: the least band width of all), across_strip, "
+                        "down_strip, diagonal, spiral, reverse_cuthill_mckee, "
+                        "across_strip_by_position, sweep_0 ... sweep_165")
     o.add_argument("--memory", default=None, metavar="SIZE",
                    help="memory budget of the external sorts, e.g. 256M or 2G (default 512M)")
     o.set_defaults(func=cmd_order)
