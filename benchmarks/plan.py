@@ -26,7 +26,7 @@ import sapgo
 from sapgo.plan import evaluate, project_network, solve_time
 
 ROOT = Path(__file__).resolve().parents[1]
-ROUNDS = 3
+ROUNDS = 5
 LENGTHS = [300, 240, 300, 180, 280, 300, 220, 300]
 BLOCKS = {
     "sapgo-p-1": dict(preset="sapgo-p-1"),
