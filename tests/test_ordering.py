@@ -147,3 +147,19 @@ def test_rejected_observations_stay_rejected(small_block):
            & (after["stations"]["id"][ob["station"]] == sid))
     assert ob["status"][hit][0] == STATUS_REJECTED
     assert s.n_observations == len(ob) - 1
+
+
+def test_columns_of_shifted_strips_and_of_strips_of_another_scale():
+    """Columns counted along each strip: a strip shifted by half a base sits between its
+    neighbours' columns; a strip of another photo scale at the quarter-base columns of its
+    positions; jitter of a few per cent of a base changes nothing."""
+    from sapgo.ordering import _columns
+
+    rng = np.random.default_rng(3)
+    j = np.arange(6, dtype=float)
+    u = np.concatenate([j, j + 0.5, 1.25 * j + 0.1]) * 100.0 + rng.normal(0, 1.5, 18)
+    labels = np.repeat([0, 1, 2], 6)
+    col = _columns(u, labels, 100.0)
+    np.testing.assert_array_equal(col[:6], j)
+    np.testing.assert_array_equal(col[6:12], j + 0.5)
+    np.testing.assert_array_equal(col[12:], np.rint(4 * (1.25 * j + 0.1)) / 4)

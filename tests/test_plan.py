@@ -271,19 +271,26 @@ def _pairs(net):
     return {(min(a, b), max(a, b)) for a, b in zip(net.s.tolist(), net.t.tolist())}
 
 
-@pytest.mark.parametrize("design, ppp", [
-    (dict(strips=4, photos_per_strip=10, shift=0.5), 100),
-    (dict(strips=4, photos_per_strip=10, lengths=[10, 7, 9, 5], starts=[0, 2, 1, 4]), 100),
-    (dict(strips=4, photos_per_strip=10, scales=[1.0, 0.8, 1.2, 1.0], sidelap=0.3), 1000),
-    (dict(strips=3, photos_per_strip=9, forelap=0.8, sidelap=0.6), 100),
+ALL = ("down_strip", "across_strip", "diagonal", "rcm", "spiral")
+
+
+@pytest.mark.parametrize("design, ppp, same", [
+    (dict(strips=4, photos_per_strip=10, shift=0.5), 100, ALL),
+    (dict(strips=4, photos_per_strip=10, lengths=[10, 7, 9, 5], starts=[0, 2, 1, 4]), 100, ALL),
+    # other scales: the photos of a strip of another scale lie between the block's columns,
+    # at the quarter-base column of their position in a project, at their exact position in
+    # the design: the same across-strip order, other lines (D) and diagonals
+    (dict(strips=4, photos_per_strip=10, scales=[1.0, 0.8, 1.2, 1.0], sidelap=0.3), 1000,
+     ("down_strip", "rcm", "spiral", ("across_strip", "band_width_m", "fill_in_blocks"))),
+    (dict(strips=3, photos_per_strip=9, forelap=0.8, sidelap=0.6), 100, ALL),
 ])
 def test_an_irregular_flight_design_plans_the_topology_of_its_generated_block(tmp_path, design,
-                                                                              ppp):
+                                                                              ppp, same):
     """Shifted strips, strips of other lengths and starts, strips of other scales: the
     design's network (footprints that overlap with a positive area) is exactly the network
     of the block generated from that design (vertical photos over flat ground, points in
     every common area: the narrowest overlap of the scales' case, 4 % of a photo, needs a
-    denser grid), and the counts of the orderings that depend on the graph alone agree."""
+    denser grid), and so are the counts of the orderings (T, m, W, D, fill-in, storage)."""
     from sapgo.plan import design_network, evaluate, project_network
 
     path = _flight_project(tmp_path / "f.h5", points_per_photo=ppp, **design)
@@ -291,7 +298,12 @@ def test_an_irregular_flight_design_plans_the_topology_of_its_generated_block(tm
     assert got.n == want.n
     assert _pairs(got) == _pairs(want)
     e_want, e_got = evaluate(want)["orderings"], evaluate(got)["orderings"]
-    assert e_got["down_strip"] == e_want["down_strip"]
+    for name in same:
+        if isinstance(name, tuple):
+            name, *keys = name
+            assert [e_got[name][k] for k in keys] == [e_want[name][k] for k in keys], name
+        else:
+            assert e_got[name] == e_want[name], name
     assert all(e_got[k]["nonzero_blocks"] == e_want[k]["nonzero_blocks"] for k in e_want)
 
 

@@ -396,7 +396,11 @@ def cmd_plan(args):
     print(head)
     for name, r in result["orderings"].items():
         b = r["storage_bytes"]
-        t = f"{r['predicted_solve_s']:9.3f}" if "predicted_solve_s" in r else f"{'-':>9s}"
+        if "predicted_solve_s" not in r:
+            t = f"{'-':>9s}"
+        else:  # (<=: not timed, more than ten times the least work: an upper bound)
+            bound = "<=" if r["timed_units"] == 0 else ""
+            t = f"{bound + format(r['predicted_solve_s'], '.3f'):>9s}"
         mark = " *" if name == result["recommended"] else ""
         print(f"{name:14s} {r['dimension']:7d} {r['nonzero_blocks']:9d} "
               f"{r['band_width_m']:6d} {r['band_width_b']:6d} {r['fill_in_blocks']:10d} "
@@ -410,7 +414,7 @@ def cmd_plan(args):
               f"fill-in {a['fill_in_blocks']} blocks{t}")
     print(f"recommended: {result['recommended']} (the least work for the band solver; T units, "
           f"m non-zero blocks, W band width in blocks, D in whole sub-matrices of lines, F.I. "
-          f"fill-in blocks)")
+          f"fill-in blocks; solve s <=: not timed, over ten times the least work, a bound)")
     return 0
 
 

@@ -204,9 +204,13 @@ def _columns(u, labels, base):
 
     A global ``u / base`` drifts by a column every few thousand photos when ``base`` is
     estimated to a part in 10^4; counting the gaps between neighbours (each rounded to a
-    whole number of bases) keeps neighbouring strips' columns aligned over any length.
+    whole number of bases) keeps neighbouring strips' columns aligned over any length. A
+    strip starts at a quarter-base column: a strip shifted by half a base lies between its
+    neighbours' columns. A strip of another photo scale (its base 2 % or more from the
+    block's) is not in the block's columns: each of its photos goes to the quarter-base
+    column of its position.
     """
-    column = np.zeros(len(u), np.int64)
+    column = np.zeros(len(u), np.float64)
     if base <= 0 or len(u) == 0:
         return column
     umin = u.min()
@@ -215,8 +219,18 @@ def _columns(u, labels, base):
     us = u[order]
     cuts = np.flatnonzero(np.diff(lab)) + 1
     for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(us)]])):
-        steps = np.maximum(1, np.rint(np.diff(us[a:b]) / base)).astype(np.int64)
-        first = int(np.rint((us[a] - umin) / base))
+        gaps = np.diff(us[a:b])
+        pos = gaps[gaps > 0]
+        if len(pos) and abs(float(np.median(pos)) / base - 1.0) >= 0.02:
+            # a strip of another photo scale (its own base 2 % or more from the block's):
+            # its photos are not in the block's columns; each goes to the quarter-base
+            # column of its position
+            column[order[a:b]] = np.rint(4.0 * (us[a:b] - umin) / base) / 4.0
+            continue
+        steps = np.maximum(1, np.rint(gaps / base)).astype(np.int64)
+        # (a strip's first column to a quarter of a base: strips shifted by part of a base,
+        # as in a shifted flight, keep their own columns between their neighbours')
+        first = np.rint(4.0 * (us[a] - umin) / base) / 4.0
         column[order[a:b]] = first + np.concatenate([[0], np.cumsum(steps)])
     return column
 

@@ -116,7 +116,9 @@ def evaluate(net: Network, timing=False, seconds=1.0):
     envelope, sparse: the factor's blocks plus a 4-byte index each), the flops of the band
     Cholesky (:func:`band_flops`) and, with ``timing``, the predicted solve time on this
     machine (:func:`solve_time`, once per band width, about ``seconds`` each):
-    ``predicted_solve_s``, ``rate_flops``, ``timed_units``. The network of a project also
+    ``predicted_solve_s``, ``rate_flops``, ``timed_units`` (0: not timed, more than ten
+    times the least work; its time at the rate of the widest timed band, an upper bound).
+    The network of a project also
     gets ``adjust``: the order ``sapgo order`` will give it (``ordering``, of its own
     candidates, which include these five), its band width, fill-in, flops and time."""
     p = net.params
@@ -163,12 +165,23 @@ def evaluate(net: Network, timing=False, seconds=1.0):
         if out["adjust"]["band_flops"] < res[best]["band_flops"]:
             out["recommended"] = name  # (sapgo order --method NAME, or its default)
     if timing and net.n:
-        times = {w: solve_time(net.n, w, p, seconds)
-                 for w in sorted({r["band_width_m"] for r in rows})}
+        # the band widths of orderings within ten times the least work are timed; the rest
+        # (hopeless ones: a spiral over a long block) get the rate of the widest timed one,
+        # which the wider band would exceed (the rate grows with the width): an upper bound
+        least = min(r["band_flops"] for r in rows)
+        widths = sorted({r["band_width_m"] for r in rows})
+        timed = [w for w in widths if band_flops(net.n, w, p) <= 10.0 * least]
+        times = {w: solve_time(net.n, w, p, seconds) for w in timed}
         for r in rows:
-            t = times[r["band_width_m"]]
-            r.update(predicted_solve_s=t["predicted_s"], rate_flops=t["rate_flops"],
-                     timed_units=t["timed_units"])
+            w = r["band_width_m"]
+            if w in times:
+                t = times[w]
+                r.update(predicted_solve_s=t["predicted_s"], rate_flops=t["rate_flops"],
+                         timed_units=t["timed_units"])
+            else:
+                rate = times[max(times)]["rate_flops"]
+                r.update(predicted_solve_s=r["band_flops"] / rate, rate_flops=rate,
+                         timed_units=0)
     return out
 
 
