@@ -388,3 +388,21 @@ def test_irregular_designs_from_the_command_line(tmp_path, capsys):
         code, out, err = run_cli(capsys, "generate", tmp_path / "bad.h5", *args)
         assert_one_line_error(code, err, *words)
         assert not (tmp_path / "bad.h5").exists()
+
+
+def test_the_two_column_orders_nearest_rostoms_s2():
+    """80/60 (+C), Table 2's block: ->S2 is defined only in the paper's missing Figure 10-4
+    (F.I. 8928, W 46). In each column of the grid, the cross models first and then the strip
+    models: F.I. 8994, W 46; the strip models first: F.I. 6420, W 46 (docs/theory.md 3a)."""
+    from sapgo.plan import design_network
+
+    net = design_network(6, 44, 0.8, 0.6, units="models", cross=True)
+    # strip models lie at y = k by + 1/2, cross models between two strips
+    cross = np.abs((net.y - 0.5) / 0.4 - np.round((net.y - 0.5) / 0.4)) > 1e-6
+    assert cross.sum() == 5 * 44 and net.n == 472
+    got = {}
+    for name, d in (("cross first", -0.1), ("strip first", 0.1)):
+        key = np.round((net.x + np.where(cross, d, 0.0)) / 0.1).astype(np.int64)
+        c = symbolic_counts(net.n, (net.s, net.t), np.lexsort((net.y, key)))
+        got[name] = (c["fill_in_blocks"], c["band_width"])
+    assert got == {"cross first": (8994, 46), "strip first": (6420, 46)}
