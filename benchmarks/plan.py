@@ -46,8 +46,7 @@ BLOCKS = {
                                      control_points=200),
     "sapgo-mfl-1": dict(preset="sapgo-mfl-1"),
     "sapgo-mfl-2": dict(preset="sapgo-mfl-2"),
-    "bal problem-49 (9 par.)": dict(bal=ROOT.parent / "shared" / "datasets" / "bal"
-                                    / "problem-49-7776-pre.txt"),
+    "bal problem-49 (9 par.)": dict(bal=ROOT / "tests" / "data" / "problem-49-7776-pre.txt.gz"),
 }
 
 
@@ -99,10 +98,11 @@ def main():
                    "measured_rounds_s": meas, "plan_s": t_plan}
             rows.append(row)
             print(json.dumps(row), flush=True)
+            out = {"machine": platform.machine(), "rows": rows}  # (after every block)
+            (ROOT / "benchmarks" / "results" / "plan.json").write_text(json.dumps(out,
+                                                                              indent=1))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    out = {"machine": platform.machine(), "rows": rows}
-    (ROOT / "benchmarks" / "results" / "plan.json").write_text(json.dumps(out, indent=1))
     print()
     print("| block | photos | ordering (plan / adjust) | band width (plan / adjust) | "
           "predicted solve | measured solve | predicted / measured | rounds' ratios | "

@@ -337,8 +337,13 @@ def _design_lists(args):
             out[key] = None if text is None else [float(x) for x in
                                                   text.replace(",", " ").split()]
         except ValueError:
-            raise ParameterError("--strip-lengths, --strip-starts and --scales take a number "
-                                 "per strip, e.g. 10,8,12") from None
+            out[key] = [math.nan]
+        if out[key] is not None and not all(math.isfinite(v) for v in out[key]):
+            option = "--scales" if key == "scales" else f"--strip-{key}"
+            raise ParameterError(f"{option} {text!r}: a finite number per strip, e.g. "
+                                 f"10,8,12")
+    if args.shift is not None and not math.isfinite(args.shift):
+        raise ParameterError(f"--shift {args.shift}: a finite fraction of the base")
     if out["lengths"] is not None:
         if any(v != int(v) for v in out["lengths"]):
             raise ParameterError("--strip-lengths takes whole numbers of photos, e.g. 10,8,12")
@@ -363,10 +368,16 @@ def _design_arguments(parser):
 def cmd_plan(args):
     from .plan import design_network, evaluate, project_network, write_pattern
 
-    design = [args.strips, args.photos_per_strip]
+    design = [args.strips, args.photos_per_strip, args.shift, args.strip_lengths,
+              args.strip_starts, args.scales]
     if args.project and any(v is not None for v in design):
         raise ParameterError("sapgo plan takes either a project or a flight design "
-                             "(--strips, --photos-per-strip), not both")
+                             "(--strips, --photos-per-strip, --shift, --strip-lengths, "
+                             "--strip-starts, --scales), not both")
+    design = design[:2]
+    if args.plot_ordering == "adjust" and not args.project:
+        raise ParameterError("--plot-ordering adjust draws the order sapgo order gives a "
+                             "project: give a project")
     if args.project:
         net = project_network(args.project)
         source = {"project": str(args.project)}

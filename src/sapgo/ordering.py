@@ -285,16 +285,17 @@ def grid_orders(kx, ky, across):
     return out
 
 
-def candidate_orders(xy, strip, active, edges):
+def candidate_orders(xy, strip, active, edges, grid=None):
     """Candidate logical orders of the active stations: ``{name: perm}``.
 
     ``perm`` lists station record numbers in logical order (active stations only).
+    ``grid``: the active stations' :func:`grid_coordinates`, when the caller has them.
     """
     idx = np.flatnonzero(active)
     if len(idx) == 0:
         return {"record": idx}
     xy = xy[idx]
-    u, v, column, labels, strip_key = grid_coordinates(xy, strip[idx])
+    u, v, column, labels, strip_key = grid or grid_coordinates(xy, strip[idx])
     cands = {
         "across_strip": idx[np.lexsort((v, column))],
         "across_strip_by_position": idx[np.lexsort((v, u))],

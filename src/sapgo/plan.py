@@ -158,11 +158,13 @@ def evaluate(net: Network, timing=False, seconds=1.0):
         # width), and so the band width and the work of sapgo adjust
         name, perm = net.adjust_order
         c = symbolic_counts(net.n, (net.s, net.t), perm)
+        c["band_width"] = c["band_width"] if net.n else 0
         out["adjust"] = {"ordering": name, "band_width_m": c["band_width"],
                          "fill_in_blocks": c["fill_in_blocks"],
                          "band_flops": band_flops(net.n, c["band_width"], p)}
         rows.append(out["adjust"])
-        if out["adjust"]["band_flops"] < res[best]["band_flops"]:
+        if (out["adjust"]["band_flops"], out["adjust"]["fill_in_blocks"]) < \
+                (res[best]["band_flops"], res[best]["fill_in_blocks"]):
             out["recommended"] = name  # (sapgo order --method NAME, or its default)
     if timing and net.n:
         # the band widths of orderings within ten times the least work are timed; the rest
@@ -208,24 +210,35 @@ def solve_time(n_units, band_width, params=6, seconds=1.0, memory=400e6):
     n_units = int(n_units)
     if n_units <= 0:
         return {"predicted_s": 0.0, "rate_flops": 0.0, "timed_units": 0, "extrapolated": False}
-    cap = max(min(n_units, 2), int(memory / (8.0 * params * params * b)))
+    n_max = min(n_units, max(2, int(memory / (8.0 * params * params * b))))
     rng = np.random.default_rng(0)
+    # adjust's solve follows its build, which has passed over the points and the band rows:
+    # every timed run starts with caches cold, after a pass over a buffer larger than the
+    # caches (not timed)
+    flush = np.zeros(_FLUSH_BYTES // 8)
     with tempfile.TemporaryDirectory(prefix="sapgo-rate-") as d:
-        # (allocated once for the largest run; the runs take its first rows)
-        n_max = min(n_units, cap)
-        band = rng.uniform(-1.0, 1.0, (n_max, params, params * b)) * 0.1 / b
-        idx = np.arange(params)
-        band[:, idx, idx] = params * b  # diagonally dominant: positive definite
-        rhs = rng.uniform(size=(n_max, params))
-        fac = RawArray(Path(d) / "factor.bin", band.shape, mode="w")
-        y = RawArray(Path(d) / "y.bin", rhs.shape, mode="w")
+        state = {}
 
-        # adjust's solve follows its build, which has passed over the points and the band
-        # rows: every timed run starts with caches cold, after a pass over a buffer larger
-        # than the caches (not timed)
-        flush = np.zeros(_FLUSH_BYTES // 8)
+        def rows(m):
+            """A random positive definite band of (at least) m units and its work files,
+            made anew only when a larger one is needed (in place: no temporaries)."""
+            if state.get("m", 0) < m:
+                for f in state.get("files", ()):
+                    f.close()
+                state.clear()
+                band = np.empty((m, params, params * b))
+                rng.random(out=band)
+                band -= 0.5
+                band *= 0.2 / b
+                idx = np.arange(params)
+                band[:, idx, idx] = params * b  # diagonally dominant
+                files = (RawArray(Path(d) / "factor.bin", band.shape, mode="w"),
+                         RawArray(Path(d) / "y.bin", (m, params), mode="w"))
+                state.update(m=m, band=band, rhs=rng.random((m, params)), files=files)
+            return state["band"], state["rhs"], state["files"]
 
         def run(m):
+            band, rhs, (fac, y) = rows(m)
             np.add(flush, 1.0, out=flush)
             solver = BandSolver(m, b, fac, y, 256, block=params)
             for i0 in range(0, m, 256):
@@ -233,26 +246,31 @@ def solve_time(n_units, band_width, params=6, seconds=1.0, memory=400e6):
             solver.finish()
             return solver.seconds
 
-        def best(m, budget):
+        def best(m, budget, least=3):
             times = [run(m)]  # (the first run also touches the work files)
-            while len(times) < 3 or (sum(times) < budget and len(times) < 50):
+            while len(times) < least or (sum(times) < budget and len(times) < 50):
                 times.append(run(m))
             return min(times[1:])
 
         try:
+            # grow to the size whose run takes a quarter of the time (each size's fastest of
+            # two runs: one slow run would stop the growth), and never extrapolate from fewer
+            # than 32 b units, where the fixed costs still count
             n1 = min(n_max, 8 * b)
             run(n1)  # compile and warm
-            t1 = run(n1)
-            for _ in range(4):  # grow to the size whose run takes a quarter of the time
+            t1 = best(n1, 0.0)
+            for _ in range(6):
                 want = min(n_max, int(0.25 * seconds * n1 / max(t1, 1e-9)))
                 if want <= 1.2 * n1:
                     break
                 n1 = want
-                t1 = run(n1)
+                t1 = best(n1, 0.0)
+            n1 = max(n1, min(n_max, 32 * b))
             t1 = best(n1, seconds)
         finally:
-            fac.close()
-            y.close()
+            for f in state.get("files", ()):
+                f.close()
+            state.clear()
     # a block of n1 units or fewer is timed at its own size, fixed costs and all; a larger
     # one from n1 units, where the fixed costs are negligible: the time grows with the flops
     rate = band_flops(n1, b, params) / t1
@@ -279,6 +297,8 @@ def design_footprints(strips, photos_per_strip, forelap=0.6, sidelap=0.2, shift=
     lengths = _per_strip(lengths, strips, photos_per_strip, "lengths", int)
     starts = _per_strip(starts, strips, 0.0, "starts", float)
     scales = _per_strip(scales, strips, 1.0, "scales", float)
+    if not all(math.isfinite(v) for v in [shift, *starts, *scales]):
+        raise ParameterError("shift, strip starts and scales must be finite numbers")
     if min(lengths) < 2 or min(scales) <= 0:
         raise ParameterError("every strip needs at least 2 photos and a positive scale")
     bx, by = 1.0 - forelap, 1.0 - sidelap
@@ -312,8 +332,8 @@ def design_network(strips, photos_per_strip, forelap=0.6, sidelap=0.2, units="ph
         raise ParameterError(f"units {units!r}: photos or models")
     strip, _, foot = design_footprints(strips, photos_per_strip, forelap, sidelap, shift,
                                        lengths, starts, scales)
-    scales = _per_strip(scales, strips, 1.0, "scales", float)
-    if cross and (units != "models" or sidelap < 0.5 or shift or len(set(scales)) > 1):
+    one_scale = np.ptp(foot[:, 1] - foot[:, 0]) < 1e-12
+    if cross and (units != "models" or sidelap < 0.5 or shift or not one_scale):
         raise ParameterError("cross models (+C) are models between the strips: they need "
                              "--units models, a sidelap of 50 % or more, strips of one scale "
                              "and no shift")
@@ -385,7 +405,10 @@ def _overlapping_pairs(r, eps=1e-9):
 def _per_strip(values, strips, default, name, cast):
     if values is None:
         return [cast(default)] * strips
-    values = [cast(v) for v in values]
+    try:
+        values = [cast(v) for v in values]
+    except (ValueError, OverflowError):
+        raise ParameterError(f"{name}: {list(values)} are not finite numbers") from None
     if len(values) != strips:
         raise ParameterError(f"{name}: {len(values)} values for {strips} strips")
     return values
@@ -418,11 +441,12 @@ def project_network(path, chunk=None):
     s, t = np.asarray(s[keep], np.int64), np.asarray(t[keep], np.int64)
     xy = st["eo"][:, 3:5]
     if len(idx):
-        _, _, column, _, strip_key = grid_coordinates(xy[idx], st["strip"][idx])
+        grid = grid_coordinates(xy[idx], st["strip"][idx])
+        _, _, column, _, strip_key = grid
         y = np.unique(strip_key, return_inverse=True)[1].astype(np.float64)
         x = column.astype(np.float64)
-        scored = score_orders(candidate_orders(xy, st["strip"], active, (s, t)), active,
-                              (s, t))
+        scored = score_orders(candidate_orders(xy, st["strip"], active, (s, t), grid),
+                              active, (s, t))
         name = best_order(scored)
         chosen = (name, local[scored[name][2][:len(idx)]])
     else:
@@ -435,6 +459,8 @@ def project_network(path, chunk=None):
 def check_design(strips, photos_per_strip, forelap, sidelap):
     if strips < 1 or photos_per_strip < 2:
         raise ParameterError("a flight design needs at least 1 strip of 2 photos")
+    if not all(math.isfinite(v) for v in (forelap, sidelap)):
+        raise ParameterError("forelap and sidelap must be finite numbers")
     if not 0.5 <= forelap < 1.0:
         raise ParameterError(f"forelap {forelap}: between 0.5 and 1 (a fraction, e.g. 0.6)")
     if not 0.0 <= sidelap < 1.0:

@@ -104,8 +104,13 @@ def _generate_flight(path, preset, strips=None, photos_per_strip=None, forelap=N
                              f"control points, sigma image, terrain relief and seed, not "
                              f"{', '.join(given)}")
     d = BlockSpec()
-    design = dict(strips=strips or d.strips, photos_per_strip=photos_per_strip or
-                  d.photos_per_strip, forelap=d.forelap if forelap is None else forelap,
+    lists = [v for v in (lengths, starts, scales) if v is not None]
+    if strips is None:  # (the strips of the per-strip lists, else the default)
+        strips = len(lists[0]) if lists else d.strips
+    if photos_per_strip is None:
+        photos_per_strip = max(lengths) if lengths else d.photos_per_strip
+    design = dict(strips=strips, photos_per_strip=photos_per_strip,
+                  forelap=d.forelap if forelap is None else forelap,
                   sidelap=d.sidelap if sidelap is None else sidelap, shift=shift or 0.0,
                   lengths=lengths, starts=starts, scales=scales)
     scene = flight_scene(**design, control_points=control_points,

@@ -5,8 +5,8 @@ scale ``scale * c_k`` (``c_k`` its relative scale: the footprint's side, so the 
 is ``c_k`` times the nominal), photo ``j`` above the centre of its footprint, every other
 strip shifted by ``shift`` bases, strips of their own lengths and starts. Vertical photos
 (tilts of ``tilt`` degrees) of one camera over terrain of ``relief`` m; pass points on a
-grid dense enough that every overlap of two footprints holds points (about
-``points_per_photo`` on each photo), full control points scattered over the block. The block
+grid of about ``points_per_photo`` on each photo (an overlap narrower than the grid's
+spacing may hold none), full control points scattered over the block. The block
 is written as a :class:`~sapgo.generate.scene.Scene`, so every image point inside a photo's
 format is measured.
 """
