@@ -163,3 +163,36 @@ def test_columns_of_shifted_strips_and_of_strips_of_another_scale():
     np.testing.assert_array_equal(col[:6], j)
     np.testing.assert_array_equal(col[6:12], j + 0.5)
     np.testing.assert_array_equal(col[12:], np.rint(4 * (1.25 * j + 0.1)) / 4)
+
+
+def test_a_block_without_strip_numbers_is_ordered_as_with_them(block_cache, tmp_path):
+    """Strip numbers removed (an import without them): the flight direction and the base
+    come from the photos' nearest neighbours, the strips from the gaps across track, so the
+    columns, the strips and the band width are those of the block with its strips."""
+    import shutil
+
+    import h5py
+
+    from sapgo.ordering import grid_coordinates
+    from sapgo.project import Project
+
+    src = block_cache("8x30", strips=8, photos_per_strip=30, control_points=20)
+    with_strips, without = tmp_path / "a.h5", tmp_path / "b.h5"
+    shutil.copy(src, with_strips)
+    shutil.copy(src, without)
+    with h5py.File(without, "r+") as f:
+        st = f["stations"][:]
+        strip = st["strip"].copy()
+        st["strip"] = -1
+        f["stations"][:] = st
+    xy = st["eo"][:, 3:5]
+    _, _, col_a, lab_a, _ = grid_coordinates(xy, strip)
+    _, _, col_b, lab_b, _ = grid_coordinates(xy, st["strip"])
+    np.testing.assert_array_equal(lab_b, strip - 1)  # (strips 1..8 across the block)
+    np.testing.assert_array_equal(col_b, col_a)
+    widths = []
+    for path in (with_strips, without):
+        order_project(path)
+        with Project(path) as p:
+            widths.append(p.band_width)
+    assert widths[0] == widths[1] == 18

@@ -190,6 +190,12 @@ def _flight_axes(xy, strip):
                 dirs.append(d)
     if dirs:
         along = np.mean(dirs, axis=0)
+    elif len(xy) >= 3:
+        # strips unknown: the photos' nearest neighbours lie along the flight lines (the base
+        # is shorter than the strip spacing); their mean axis, directions taken mod 180 deg
+        d = _nearest(xy)[1]
+        angle = np.angle(np.mean(np.exp(2j * np.arctan2(d[:, 1], d[:, 0])))) / 2.0
+        along = np.array([math.cos(angle), math.sin(angle)])
     else:
         c = xy - xy.mean(axis=0)
         _, _, vt = np.linalg.svd(c, full_matrices=False) if len(xy) >= 2 else (0, 0, np.eye(2))
@@ -197,6 +203,14 @@ def _flight_axes(xy, strip):
     n = np.linalg.norm(along)
     along = along / n if n > 0 else np.array([1.0, 0.0])
     return along, np.array([-along[1], along[0]])
+
+
+def _nearest(xy):
+    """Each point's distance and vector to its nearest other point (a k-d tree)."""
+    from scipy.spatial import cKDTree
+
+    dist, j = cKDTree(xy).query(xy, k=2)
+    return dist[:, 1], xy[j[:, 1]] - xy
 
 
 def _columns(u, labels, base):
@@ -253,6 +267,8 @@ def grid_coordinates(xy, strip):
         order = np.lexsort((u, labels))
         same = np.diff(labels[order]) == 0
         gaps = np.diff(u[order])[same]
+    elif len(xy) >= 3:  # strips unknown: the distance to the nearest photo
+        gaps = _nearest(xy)[0]
     else:
         gaps = np.diff(np.sort(u))
     gaps = gaps[gaps > 0]
