@@ -117,16 +117,8 @@ def _generate_flight(path, preset, strips=None, photos_per_strip=None, forelap=N
                          sigma_image=d.sigma_image if sigma_image is None else sigma_image,
                          relief=30.0 if terrain_relief is None else terrain_relief,
                          seed=1 if seed is None else seed)
-    creator = {"command": "generate", "flight_design": design, "seed": scene.seed}
-    with ProjectWriter(Path(path), {"creator": json.dumps(creator),
-                                    "history": append_history("[]", creator)},
-                       truth=True) as w:
-        counts = write_scene(scene, w)
-        w.finish()
-    return {"path": str(path), "preset": None, "photos": counts["photos"],
-            "strips": counts["strips"], "points": counts["points"],
-            "control_points": counts["control"], "check_points": 0,
-            "observations": counts["observations"], "cameras": counts["cameras"]}
+    return _write_scene_file(path, scene, None, {"command": "generate",
+                                                 "flight_design": design, "seed": scene.seed})
 
 
 def _generate_scene(path, preset, seed=None, **overrides):
@@ -137,7 +129,12 @@ def _generate_scene(path, preset, seed=None, **overrides):
                              f"(given: {', '.join(sorted(unused))})")
     seed = 1 if seed is None else seed
     scene = SCENES[preset](seed)
-    creator = {"command": "generate", "preset": preset, "seed": seed}
+    return _write_scene_file(path, scene, preset,
+                             {"command": "generate", "preset": preset, "seed": seed})
+
+
+def _write_scene_file(path, scene, preset, creator):
+    """Write a scene into a new project at ``path`` (``creator`` recorded); the summary."""
     with ProjectWriter(Path(path), {"creator": json.dumps(creator),
                                     "history": append_history("[]", creator)},
                        truth=True) as w:
