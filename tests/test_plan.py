@@ -28,7 +28,7 @@ def dense_reference(n, s, t, perm, seed=0):
     return {"factor_blocks": int(nz.sum()), "nonzero_blocks": int(pattern.sum()),
             "fill_in_blocks": int(nz.sum() - pattern.sum()),
             "envelope_blocks": int((np.arange(n) - first + 1).sum()),
-            "row_counts": nz.sum(axis=1), "pattern": nz}
+            "row_counts": nz.sum(axis=1), "column_counts": nz.sum(axis=0), "pattern": nz}
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -46,13 +46,40 @@ def test_symbolic_factorisation_equals_a_numeric_cholesky(seed):
         ref = dense_reference(n, s, t, perm, seed)
         for k in ("factor_blocks", "nonzero_blocks", "fill_in_blocks", "envelope_blocks"):
             assert got[k] == ref[k], k
-        np.testing.assert_array_equal(got["row_counts"], ref["row_counts"])
+        np.testing.assert_array_equal(got["column_counts"], ref["column_counts"])
         rows, cols, fill = factor_pattern(n, (s, t), perm)
+        np.testing.assert_array_equal(np.bincount(rows, minlength=n), ref["row_counts"])
         assert len(rows) == ref["factor_blocks"] and fill.sum() == ref["fill_in_blocks"]
         assert (ref["pattern"][rows, cols]).all()
         inv = np.empty(n, np.int64)
         inv[perm] = np.arange(n)
         assert got["band_width"] == 1 + (np.abs(inv[s] - inv[t]).max() if len(s) else 0)
+
+
+@pytest.mark.parametrize("design", [dict(strips=6, photos_per_strip=40),
+                                    dict(strips=5, photos_per_strip=30, shift=0.5,
+                                         lengths=[30, 20, 30, 10, 25]),
+                                    dict(strips=4, photos_per_strip=20, forelap=0.8,
+                                         sidelap=0.6, units="models", cross=True)])
+def test_column_counts_equal_the_row_subtree_walk_on_planning_networks(design):
+    """The counts in O(nnz alpha) (elimination tree, postorder, skeleton leaves) against
+    the walk over every block of L (the row subtrees), for every ordering, and for a graph
+    of two components."""
+    from sapgo.plan import design_network, orderings
+    from sapgo.symbolic import _csr, _symbolic
+
+    net = design_network(**design)
+    graphs = [(net.n, net.s, net.t)]
+    graphs.append((2 * net.n, np.concatenate([net.s, net.s + net.n]),
+                   np.concatenate([net.t, net.t + net.n])))
+    for n, s, t in graphs:
+        for name, (perm, _) in orderings(net).items():
+            perm = perm if n == net.n else np.concatenate([perm, perm + net.n])
+            inv = np.empty(n, np.int64)
+            inv[perm] = np.arange(n)
+            c = symbolic_counts(n, (s, t), perm)
+            rows = _symbolic(n, *_csr(n, s, t), perm, inv)[0]
+            assert c["factor_blocks"] == rows.sum(), name
 
 
 def test_a_band_has_no_fill_outside_the_band_and_a_cycle_fills_its_last_column():
@@ -420,3 +447,15 @@ def test_the_two_column_orders_nearest_rostoms_s2():
         c = symbolic_counts(net.n, (net.s, net.t), np.lexsort((net.y, key)))
         got[name] = (c["fill_in_blocks"], c["band_width"])
     assert got == {"cross first": (8994, 46), "strip first": (6420, 46)}
+
+
+def test_a_factor_too_large_to_draw_is_refused_in_one_line(tmp_path, capsys, monkeypatch):
+    import sapgo.plan
+    from conftest import assert_one_line_error, run_cli
+
+    monkeypatch.setattr(sapgo.plan, "MAX_DRAWN_BLOCKS", 50)
+    code, out, err = run_cli(capsys, "plan", "--strips", "3", "--photos-per-strip", "20",
+                             "--no-timing", "--plot", tmp_path / "m.png", "--plot-ordering",
+                             "down_strip")
+    assert_one_line_error(code, err, "too many to draw", "down_strip")
+    assert not (tmp_path / "m.png").exists()

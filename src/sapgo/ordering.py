@@ -361,7 +361,7 @@ def find_exclusions(kind, point_of_obs, station_of_obs, n_stations, obs_status=N
     while True:
         live = obs_active & point_active[point_of_obs] & station_active[station_of_obs]
         # rays and points are counted once per distinct (point, station) pair
-        pairs = np.unique(point_of_obs[live] * n_stations + station_of_obs[live])
+        pairs = _unique(point_of_obs[live] * n_stations + station_of_obs[live])
         rays = np.bincount(pairs // n_stations, minlength=n_points)
         new_points = (rays >= MIN_RAYS_PASS) | (single_ok & (rays >= 1))
         pairs = pairs[new_points[pairs // n_stations]]

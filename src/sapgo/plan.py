@@ -467,6 +467,10 @@ def check_design(strips, photos_per_strip, forelap, sidelap):
         raise ParameterError(f"sidelap {sidelap}: between 0 and 1 (a fraction, e.g. 0.2)")
 
 
+#: The most blocks of the factor that --plot draws (each costs 17 bytes while drawn).
+MAX_DRAWN_BLOCKS = 200_000_000
+
+
 def write_pattern(net: Network, path, ordering, max_cells=600):
     """Draw the pattern of ``M`` with its fill-in for an ordering (Rostom's Figure 12): the
     non-zero blocks, the fill-in of the factor, and the boundaries of the lines. A
@@ -489,6 +493,11 @@ def write_pattern(net: Network, path, ordering, max_cells=600):
         lines = None
     else:
         perm, lines = orderings(net)[ordering]
+    blocks = symbolic_counts(net.n, (net.s, net.t), perm)["factor_blocks"]
+    if blocks > MAX_DRAWN_BLOCKS:
+        raise ParameterError(f"the factor of {ordering} has {blocks:,} blocks, too many to "
+                             f"draw (at most {MAX_DRAWN_BLOCKS:,}): draw the recommended "
+                             f"ordering, or a smaller block")
     rows, cols, fill = factor_pattern(net.n, (net.s, net.t), perm)
     n = net.n
     cells = max(1, min(n, max_cells))

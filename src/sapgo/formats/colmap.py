@@ -538,7 +538,7 @@ def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=F
 
     from ..frames import Frame, opk_of, rotation_matrices
     from ..ingest import TextControl
-    from ..ordering import MIN_RAYS_PASS
+    from ..ordering import MIN_RAYS_PASS, _unique
     from ..project import (
         CAMERA_DTYPE,
         KIND_CONTROL,
@@ -743,7 +743,7 @@ def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=F
     # as the text import: kept, and left out by ordering (sapgo.ordering: a pass, check or
     # horizontal control point needs 2 rays, a full or vertical control point 1; a ray is a
     # distinct point and image)
-    pairs = np.unique(o_point * len(station) + o_station)
+    pairs = _unique(o_point * len(station) + o_station)
     rays = np.bincount(pairs // len(station), minlength=n_pt)
     need = np.where((kind == KIND_CONTROL) | (kind == KIND_VERTICAL), 1, MIN_RAYS_PASS)
     few = point["id"][rays < need]
