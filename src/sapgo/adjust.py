@@ -45,7 +45,7 @@ from .bandsolve import (
     border_back_substitute,
     covariance_blocks,
 )
-from .errors import DatumDefectError, SapgoError, SingularNormalsError
+from .errors import DatumDefectError, ProjectFormatError, SapgoError, SingularNormalsError
 from .geometry import (
     CALIBRATION_FIELDS,
     CALIBRATION_POWERS,
@@ -159,6 +159,11 @@ class Options:
     calibrate: tuple = ()
     #: The camera ids self-calibrated (None: every camera with a photo).
     calibrate_cameras: tuple | None = None
+    #: The linear solver: "band" (recursive partitioning of the band: long strips), "tree"
+    #: (the partition tree of nested dissection: any block shape) or "auto" (the project's
+    #: order as ``sapgo order`` chose it by predicted cost; an unordered project is ordered
+    #: for the cheaper). A project ordered for the other solver is ordered again first.
+    solver: str = "auto"
 
     def check(self):
         if self.max_iterations < 1:
@@ -175,6 +180,8 @@ class Options:
             raise SapgoError("pivot_tolerance must be in [0, 1)")
         if self.memory is not None:
             parse_memory(self.memory)  # a bad size is refused before anything runs
+        if self.solver not in ("auto", "band", "tree"):
+            raise SapgoError(f"solver {self.solver!r}: choose auto, band or tree")
         if self.robust not in (None, "huber", "cauchy"):
             raise SapgoError(f"robust {self.robust!r}: choose huber or cauchy")
         if not self.robust_threshold_um > 0:
@@ -320,6 +327,13 @@ class _Block:
     #: Levenberg-Marquardt step, a rejected step, a resumed run): the precision sweep builds
     #: and factors the normals once more, undamped, first
     refactor: bool = False
+    #: the partition tree (:class:`sapgo.solve.partition.Tree`) when the project is ordered
+    #: for the tree solver, else None (the band)
+    tree: object = None
+
+    @property
+    def solver(self):
+        return "band" if self.tree is None else "tree"
 
     @property
     def n_border(self):
@@ -352,6 +366,7 @@ def _load_block(p: Project) -> _Block:
         free=p.attr("datum", "") == "free",
         behind_ok=p.attr("points_behind", "") == "allowed",
         npar=9 if p.attr("station_intrinsics", "") == "adjusted" else 6,
+        tree=p.tree(),
     )
     if blk.npar == 9:
         cam = blk.camera[blk.station_active]
@@ -794,8 +809,14 @@ def _pivot_error(exc: PivotError, blk: _Block, p: Project):
     last = active[-1] if len(active) else 0
     # a datum defect spreads over the whole block and shows at the end of the elimination;
     # in a block of a few band widths every station is "at the end", so say both
-    near_end = s > last - blk.band_width
-    small = len(active) <= 3 * blk.band_width
+    if blk.tree is None:
+        near_end = s > last - blk.band_width
+        small = len(active) <= 3 * blk.band_width
+    else:  # on the tree the end of the elimination is a root's separator
+        t = blk.tree
+        node = int(np.searchsorted(t.hi, s, side="right"))
+        near_end = node < t.n_nodes and t.parent[node] < 0
+        small = t.n_nodes <= 3
     nh, nv, npr = _datum_counts(p)
     where = (f"the reduced normal equations are not positive definite at station id {sid} "
              f"(logical station {s}, parameter {param})")
@@ -964,6 +985,47 @@ def _cost(p: Project, work, blk: _Block, opts: Options):
     return 0.5 * vpv
 
 
+def _factor_solve(p: Project, work: Work, blk: _Block, opts: Options, it=0, mu=0.0):
+    """Build the reduced normals (damped by ``mu``), factor and solve them with the block's
+    solver: the band (the factorisation runs inside the build: every segment of band rows is
+    factored as soon as the build has completed it, so the band rows never go to disk) or
+    the partition tree (node by node, :func:`sapgo.solve.tree.tree_step`).
+
+    Returns a dict: ``delta``, ``diag`` (the stations' undamped diagonal with ``mu > 0``),
+    ``border`` (self-calibration: ``(cnn, ccg, cdiag)``), ``theta``, ``border_cov``, ``xb``
+    (``x'b`` of the step: ``y'y`` plus the border's share) and ``seconds`` (in the solver:
+    booked as "solve", the rest as "build")."""
+    if blk.tree is not None:
+        from .solve.tree import tree_step
+
+        try:
+            delta, diag, yy, seconds = tree_step(p, work, blk, opts, blk.tree, mu, it)
+        except PivotError as exc:
+            raise _pivot_error(exc, blk, p) from None
+        return {"delta": delta, "diag": diag, "border": None, "theta": None,
+                "border_cov": None, "xb": yy, "seconds": seconds}
+    n = len(blk.station_ids)
+    solver = BandSolver(n, blk.band_width, work.factor, work.y, opts.chunk_rows,
+                        opts.pivot_tolerance, block=blk.npar)
+    try:
+        diag, border = build(p, work, blk, opts, iteration=it, sink=solver.feed, lam=mu)
+        delta = solver.finish(None if border is None else
+                              (work.border, border[0], border[1]))
+    except PivotError as exc:
+        raise _pivot_error(exc, blk, p) from None
+    except BorderPivotError as exc:
+        raise _border_pivot_error(exc, blk, p) from None
+    if border is None:
+        y = np.asarray(work.y[:], dtype=np.float64)
+        xb = float((y * y).sum())
+    else:
+        xb = solver.y_norm2 + solver.border_decrease
+    return {"delta": delta, "diag": diag, "border": border,
+            "theta": solver.theta if border is not None else None,
+            "border_cov": solver.border_cov if border is not None else None,
+            "xb": xb, "seconds": solver.seconds}
+
+
 def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, run,
              limit=None, reject=True):
     """Iterations (Gauss-Newton, or Levenberg-Marquardt steps) until converged or ``limit``
@@ -976,35 +1038,20 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
     the first step that raises the cost. ``reject=False``: every step is taken (the
     cost function changes between steps, as in robust reweighting)."""
     n = len(blk.station_ids)
-    bw = blk.band_width
     limit = limit or opts.max_iterations
     while len(log) < limit:
         it = len(log) + 1
         lm = run.get("method") == "lm"
         mu = float(run.get("mu", opts.lm_initial_mu)) if lm else 0.0
         t0 = time.perf_counter()
-        # The factorisation runs inside the build: every segment of band rows is factored as
-        # soon as the build has completed it, so the band rows never go to disk. Its time is
-        # booked as "solve", the rest as "build".
-        solver = BandSolver(n, bw, work.factor, work.y, opts.chunk_rows, opts.pivot_tolerance,
-                            block=blk.npar)
-        try:
-            diag, border = build(p, work, blk, opts, iteration=it, sink=solver.feed, lam=mu)
-            delta = solver.finish(None if border is None else
-                                  (work.border, border[0], border[1]))
-        except PivotError as exc:
-            raise _pivot_error(exc, blk, p) from None
-        except BorderPivotError as exc:
-            raise _border_pivot_error(exc, blk, p) from None
+        step = _factor_solve(p, work, blk, opts, it, mu)
         _fault("solve", it)
+        delta, diag, border = step["delta"], step["diag"], step["border"]
         delta[~blk.station_active] = 0.0
-        theta = solver.theta if border is not None else None
-        border_cov = solver.border_cov if border is not None else None
+        theta, border_cov = step["theta"], step["border_cov"]
         dtheta = _border_step(blk, theta) if border is not None else None
         t2 = time.perf_counter()
-        t1 = t0 + (t2 - t0 - solver.seconds)
-        xb_border = (solver.y_norm2 + solver.border_decrease) if border is not None else None
-        del solver
+        t1 = t0 + (t2 - t0 - step["seconds"])
         eo_before, cams_before = blk.eo.copy(), blk.cams
         st = update(p, work, blk, delta, opts, iteration=it, lam=mu, dtheta=dtheta)
         t3 = time.perf_counter()
@@ -1014,7 +1061,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         d_ang = float(np.abs(delta[:, :3]).max()) if n else 0.0
         d_pos = float(np.abs(delta[:, 3:6]).max()) if n else 0.0
         step_s = delta
-        del delta
+        del delta, step
         cost = 0.5 * st["vpv"]
         prev_cost = run.get("cost")
         rho = None
@@ -1022,11 +1069,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             # predicted decrease 1/2 (dx' b + mu dx' D dx), with dx' b = |y|^2 (the stations'
             # reduced system: y = U'^-1 d) + sum over points of c' Ndd^-1 c
             # (+ t' S^-1 t, the border's share, with self-calibration)
-            if border is None:
-                y = np.asarray(work.y[:], dtype=np.float64)
-                xb = float((y * y).sum())
-            else:
-                xb = xb_border
+            xb = step["xb"]
             dsd = float((np.clip(diag, 1e-6, 1e32) * step_s ** 2).sum()) if diag is not None \
                 else 0.0
             if border is not None:
@@ -1100,6 +1143,26 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
 
 # -- the run -----------------------------------------------------------------------------
 
+def _needs_order(p: Project, opts: Options):
+    """An unordered project, one ordered for the other solver than the one asked for, or
+    one whose stored tree no longer matches its records is ordered (again) first."""
+    if not p.ordered:
+        return True
+    if opts.solver != "auto" and opts.solver != p.solver:
+        return True
+    try:
+        p.tree()
+    except ProjectFormatError:
+        return True
+    return False
+
+
+def _work_band(blk: _Block):
+    """The band width of the work files' band rows: none for the tree (its factor has a
+    file of its own)."""
+    return blk.band_width if blk.tree is None else 0
+
+
 def adjust(path, options: Options | None = None) -> Summary:
     """Adjust the project at ``path``; see the module docstring. Returns a :class:`Summary`."""
     opts = (options or Options()).check()
@@ -1110,13 +1173,13 @@ def adjust(path, options: Options | None = None) -> Summary:
     with Project(path, "r") as p:
         check_values(p)
         check_datum(p)
-        needs_order = not p.ordered
+        needs_order = _needs_order(p, opts)
     order_info = None
     checkpoint = Work.load_checkpoint(wpath) if opts.resume else None
     if needs_order:
         checkpoint = None  # an unordered project has no run to resume
         t0 = time.perf_counter()
-        order_info = order_project(path, opts.ordering, memory=opts.memory)
+        order_info = order_project(path, opts.ordering, memory=opts.memory, solver=opts.solver)
         timings["order"] = time.perf_counter() - t0
 
     log = []
@@ -1124,6 +1187,9 @@ def adjust(path, options: Options | None = None) -> Summary:
     with Project(path, "r") as p:
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
+        if blk.tree is not None and blk.border:
+            raise SapgoError(f"{path}: self-calibration (--calibrate) runs on the band solver "
+                             f"only so far: use --solver band")
         if blk.n_stations == 0:
             raise DatumDefectError(f"{path}: no station can be adjusted (every photo has fewer "
                                    f"than 3 determinable points)")
@@ -1138,6 +1204,7 @@ def adjust(path, options: Options | None = None) -> Summary:
             raise SapgoError(f"{path}: a free network needs Levenberg-Marquardt (method auto "
                              f"or levenberg-marquardt), not gauss-newton")
         ident = _identity(p, blk.band_width)
+        ident["solver"] = blk.solver
         if blk.border:  # a run with another self-calibration is another run
             ident["calibration"] = _border_names(blk, p)
         if checkpoint is not None and checkpoint.get("identity") != ident:
@@ -1152,14 +1219,14 @@ def adjust(path, options: Options | None = None) -> Summary:
         work = None
         if checkpoint is not None:
             try:
-                work = Work(wpath, p, blk.band_width, create=False, block=blk.npar,
+                work = Work(wpath, p, _work_band(blk), create=False, block=blk.npar,
                             n_border=blk.n_border)
             except (OSError, ValueError) as exc:  # work files missing or cut short
                 sys.stderr.write(f"sapgo: warning: the interrupted run of {path} cannot be "
                                  f"resumed ({exc}); starting from the beginning\n")
                 checkpoint = None
         if work is None:
-            work = Work(wpath, p, blk.band_width, create=True, block=blk.npar,
+            work = Work(wpath, p, _work_band(blk), create=True, block=blk.npar,
                         n_border=blk.n_border)
         try:
             if checkpoint is None:
@@ -1241,17 +1308,9 @@ def adjust(path, options: Options | None = None) -> Summary:
 def _undamped_factor(p: Project, work, blk: _Block, opts: Options):
     """Build and factor the normals of the current state without damping (the work files'
     factor, ``y`` and border), for the precision sweep after Levenberg-Marquardt steps."""
-    solver = BandSolver(len(blk.station_ids), blk.band_width, work.factor, work.y,
-                        opts.chunk_rows, opts.pivot_tolerance, block=blk.npar)
-    try:
-        _, border = build(p, work, blk, opts, sink=solver.feed)
-        solver.finish(None if border is None else (work.border, border[0], border[1]))
-    except PivotError as exc:
-        raise _pivot_error(exc, blk, p) from None
-    except BorderPivotError as exc:
-        raise _border_pivot_error(exc, blk, p) from None
-    if border is not None:
-        blk.border_cov = solver.border_cov
+    step = _factor_solve(p, work, blk, opts)
+    if step["border"] is not None:
+        blk.border_cov = step["border_cov"]
     blk.refactor = False
 
 
@@ -1270,14 +1329,16 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     ``(station_sigma, point_sigma file, quality file)``."""
     xyz_ds, res_ds = work.xyz_current, work.res_current
     n_st = len(blk.station_ids)
+    if blk.refactor:
+        _undamped_factor(p_read, work, blk, opts)
+    if blk.tree is not None:
+        return _quality_tree(p_read, work, blk, opts, sigma0, correlations)
     first = np.zeros(n_st + 1, np.int64)
     for a, b in p_read.chunks("points", opts.chunk_points):
         sm = p_read.read_field("points", "station_min", a, b)
         act = p_read.read_field("points", "status", a, b) == STATUS_ACTIVE
         first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
     np.cumsum(first, out=first)
-    if blk.refactor:
-        _undamped_factor(p_read, work, blk, opts)
     ng = blk.n_border
     cal = sig_b = xb_ds = None
     if ng:  # self-calibration: X = M^-1 B (its own file: W stays, the sweep can run again)
@@ -1337,9 +1398,37 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
         cov.close()
         if xb_ds is not None:
             xb_ds.close()
+    return _station_sigma(blk, sigma0, var), psig, quality
+
+
+def _station_sigma(blk, sigma0, var):
     station_sigma = sigma0 * np.sqrt(np.maximum(var[:, :6], 0.0))
     station_sigma[~blk.station_active] = 0.0
-    return station_sigma, psig, quality
+    return station_sigma
+
+
+def _quality_tree(p_read, work, blk, opts, sigma0, correlations=None):
+    """:func:`_quality_sweep` on the partition tree (:func:`sapgo.solve.tree.tree_quality`:
+    the selected inversion top-down, the points node by node)."""
+    from .solve.tree import tree_quality
+
+    n_st, k = len(blk.station_ids), blk.npar
+    psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
+    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
+                       mode="w")
+    cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
+    try:
+        var = tree_quality(p_read, work, blk, opts, blk.tree, sigma0, psig, quality, cov,
+                           correlations, QUALITY_COLUMNS)
+        if correlations is not None:
+            for a in range(0, n_st, opts.chunk_points):
+                b = min(n_st, a + opts.chunk_points)
+                rho = station_correlations(cov[a:b][:, :6, :6])
+                rho[~blk.station_active[a:b]] = np.nan
+                correlations.add("stations", blk.station_ids[a:b], rho)
+    finally:
+        cov.close()
+    return _station_sigma(blk, sigma0, var), psig, quality
 
 
 def _snoop(p, work, blk, opts, timings, log, run, converged):

@@ -70,6 +70,9 @@ class OrderResult:
     n_excluded_points: int = 0
     n_excluded_stations: int = 0
     seconds: float = 0.0
+    solver: str = "band"  # "band" or "tree": what the order was made for
+    tree: dict | None = None  # the tree's figures (Tree.figures) when solver is "tree"
+    predicted: dict | None = None  # solver -> predicted seconds of one factorisation
 
     def to_dict(self):
         return dataclasses.asdict(self)
@@ -502,11 +505,17 @@ def _station_activity(p, chunk):
 
 # -- the order command -----------------------------------------------------------------
 
-def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS):
+SOLVERS = ("auto", "band", "tree")
+
+
+def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver="auto"):
     """Order a project: exclusions, station order, point order, records rewritten.
 
     ``method`` is ``"best"`` (smallest band width of all candidates) or one candidate name
-    (``across_strip``, ``down_strip``, ``reverse_cuthill_mckee``, ...). Every pass streams
+    (``across_strip``, ``down_strip``, ``reverse_cuthill_mckee``, ...) for the band.
+    ``solver``: "band" (the band order), "tree" (the partition tree's post-order, stored
+    in ``/tree``; :mod:`sapgo.solve.partition`) or "auto" (the one of the smaller predicted
+    factorisation time, :func:`predict_solver`). Every pass streams
     the records in chunks; the points and observations are put in their new order by external
     sorts within ``memory`` bytes (default :data:`sapgo.extsort.DEFAULT_MEMORY`). In core:
     per-station vectors and the station graph (a few edges per station). The project is
@@ -522,8 +531,10 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS):
     work = path.with_name(path.name + ".order.work")
     with Project(path, "r") as p:
         check_values(p, ordered_layout=False)
+        if solver not in SOLVERS:
+            raise ParameterError(f"unknown solver {solver!r}; choose from {', '.join(SOLVERS)}")
         try:
-            result = _order(p, work, method, memory, chunk)
+            result = _order(p, work, method, memory, chunk, solver)
         finally:
             shutil.rmtree(work, ignore_errors=True)
     result.seconds = time.perf_counter() - t0
@@ -550,7 +561,30 @@ def best_order(scored):
     return min(scored, key=lambda k: scored[k][:2])
 
 
-def _order(p, work, method, memory, chunk):
+def predict_solver(n_active, band_width, tree, k=6):
+    """Predicted seconds of one factorisation by the band and by the tree (and the choice):
+    flops at the rate each kernel reaches on this kind of machine (the band's panels on
+    2 cores about 25 GFlop/s; the tree's fronts 25 GFlop/s at the bottom of the tree, plus
+    a fixed cost per node). The band is kept on a tie: it is the tested path of strips."""
+    u = k * band_width
+    band = k * n_active * float(u) * u / BAND_RATE
+    out = {"band": band}
+    if tree is not None:
+        f = tree.figures(k)
+        out["tree"] = f["flops"] / TREE_RATE + TREE_NODE_SECONDS * f["nodes"]
+    return out
+
+
+#: Rates of the solvers' kernels (flops per second) and the tree's cost per node (s), for
+#: :func:`predict_solver` (measured on 2 cores: benchmarks/shape.py).
+BAND_RATE = 25e9
+TREE_RATE = 25e9
+TREE_NODE_SECONDS = 2e-4
+
+
+def _order(p, work, method, memory, chunk, solver="auto"):
+    from .solve.partition import best_tree
+
     stations = p.read("stations")
     n_st, n_pt = p.n_stations, p.n_points
     st_active, edges = _station_activity(p, chunk)
@@ -564,8 +598,23 @@ def _order(p, work, method, memory, chunk):
     name = best_order(scored) if method == "best" else method
     b, _, perm, pos = scored[name]
     candidates = {k: int(v[0]) for k, v in scored.items()}
-    del edges
     scored.clear()
+    k_par = 9 if p.attr("station_intrinsics", "") == "adjusted" else 6
+    n_active = int(st_active.sum())
+    tree = None
+    predicted = predict_solver(n_active, b, None, k_par)
+    if solver != "band" and n_active:
+        tree, perm_t, _ = best_tree(stations["eo"][:, 3:6], st_active, edges, k=k_par)
+        predicted = predict_solver(n_active, b, tree, k_par)
+        if solver == "tree" or predicted["tree"] < predicted["band"]:
+            perm = perm_t
+            pos = np.empty(n_st, np.int64)
+            pos[perm] = np.arange(n_st)
+            b = band_width_of(pos, edges)
+            name = f"nested_dissection_{tree.method}"
+        else:
+            tree = None
+    del edges
 
     has_truth, has_solution = p.has_truth, p.has_solution
     pt_fields = [("kmin", "<i8"), ("kmax", "<i8"), ("id", "<i8"), ("old", "<i8"),
@@ -585,7 +634,9 @@ def _order(p, work, method, memory, chunk):
     attrs = {k: p.file.attrs[k] for k in p.file.attrs if k != "uuid"}
     history = append_history(attrs.get("history", "[]"), {
         "command": "order", "ordering": name, "band_width": b, "band_width_before": b_before})
-    attrs.update(ordered=True, ordering=name, band_width=b, history=history)
+    attrs.update(ordered=True, ordering=name, band_width=b, history=history,
+                 solver="tree" if tree is not None else "band")
+    node_points = np.zeros(tree.n_nodes if tree is not None else 0, np.int64)
 
     with ExternalSorter(pt_dtype, ["kmin", "kmax", "id", "old"], memory // 2, work,
                         "points") as pts_sort, \
@@ -640,6 +691,10 @@ def _order(p, work, method, memory, chunk):
                     w.append("truth/points", c["truth"])
                 if has_solution:
                     sol["point_corr"][new:new + len(c)] = c["corr"]
+                if tree is not None:  # the points of each node (by their first station)
+                    km = c["kmin"][c["kmin"] < tree.n_active]
+                    node_points += np.bincount(np.searchsorted(tree.hi, km, side="right"),
+                                               minlength=tree.n_nodes)
                 m = np.zeros(len(c), map_dtype)
                 m["old"] = c["old"]
                 m["new"] = np.arange(new, new + len(c))
@@ -694,6 +749,13 @@ def _order(p, work, method, memory, chunk):
                 p.file.copy(p.file[group], w.file, group)
         if has_solution:
             w.file.move("solution.new", "solution")
+        if tree is not None:
+            tree.pt_start = np.concatenate([[0], np.cumsum(node_points)]).astype(np.int64)
+            g = w.file.create_group("tree")
+            g.attrs["n_active"] = tree.n_active
+            g.attrs["method"] = tree.method
+            for key, arr in tree.to_arrays().items():
+                g.create_dataset(key, data=arr)
         w.finish()  # replaces the project (still open here for reading: POSIX keeps it)
     return OrderResult(
         band_width_before=b_before,
@@ -704,4 +766,7 @@ def _order(p, work, method, memory, chunk):
         excluded_stations=[int(i) for i in stations["id"][~st_active][:LISTED_IDS]],
         n_excluded_points=n_excluded_points,
         n_excluded_stations=int((~st_active).sum()),
+        solver="tree" if tree is not None else "band",
+        tree=tree.figures(k_par) if tree is not None else None,
+        predicted=predicted,
     )

@@ -433,6 +433,32 @@ class Project:
         return int(self.file.attrs.get("band_width", 0))
 
     @property
+    def solver(self):
+        """The solver the project's order was made for: "band" or "tree"."""
+        return str(self.attr("solver", "band") or "band")
+
+    def tree(self):
+        """The partition tree stored by ``sapgo order`` (:class:`sapgo.solve.partition.Tree`),
+        or None when the project is ordered for the band. A tree that no longer matches the
+        records (stations or points changed since) raises :class:`ProjectFormatError`."""
+        from .solve.partition import Tree
+
+        if self.solver != "tree" or "tree" not in self._f:
+            return None
+        g = self._f["tree"]
+        try:
+            tree = Tree.from_arrays({k: g[k][()] for k in g}, g.attrs["n_active"],
+                                    g.attrs.get("method", "geometric"))
+        except KeyError as exc:
+            raise ProjectFormatError(f"{self.path}: /tree is incomplete ({exc})") from None
+        if (tree.pt_start is None or len(tree.pt_start) != tree.n_nodes + 1
+                or tree.pt_start[-1] > self.n_points or tree.n_active > self.n_stations
+                or (tree.n_nodes and tree.hi[-1] > tree.n_active)):
+            raise ProjectFormatError(f"{self.path}: the stored partition tree does not match "
+                                     f"the records (changed since 'sapgo order')")
+        return tree
+
+    @property
     def has_truth(self):
         return "truth" in self.file
 

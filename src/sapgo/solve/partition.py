@@ -1,0 +1,415 @@
+"""The partition tree: nested dissection of the station graph (DESIGN section 5b).
+
+The station graph joins two stations that observe a common point. Recursive bisection splits
+it into a tree: an internal node is a *vertex separator* S (stations whose removal leaves two
+parts that share no point), a leaf a part small enough to be eliminated as a whole. The
+stations are numbered in the tree's post-order (a node's subtree first, then its own
+stations), so every node owns a contiguous range of logical stations ``lo .. hi`` and its
+subtree the range ``first .. hi``; a point's stations form a clique, so they lie in one node
+plus its ancestors, and the point belongs to the node of its first (smallest) logical station.
+Sorting the points by (first, last) logical station, as ``sapgo order`` always has, therefore
+puts each node's points together, in the tree's post-order (SAPGO's "points sorted by logical
+station", generalised).
+
+Separators (George 1973; the practice of METIS and of sparse direct solvers):
+
+- **geometric**: the stations of a part are cut across the longest principal axis of their
+  positions (aerial and orbital blocks: the positions carry the topology) at the cut among a
+  few near the median with the fewest separator stations;
+- **graph**: METIS (``pymetis.part_graph``) bisects the part's graph by an edge cut, for
+  networks whose positions say nothing of their topology (close-range, unordered models).
+
+An edge cut becomes a vertex separator by a minimum vertex cover of the cut's bipartite graph
+(König's theorem: a maximum matching, then alternating paths). ``nested_dissection`` builds a
+tree with either, :func:`best_tree` both and keeps the one of fewer predicted flops.
+
+Each node's *front* is its own stations followed by its *boundary*: the ancestors' stations
+adjacent to its subtree (the structure of its columns of the Cholesky factor). The factor's
+flops and storage follow from the fronts: for ``m = k |S|`` own and ``f = k |boundary|``
+boundary unknowns (``k`` parameters a station), ``m^3/3 + m^2 f + m f^2`` flops (dpotrf,
+dtrsm, dsyrk) and ``m (m + 1)/2 + m f`` doubles of factor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import breadth_first_order, connected_components, \
+    maximum_bipartite_matching
+
+#: A part of at most this many stations is a leaf.
+LEAF_STATIONS = 48
+
+#: Cuts tried around the median of a part's stations along its principal axis (fractions).
+CUT_FRACTIONS = (0.5, 0.45, 0.55, 0.4, 0.6)
+
+#: Principal axes of a part's positions tried as cut directions.
+AXES = 2
+
+
+@dataclasses.dataclass
+class Tree:
+    """A partition tree in post-order (children before their parent, node ``i``'s subtree is
+    the node range ``i - size + 1 .. i``).
+
+    ``lo[i] .. hi[i]``: the node's own logical stations; ``first[i] .. hi[i]``: its
+    subtree's; ``parent`` (-1 at a root: a disconnected block is a forest); ``leaf``;
+    ``boundary[bptr[i]:bptr[i+1]]`` the node's boundary stations (logical, ascending, all
+    ``>= hi[i]``). ``n_active`` stations are in the tree (``0 .. n_active``); the others
+    (excluded) follow them. ``pt_start`` (nodes + 1): the node's points are the records
+    ``pt_start[i] .. pt_start[i+1]`` once the points are in order (``sapgo order`` sets it).
+    ``method``: "geometric" or "graph".
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+    first: np.ndarray
+    parent: np.ndarray
+    leaf: np.ndarray
+    bptr: np.ndarray
+    boundary: np.ndarray
+    n_active: int
+    method: str = "geometric"
+    pt_start: np.ndarray | None = None
+
+    @property
+    def n_nodes(self):
+        return len(self.lo)
+
+    def own(self, i):
+        return int(self.hi[i] - self.lo[i])
+
+    def bnd(self, i):
+        return self.boundary[self.bptr[i]:self.bptr[i + 1]]
+
+    def front(self, i):
+        """The node's front stations: its own, then its boundary (logical, ascending)."""
+        return np.concatenate([np.arange(self.lo[i], self.hi[i]), self.bnd(i)])
+
+    def children(self):
+        """Children lists (post-order) of every node."""
+        ch = [[] for _ in range(self.n_nodes)]
+        for i, p in enumerate(self.parent):
+            if p >= 0:
+                ch[p].append(i)
+        return ch
+
+    def depth(self):
+        d = np.zeros(self.n_nodes, np.int64)
+        for i in range(self.n_nodes - 1, -1, -1):
+            if self.parent[i] >= 0:
+                d[i] = d[self.parent[i]] + 1
+        return d
+
+    def figures(self, k=6):
+        """Depth, leaves, largest front, factor bytes and flops for ``k`` parameters a
+        station (the report's and the plan's tree figures)."""
+        m = k * (self.hi - self.lo).astype(np.float64)
+        f = k * np.diff(self.bptr).astype(np.float64)
+        flops = m ** 3 / 3 + m * m * f + m * f * f
+        doubles = m * (m + 1) / 2 + m * f
+        front = (m + f)
+        return {
+            "nodes": int(self.n_nodes),
+            "depth": int(self.depth().max() + 1) if self.n_nodes else 0,
+            "leaves": int(self.leaf.sum()),
+            "roots": int((self.parent < 0).sum()),
+            "largest_front": int(front.max() / k) if self.n_nodes else 0,
+            "largest_front_bytes": int(8 * front.max() ** 2) if self.n_nodes else 0,
+            "largest_separator": int(((self.hi - self.lo)[~self.leaf]).max())
+            if (~self.leaf).any() else 0,
+            "factor_bytes": int(8 * doubles.sum()),
+            "flops": float(flops.sum()),
+            "method": self.method,
+        }
+
+    def peak_front_bytes(self, k=6):
+        """Bytes in core at the worst moment of a post-order factorisation: the front being
+        factored plus the children's update matrices waiting on the stack."""
+        f = k * np.diff(self.bptr).astype(np.float64)
+        upd = 8 * f * f
+        m = k * (self.hi - self.lo).astype(np.float64)
+        stack = 0.0
+        peak = 0.0
+        pending = np.zeros(self.n_nodes)   # bytes of the children's updates held per parent
+        for i in range(self.n_nodes):
+            stack -= pending[i]
+            peak = max(peak, stack + pending[i] + 8 * (m[i] + f[i]) ** 2)
+            if self.parent[i] >= 0:
+                pending[self.parent[i]] += upd[i]
+                stack += upd[i]
+        return int(peak)
+
+    # -- storage in the project ------------------------------------------------------
+    def to_arrays(self):
+        return {"lo": self.lo, "hi": self.hi, "first": self.first, "parent": self.parent,
+                "leaf": self.leaf.astype(np.int8), "bptr": self.bptr,
+                "boundary": self.boundary,
+                "pt_start": (self.pt_start if self.pt_start is not None
+                             else np.zeros(0, np.int64))}
+
+    @classmethod
+    def from_arrays(cls, a, n_active, method):
+        pt = np.asarray(a["pt_start"], np.int64)
+        return cls(lo=np.asarray(a["lo"], np.int64), hi=np.asarray(a["hi"], np.int64),
+                   first=np.asarray(a["first"], np.int64),
+                   parent=np.asarray(a["parent"], np.int64),
+                   leaf=np.asarray(a["leaf"]).astype(bool),
+                   bptr=np.asarray(a["bptr"], np.int64),
+                   boundary=np.asarray(a["boundary"], np.int64), n_active=int(n_active),
+                   method=str(method), pt_start=pt if len(pt) else None)
+
+
+# -- separators ---------------------------------------------------------------------------
+
+def _vertex_cover(ls, rs):
+    """A minimum vertex cover of the bipartite graph of the cut edges ``(ls[e], rs[e])``
+    (left and right stations): König's construction from a maximum matching. Returns the
+    cover's stations."""
+    lu, li = np.unique(ls, return_inverse=True)
+    ru, ri = np.unique(rs, return_inverse=True)
+    nl, nr = len(lu), len(ru)
+    g = csr_matrix((np.ones(len(li), np.int8), (li, ri)), shape=(nl, nr))
+    g.sum_duplicates()
+    match_l = maximum_bipartite_matching(g, perm_type="column")   # left -> right or -1
+    match_r = np.full(nr, -1, np.int64)
+    ok = match_l >= 0
+    match_r[match_l[ok]] = np.flatnonzero(ok)
+    # alternating paths from the unmatched left vertices: left -> right along any edge,
+    # right -> left along the matching; a source node (nl + nr) joins the free left ones
+    free = np.flatnonzero(~ok)
+    if len(free) == 0:
+        return lu  # a perfect matching on the left: the left side is a minimum cover
+    gl = g.tocoo()
+    rows = [gl.row, nl + np.flatnonzero(match_r >= 0), np.full(len(free), nl + nr)]
+    cols = [nl + gl.col, match_r[match_r >= 0], free]
+    d = csr_matrix((np.ones(sum(len(r) for r in rows), np.int8),
+                    (np.concatenate(rows), np.concatenate(cols))), shape=(nl + nr + 1,) * 2)
+    reached = breadth_first_order(d, nl + nr, directed=True, return_predecessors=False)
+    z = np.zeros(nl + nr + 1, bool)
+    z[reached] = True
+    return np.concatenate([lu[~z[:nl]], ru[z[nl:nl + nr]]])
+
+
+def _separator(verts, side, es, et):
+    """The vertex separator of a cut of ``verts`` into ``side`` 0 and 1 (``side`` indexed by
+    position in ``verts``; ``es``, ``et`` the part's edges as positions)."""
+    cross = side[es] != side[et]
+    if not cross.any():
+        return np.zeros(0, np.int64)
+    a, b = es[cross], et[cross]
+    left = np.where(side[a] == 0, a, b)
+    right = np.where(side[a] == 0, b, a)
+    return _vertex_cover(left, right)
+
+
+def _geometric_cut(pos, es, et):
+    """Side (0/1) of each station of a part and its separator (positions in the part):
+    across the principal axis of the positions, the cut with the fewest separator stations
+    among a few near the median (ties: nearer the median)."""
+    n = len(pos)
+    c = pos - pos.mean(axis=0)
+    scale = np.abs(c).max()
+    if not np.isfinite(scale) or scale == 0.0:
+        return None
+    _, _, vt = np.linalg.svd(c / scale, full_matrices=False)
+    best = None
+    for axis in vt[:AXES]:
+        order = np.argsort(c @ axis, kind="stable")
+        for frac in CUT_FRACTIONS:
+            k = min(n - 1, max(1, int(round(frac * n))))
+            side = np.ones(n, np.int8)
+            side[order[:k]] = 0
+            sep = _separator(None, side, es, et)
+            if best is None or len(sep) < len(best[1]):
+                best = (side, sep)
+    return best
+
+
+def _metis_cut(n, es, et):
+    """Side of each station of a part by METIS' bisection, and its separator."""
+    import pymetis
+
+    adj = csr_matrix((np.ones(2 * len(es), np.int8),
+                      (np.concatenate([es, et]), np.concatenate([et, es]))), shape=(n, n))
+    adj.sum_duplicates()
+    _, parts = pymetis.part_graph(2, adjacency=pymetis.CSRAdjacency(
+        adj_starts=adj.indptr.astype(np.int64), adjacent=adj.indices.astype(np.int64)))
+    side = np.asarray(parts, np.int8)
+    if side.min() == side.max():
+        return None
+    return side, _separator(None, side, es, et)
+
+
+# -- the tree -----------------------------------------------------------------------------
+
+class _Node:
+    __slots__ = ("own", "children", "leaf")
+
+    def __init__(self, own, leaf):
+        self.own, self.children, self.leaf = own, [], leaf
+
+
+def _dissect(verts, es, et, pos, method, leaf_stations):
+    """The subtree(s) of the part ``verts`` (station numbers; ``es``, ``et`` its edges as
+    positions in ``verts``): a list of root nodes (several when the part falls apart)."""
+    roots = []
+    todo = [(verts, es, et, roots)]
+    while todo:
+        v, a, b, out = todo.pop()
+        n = len(v)
+        if n <= leaf_stations:
+            out.append(_Node(v, True))
+            continue
+        cut = (_geometric_cut(pos[v], a, b) if method == "geometric" else
+               _metis_cut(n, a, b))
+        if cut is None or len(cut[1]) >= n // 2:   # no useful separator: a (large) leaf
+            out.append(_Node(v, True))
+            continue
+        side, sep = cut
+        in_sep = np.zeros(n, bool)
+        in_sep[sep] = True
+        node = None
+        if len(sep):
+            node = _Node(v[sep], False)
+            out.append(node)
+        for s in (0, 1):
+            keep = (side == s) & ~in_sep
+            idx = np.full(n, -1, np.int64)
+            idx[keep] = np.arange(int(keep.sum()))
+            e = keep[a] & keep[b]
+            if keep.any():
+                todo.append((v[keep], idx[a[e]], idx[b[e]],
+                             node.children if node is not None else out))
+    return roots
+
+
+def nested_dissection(pos, active, edges, method="geometric", leaf_stations=LEAF_STATIONS):
+    """The partition tree of the active stations and the logical order it gives.
+
+    ``pos`` (n x d) station positions (used by the geometric method), ``active`` the
+    stations in the adjustment, ``edges = (s, t)`` the station graph (station numbers).
+    Returns ``(tree, perm)``: ``perm`` the stations in logical order (the tree's post-order,
+    then the inactive stations), ``tree`` with logical station numbers.
+    """
+    n_st = len(active)
+    act = np.flatnonzero(active)
+    s, t = (np.asarray(x, np.int64) for x in edges)
+    keep = active[s] & active[t]
+    s, t = s[keep], t[keep]
+    idx = np.full(n_st, -1, np.int64)
+    idx[act] = np.arange(len(act))
+    es, et = idx[s], idx[t]
+    # the components first: each its own subtree
+    n = len(act)
+    g = csr_matrix((np.ones(len(es), np.int8), (es, et)), shape=(n, n))
+    n_comp, label = connected_components(g, directed=False)
+    roots = []
+    pos = np.asarray(pos, np.float64)
+    for c in range(n_comp):
+        mask = label == c
+        loc = np.full(n, -1, np.int64)
+        loc[mask] = np.arange(int(mask.sum()))
+        e = mask[es]
+        roots.extend(_dissect(act[mask], loc[es[e]], loc[et[e]], pos, method, leaf_stations))
+    return _number(roots, n_st, act, s, t, method)
+
+
+def _number(roots, n_st, act, s, t, method):
+    """Post-order numbering of the nodes and stations; boundaries from the graph."""
+    perm = np.empty(n_st, np.int64)
+    lo, hi, first, parent, leaf = [], [], [], [], []
+    at = 0
+    # iterative post-order: (node, parent index placeholder, expanded?)
+    stack = [(r, -1, False, None) for r in reversed(roots)]
+    pending_parent = []
+    while stack:
+        node, par, expanded, start = stack.pop()
+        if not expanded:
+            stack.append((node, par, True, at))
+            for ch in reversed(node.children):
+                stack.append((ch, None, False, None))
+            continue
+        i = len(lo)
+        k = len(node.own)
+        perm[at:at + k] = node.own
+        lo.append(at)
+        hi.append(at + k)
+        first.append(start)
+        leaf.append(node.leaf)
+        parent.append(-1)
+        pending_parent.append(node)
+        node.own = i  # reuse the slot: the node's number, for its children's parent links
+        at += k
+    for i, node in enumerate(pending_parent):
+        for ch in node.children:
+            parent[ch.own] = i
+    n_active = at
+    inactive = np.setdiff1d(np.arange(n_st), act)
+    perm[at:] = inactive
+    tree = Tree(lo=np.array(lo, np.int64), hi=np.array(hi, np.int64),
+                first=np.array(first, np.int64), parent=np.array(parent, np.int64),
+                leaf=np.array(leaf, bool), bptr=np.zeros(1, np.int64),
+                boundary=np.zeros(0, np.int64), n_active=n_active, method=method)
+    pos = np.empty(n_st, np.int64)
+    pos[perm] = np.arange(n_st)
+    set_boundaries(tree, pos[s], pos[t])
+    return tree, perm
+
+
+def set_boundaries(tree, s, t):
+    """Each node's boundary from the logical edges ``(s, t)``: the stations after its
+    subtree adjacent to its own stations or in a child's boundary (bottom-up)."""
+    n = max(int(tree.n_active), int(max(s.max(), t.max()) + 1) if len(s) else 0)
+    a = np.concatenate([s, t])
+    b = np.concatenate([t, s])
+    order = np.argsort(a, kind="stable")
+    a, b = a[order], b[order]
+    ptr = np.searchsorted(a, np.arange(n + 1))
+    children = tree.children()
+    bnd = [None] * tree.n_nodes
+    for i in range(tree.n_nodes):
+        lo, hi = int(tree.lo[i]), int(tree.hi[i])
+        parts = [b[ptr[lo]:ptr[hi]]] + [bnd[c] for c in children[i]]
+        x = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+        x = x[x >= hi]
+        bnd[i] = x
+        for c in children[i]:
+            bnd[c] = bnd[c]  # children keep theirs (already final)
+    tree.bptr = np.concatenate([[0], np.cumsum([len(x) for x in bnd])]).astype(np.int64)
+    tree.boundary = (np.concatenate(bnd).astype(np.int64) if bnd else np.zeros(0, np.int64))
+
+
+def check_separators(tree, s, t):
+    """True when every logical edge joins a node's stations to its own or its ancestors':
+    the tree's separators separate (a test's invariant and the adjustment's guard)."""
+    owner = np.empty(tree.n_active, np.int64)
+    for i in range(tree.n_nodes):
+        owner[tree.lo[i]:tree.hi[i]] = i
+    a, b = np.minimum(s, t), np.maximum(s, t)
+    inside = b < tree.n_active
+    a, b = a[inside], b[inside]
+    # the later station must be in the front of the earlier station's node
+    na = owner[a]
+    ok = np.ones(len(a), bool)
+    for i in np.unique(na):
+        sel = na == i
+        f = tree.front(i)
+        ok[sel] = np.isin(b[sel], f)
+    return bool(ok.all())
+
+
+def best_tree(pos, active, edges, leaf_stations=LEAF_STATIONS, methods=None, k=6):
+    """The tree of fewer predicted flops among the geometric and the graph bisection
+    (``methods`` to restrict them). Returns ``(tree, perm, {method: flops})``."""
+    methods = methods or ("geometric", "graph")
+    found = {}
+    for m in methods:
+        if m == "geometric" and (pos is None or not np.isfinite(pos).all()):
+            continue
+        tree, perm = nested_dissection(pos, active, edges, m, leaf_stations)
+        found[m] = (tree.figures(k)["flops"], tree, perm)
+    best = min(found, key=lambda m: found[m][0])
+    return found[best][1], found[best][2], {m: v[0] for m, v in found.items()}

@@ -1,0 +1,149 @@
+"""The partition tree and the multifrontal solver against dense references."""
+
+import numpy as np
+import pytest
+
+from sapgo.bandsolve import PivotError
+from sapgo.solve.fronts import TreeSolver
+from sapgo.solve.partition import best_tree, check_separators, nested_dissection
+
+
+def grid_graph(nx, ny, reach=(2, 1)):
+    """Stations of a block of ``ny`` strips of ``nx`` photos, joined as a 9-point pattern
+    with 60 % forelap joins them: two along the strip, one across (and diagonals)."""
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    s, t = [], []
+    for dy in range(0, reach[1] + 1):
+        for dx in range(-reach[0], reach[0] + 1):
+            if dy == 0 and dx <= 0:
+                continue
+            a = idx[:ny - dy, max(0, -dx):nx - max(0, dx)]
+            b = idx[dy:, max(0, dx):nx - max(0, -dx) if dx < 0 else nx][:, :a.shape[1]]
+            if dx < 0:
+                b = idx[dy:, :nx + dx]
+            s.append(a.ravel())
+            t.append(b.ravel())
+    s, t = np.concatenate(s), np.concatenate(t)
+    lo, hi = np.minimum(s, t), np.maximum(s, t)
+    pos = np.column_stack([idx.ravel() % nx * 1.0, idx.ravel() // nx * 1.3,
+                           np.zeros(nx * ny)])
+    return pos, (lo, hi)
+
+
+def spd_on_graph(n, edges, k, seed):
+    rng = np.random.default_rng(seed)
+    m = np.zeros((k * n, k * n))
+    for s, t in zip(*edges):
+        blk = rng.normal(size=(k, k))
+        m[k * s:k * s + k, k * t:k * t + k] += blk
+        m[k * t:k * t + k, k * s:k * s + k] += blk.T
+    m += np.diag(np.abs(m).sum(axis=1) + 1.0)
+    return m
+
+
+def _solve_tree(tree, perm, m, rhs, k, tmp_path):
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(len(perm))
+    sc = (k * perm[:, None] + np.arange(k)).ravel()
+    ml = m[np.ix_(sc, sc)]          # logical order
+    bl = rhs[sc]
+    sol = TreeSolver(tree, k, tmp_path / "factor.bin")
+    for i in range(tree.n_nodes):
+        a, b = sol.open(i)
+        fr = tree.front(i)
+        fs = (k * fr[:, None] + np.arange(k)).ravel()
+        own = k * tree.own(i)
+        a[:, :own] = np.tril(ml[np.ix_(fs, fs[:own])])
+        b[:own] = bl[fs[:own]]
+        sol.eliminate(i, a, b)
+    x = sol.solve(len(perm)).ravel()
+    return sol, ml, bl, x
+
+
+@pytest.mark.parametrize("method", ["geometric", "graph"])
+@pytest.mark.parametrize("shape", [(12, 9), (40, 3), (7, 7)])
+def test_tree_solve_equals_dense(tmp_path, method, shape):
+    pos, edges = grid_graph(*shape)
+    n = len(pos)
+    active = np.ones(n, bool)
+    tree, perm = nested_dissection(pos, active, edges, method, leaf_stations=6)
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(n)
+    assert check_separators(tree, inv[edges[0]], inv[edges[1]])
+    assert sorted(perm.tolist()) == list(range(n))
+    k = 6
+    m = spd_on_graph(n, edges, k, 1)
+    rhs = np.random.default_rng(2).normal(size=k * n)
+    sol, ml, bl, x = _solve_tree(tree, perm, m, rhs, k, tmp_path)
+    np.testing.assert_allclose(x, np.linalg.solve(ml, bl), rtol=1e-9, atol=1e-12)
+    # y'y = b' M^-1 b
+    assert sol.y_norm2 == pytest.approx(bl @ np.linalg.solve(ml, bl), rel=1e-10)
+    # selected inversion: the inverse over every front
+    z = np.linalg.inv(ml)
+    seen = []
+
+    def check(i, zf):
+        fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
+        np.testing.assert_allclose(zf, z[np.ix_(fs, fs)], rtol=1e-8, atol=1e-12)
+        seen.append(i)
+
+    sol.inverse(check)
+    assert sorted(seen) == list(range(tree.n_nodes))
+    sol.close()
+
+
+def test_disconnected_block_is_a_forest(tmp_path):
+    pos1, e1 = grid_graph(10, 3)
+    n1 = len(pos1)
+    pos = np.concatenate([pos1, pos1 + [100.0, 0, 0]])
+    edges = (np.concatenate([e1[0], e1[0] + n1]), np.concatenate([e1[1], e1[1] + n1]))
+    active = np.ones(2 * n1, bool)
+    active[5] = False            # an excluded station follows the tree
+    tree, perm = nested_dissection(pos, active, edges, "geometric", leaf_stations=8)
+    assert (tree.parent < 0).sum() == 2
+    assert tree.n_active == 2 * n1 - 1 and perm[-1] == 5
+    k = 6
+    keep = active[edges[0]] & active[edges[1]]
+    m = spd_on_graph(2 * n1, (edges[0][keep], edges[1][keep]), k, 3)
+    rhs = np.random.default_rng(4).normal(size=k * 2 * n1)
+    sc_act = (k * perm[:tree.n_active, None] + np.arange(k)).ravel()
+    sub = m[np.ix_(sc_act, sc_act)]
+    sol = TreeSolver(tree, k, tmp_path / "f.bin")
+    for i in range(tree.n_nodes):
+        a, b = sol.open(i)
+        fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
+        own = k * tree.own(i)
+        a[:, :own] = np.tril(sub[np.ix_(fs, fs[:own])])
+        b[:own] = rhs[sc_act][fs[:own]]
+        sol.eliminate(i, a, b)
+    x = sol.solve(2 * n1)
+    np.testing.assert_allclose(x[:tree.n_active].ravel(), np.linalg.solve(sub, rhs[sc_act]),
+                               rtol=1e-9)
+    assert (x[tree.n_active:] == 0).all()
+
+
+def test_pivot_names_the_station(tmp_path):
+    pos, edges = grid_graph(8, 4)
+    n = len(pos)
+    tree, perm = nested_dissection(pos, np.ones(n, bool), edges, "geometric", leaf_stations=6)
+    k = 6
+    m = spd_on_graph(n, edges, k, 5)
+    bad = 17
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(n)
+    s = k * bad + 2
+    m[s, :] = 0.0
+    m[:, s] = 0.0
+    with pytest.raises(PivotError) as e:
+        _solve_tree(tree, perm, m, np.ones(k * n), k, tmp_path)
+    assert e.value.row == inv[bad] and e.value.parameter == 2
+
+
+def test_best_tree_prefers_fewer_flops():
+    pos, edges = grid_graph(30, 30)
+    tree, perm, flops = best_tree(pos, np.ones(900, bool), edges)
+    assert set(flops) == {"geometric", "graph"}
+    assert tree.figures()["flops"] == min(flops.values())
+    # positions that say nothing: the graph method alone
+    tree2, _, flops2 = best_tree(np.full((900, 3), np.nan), np.ones(900, bool), edges)
+    assert set(flops2) == {"graph"}
