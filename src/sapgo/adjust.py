@@ -869,6 +869,9 @@ class Work:
         self.res = [RawArray(self.dir / f"residuals.{i}.bin", (self.n_obs, 2), mode=mode)
                     for i in (0, 1)]
         self.state = 0  # the completed iteration whose buffers are current
+        #: the partition tree's factor of the last factorisation
+        #: (:class:`sapgo.solve.fronts.FactorFile`, in core or in ``tree_factor.bin``)
+        self.tree_factor = None
         # robust estimation: the observations' redundancy (r_x, r_y, r_xy) of the
         # least-squares solution, once that phase is over
         self.robust_r = None
@@ -951,6 +954,9 @@ class Work:
             self.border.close()
         if self.robust_r is not None:
             self.robust_r.close()
+        if self.tree_factor is not None:
+            self.tree_factor.close()
+            self.tree_factor = None
 
 
 def _identity(p: Project, band_width):
@@ -1643,6 +1649,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         image_rms_x_um=last["image_rms_x_um"],
         image_rms_y_um=last["image_rms_y_um"],
         band_width=blk.band_width,
+        solver=blk.solver,
+        tree=blk.tree.figures(blk.npar) if blk.tree is not None else None,
         ordering=p_read.attr("ordering"),
         band_width_before=order_info.band_width_before if order_info else None,
         n_stations=blk.n_stations,

@@ -112,7 +112,7 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
     return k
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigma, obs_active,
                      eo, cam_of_station, cams, diag):
     """Add each station's diagonal of the (unreduced) normal matrix, ``sum p a_u^2`` over its
@@ -548,7 +548,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             stats[4] += 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                  obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                  ctrl_mask, max_rays, zb, base, res, out, out_r, out_w, npar=6, cal=None,

@@ -319,6 +319,12 @@ class Summary:
     #: "adjusted", "correction", "sigma"}`` (the parameter's own unit: f, x0, y0 image units,
     #: k1 per unit squared, ...); None without self-calibration.
     calibration: list | None = None
+    #: The linear solver: "band" or "tree" (the partition tree of nested dissection).
+    solver: str = "band"
+    #: The partition tree's figures when the solver is the tree: nodes, depth, leaves,
+    #: roots, largest front (stations) and its bytes, largest separator, factor bytes,
+    #: flops of one factorisation, and the bisection method.
+    tree: dict | None = None
 
     def to_dict(self):
         return dataclasses.asdict(self)
@@ -335,7 +341,13 @@ class Summary:
         chk = (f", check points sXY {c['sxy']:.3f} m sZ {c['sz']:.3f} m" if c["n"] else "")
         return (f"{'converged' if self.converged else 'NOT converged'} in {self.iterations} "
                 f"iterations: sigma0 {self.sigma0:.3f}, image RMS {self._img(self.image_rms_um)}"
-                f"{chk}, band width {self.band_width}, {self.timings_s.get('total', 0):.2f} s")
+                f"{chk}, {self._solver_brief()}, {self.timings_s.get('total', 0):.2f} s")
+
+    def _solver_brief(self):
+        if self.solver == "tree" and self.tree:
+            return (f"tree solver ({self.tree['nodes']} nodes, largest front "
+                    f"{self.tree['largest_front']} stations)")
+        return f"band width {self.band_width}"
 
     def full_report(self):
         L = []
@@ -351,7 +363,14 @@ class Summary:
                   if self.band_width_before is not None else "")
         if self.frame and self.frame["kind"] != "local space rectangular":
             L.append(f"  frame: {self.frame['description']}")
-        L.append(f"  order: {self.ordering}, band width {self.band_width} stations{before}")
+        if self.solver == "tree" and self.tree:
+            t = self.tree
+            L.append(f"  order: {self.ordering}, tree solver: {t['nodes']} nodes ({t['leaves']} "
+                     f"leaves, depth {t['depth']}), largest front {t['largest_front']} "
+                     f"stations ({t['largest_front_bytes'] / 2**20:.1f} MiB), factor "
+                     f"{t['factor_bytes'] / 2**20:.1f} MiB, {t['flops'] / 1e9:.2f} GFlop")
+        else:
+            L.append(f"  order: {self.ordering}, band width {self.band_width} stations{before}")
         if self.excluded_stations:
             L.append(f"  left out, too few points: {self.n_excluded_stations} photos "
                      f"{_ids(self.excluded_stations)}")

@@ -13,6 +13,7 @@ chunk of points and per-station vectors.
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -50,8 +51,49 @@ class _Fronts:
         return np.ascontiguousarray(np.where(obs_active, loc, -1))
 
 
-def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0):
+def parallel_plan(tree, k, workers):
+    """Split the tree for ``workers`` threads: disjoint subtrees (as node ranges ``(first,
+    last + 1)``) dealt to the workers largest first (by flops) and the *top* nodes above
+    them, factored afterwards by all threads' BLAS. Subtrees are split until none holds more
+    than half a worker's share. Returns ``(per_worker, top)``."""
+    m = k * (tree.hi - tree.lo).astype(np.float64)
+    f = k * np.diff(tree.bptr).astype(np.float64)
+    sub = m ** 3 / 3 + m * m * f + m * f * f + 1e6   # (a node's fixed cost in flops)
+    size = np.ones(tree.n_nodes, np.int64)
+    children = tree.children()
+    for i in range(tree.n_nodes):
+        for c in children[i]:
+            sub[i] += sub[c]
+            size[i] += size[c]
+    roots = [int(i) for i in np.flatnonzero(tree.parent < 0)]
+    if workers < 2 or tree.n_nodes < 4:
+        return [[(0, tree.n_nodes)]], []
+    total = float(sum(sub[r] for r in roots))
+    parts, top = list(roots), []
+    while parts:
+        j = max(parts, key=lambda x: sub[x])
+        if sub[j] <= total / (2 * workers) or not children[j]:
+            break
+        parts.remove(j)
+        top.append(j)
+        parts.extend(children[j])
+    load = [0.0] * workers
+    per = [[] for _ in range(workers)]
+    for j in sorted(parts, key=lambda x: -sub[x]):
+        w = int(np.argmin(load))
+        load[w] += sub[j]
+        per[w].append((int(j - size[j] + 1), int(j + 1)))
+    return [sorted(x) for x in per], sorted(top)
+
+
+def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None):
     """Build and factor the reduced normals on the tree and solve them.
+
+    Independent subtrees are built and factored on ``threads`` threads (default: numba's
+    thread count) with single-threaded BLAS each, the nodes above them afterwards with all
+    threads in BLAS (:func:`parallel_plan`). The factor is kept in core when it fits
+    ``opts.memory`` (default 512 MiB), else in ``tree_factor.bin``; either way it stays with
+    ``work.tree_factor`` for the precision pass.
 
     Returns ``(delta, diag, y_norm2, seconds)``: the stations' corrections (n x k, zero
     outside the tree), the stations' undamped diagonal (with ``lam > 0``, else None),
@@ -59,22 +101,71 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0):
     solving (the rest is the build). Raises :class:`~sapgo.bandsolve.PivotError` (logical
     station, parameter) when the normals are not positive definite.
     """
-    from ..adjust import _PriorCursor, _fault, _point_error, _prior_residual, _progress, \
-        _reweight
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numba
+
+    from ..adjust import _progress
+    from ..blas import blas_limits
+    from ..extsort import DEFAULT_MEMORY, parse_memory
+    from .fronts import FactorFile, factor_layout
 
     k = blk.npar
     n = len(blk.station_ids)
-    solver = TreeSolver(tree, k, work.dir / FACTOR_FILE, opts.pivot_tolerance)
+    old = getattr(work, "tree_factor", None)
+    if old is not None:
+        old.close()
+        work.tree_factor = None
+    layout = factor_layout(tree, k)
+    budget = DEFAULT_MEMORY if opts.memory is None else parse_memory(opts.memory)
+    in_core = 8 * int((layout[:, 0] ** 2 + layout[:, 0] * layout[:, 1]).sum()) <= budget
+    file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout)
+    solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file)
+    nthreads = threads or numba.get_num_threads()
+    per, top = parallel_plan(tree, k, nthreads)
+    diags = [np.zeros((n, k)) if lam > 0.0 else None for _ in per]
+    seconds = np.zeros(len(per) + 1)
+    with _progress(opts.progress, p.n_points, "build") as bar:
+        if len(per) > 1:
+            with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
+                jobs = [pool.submit(_run_nodes, p, work, blk, opts, tree, solver, ranges,
+                                    lam, diags[w], seconds, w, iteration, bar)
+                        for w, ranges in enumerate(per)]
+                for j in jobs:
+                    j.result()
+        else:
+            _run_nodes(p, work, blk, opts, tree, solver, per[0], lam, diags[0], seconds, 0,
+                       iteration, bar)
+        diag = None
+        if lam > 0.0:
+            diag = diags[0]
+            for d in diags[1:]:
+                diag += d
+        if top:
+            _run_nodes(p, work, blk, opts, tree, solver, [(j, j + 1) for j in top], lam,
+                       diag, seconds, len(per), iteration, bar)
+    t0 = time.perf_counter()
+    delta = solver.solve(n)
+    work.tree_factor = file
+    # the threads' solver time overlaps: count the busiest thread's
+    solve_s = float(seconds[:len(per)].max() + seconds[len(per)]) + time.perf_counter() - t0
+    return delta, diag, solver.y_norm2, solve_s
+
+
+def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slot,
+               iteration, bar):
+    """Build and eliminate the nodes of ``ranges`` (``(first, stop)`` node ranges, each in
+    post-order) from their points, read chunk by chunk; ``diag`` receives the stations'
+    undamped diagonal of these points; the solver's seconds go to ``seconds[slot]``."""
+    from ..adjust import _PriorCursor, _fault, _point_error, _prior_residual, _reweight
+
+    k = blk.npar
     fronts = _Fronts(tree, blk, k)
     priors = _PriorCursor(p, opts.chunk_points)
-    diag = np.zeros((n, k)) if lam > 0.0 else None
-    seconds = 0.0
-    node = -1
-    a = b = None
     pt = tree.pt_start
+    state = {"node": -1, "a": None, "b": None}
 
     def open_node(i):
-        nonlocal a, b
         fronts.enter(i)
         a, b = solver.open(i)
         lo, hi = int(tree.lo[i]), int(tree.hi[i])
@@ -83,65 +174,55 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0):
             w = rec["weight"]
             a[k * s:k * s + 6, k * s:k * s + 6] += w
             b[k * s:k * s + 6] += w @ (-_prior_residual(rec, blk.eo[lo + s]))
+        state["node"], state["a"], state["b"] = i, a, b
 
-    def close_node(i):
-        nonlocal seconds
+    def close_node():
+        i = state["node"]
         fronts.leave()
         damping = None
         if lam > 0.0:
-            d = np.clip(diag[tree.lo[i]:tree.hi[i]], 1e-6, 1e32)
-            damping = lam * d.ravel()
+            damping = lam * np.clip(diag[tree.lo[i]:tree.hi[i]], 1e-6, 1e32).ravel()
         t0 = time.perf_counter()
-        solver.eliminate(i, a, b, damping)
-        seconds += time.perf_counter() - t0
+        solver.eliminate(i, state["a"], state["b"], damping)
+        seconds[slot] += time.perf_counter() - t0
+        state["node"] = -1
 
-    try:
-        end = int(pt[-1]) if tree.n_nodes else 0
-        with _progress(opts.progress, p.n_points, "build") as bar:
-            for a0, b0 in p.chunks("points", opts.chunk_points):
-                if a0 >= end:
-                    break
-                b0 = min(b0, end)
-                c = PointChunk(p, a0, b0, work.xyz_current[a0:b0], blk.camera, blk.cam_sigma,
-                               blk.frame, blk.rejected, blk.rejected_points)
-                _reweight(c, work, opts)
-                if diag is not None:
-                    station_diagonal(c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
-                                     c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams,
-                                     diag)
-                j = a0
-                while j < b0:
-                    while node < 0 or pt[node + 1] <= j:
-                        if node >= 0:
-                            close_node(node)
-                        node += 1
-                        open_node(node)
-                    j1 = min(b0, int(pt[node + 1]))
-                    st = fronts.local(c.obs_station, c.obs_active)
-                    status, bad = build_front(
-                        j - a0, j1 - a0, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start,
-                        c.nobs, c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo,
-                        fronts.camera, blk.cams, CTRL_MASK, a, b, c.max_rays, k, lam,
-                        blk.behind_ok)
-                    if status != OK:
-                        raise _point_error(p, c, bad, status, blk)
-                    j = j1
-                del c
-                bar.update(b0 - a0)
-                _fault("build", iteration)
-        while node < tree.n_nodes - 1:
-            if node >= 0:
-                close_node(node)
+    for first, stop in ranges:
+        p0, p1 = int(pt[first]), int(pt[stop])
+        node = first
+        open_node(node)
+        for a0 in range(p0, p1, opts.chunk_points):
+            b0 = min(p1, a0 + opts.chunk_points)
+            c = PointChunk(p, a0, b0, work.xyz_current[a0:b0], blk.camera, blk.cam_sigma,
+                           blk.frame, blk.rejected, blk.rejected_points)
+            _reweight(c, work, opts)
+            if diag is not None:
+                station_diagonal(c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
+                                 c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams, diag)
+            j = a0
+            while j < b0:
+                while pt[node + 1] <= j:
+                    close_node()
+                    node += 1
+                    open_node(node)
+                j1 = min(b0, int(pt[node + 1]))
+                st = fronts.local(c.obs_station, c.obs_active)
+                status, bad = build_front(
+                    j - a0, j1 - a0, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start,
+                    c.nobs, c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo,
+                    fronts.camera, blk.cams, CTRL_MASK, state["a"], state["b"], c.max_rays,
+                    k, lam, blk.behind_ok)
+                if status != OK:
+                    raise _point_error(p, c, bad, status, blk)
+                j = j1
+            del c
+            bar.update(b0 - a0)
+            _fault("build", iteration)
+        close_node()
+        while node < stop - 1:
             node += 1
             open_node(node)
-        if node >= 0:
-            close_node(node)
-        t0 = time.perf_counter()
-        delta = solver.solve(n)
-        seconds += time.perf_counter() - t0
-        return delta, diag, solver.y_norm2, seconds
-    finally:
-        solver.close()
+            close_node()
 
 
 def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlations,
@@ -151,14 +232,22 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
     their observations' quality (``quality``), as :func:`sapgo.adjust._quality_sweep` does
     along the band. Returns the stations' variances (n x k)."""
     from ..adjust import _reweight
-    from .fronts import FactorFile  # noqa: F401  (the factor file of the last tree_step)
 
     k = blk.npar
     n = len(blk.station_ids)
     var = np.zeros((n, k))
-    solver = TreeSolver.reopen(tree, k, work.dir / FACTOR_FILE)
-    fronts = _Fronts(tree, blk, k)
+    file = getattr(work, "tree_factor", None)
+    solver = (TreeSolver(tree, k, None, file=file) if file is not None else
+              TreeSolver.reopen(tree, k, work.dir / FACTOR_FILE))
     xyz_ds, res_ds = work.xyz_current, work.res_current
+    lock = threading.Lock()
+    fronts_of = {}   # one numbering of the front's stations per thread
+
+    def my_fronts():
+        t = threading.get_ident()
+        if t not in fronts_of:
+            fronts_of[t] = _Fronts(tree, blk, k)
+        return fronts_of[t]
 
     def on_node(i, z):
         lo, hi = int(tree.lo[i]), int(tree.hi[i])
@@ -171,8 +260,9 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
         p0, p1 = int(tree.pt_start[i]), int(tree.pt_start[i + 1])
         if p1 <= p0:
             return
+        fronts = my_fronts()
         fronts.enter(i)
-        zc = np.ascontiguousarray(z)
+        zc = z.T   # C order: z is symmetric
         try:
             for a0 in range(p0, p1, opts.chunk_points):
                 b0 = min(p1, a0 + opts.chunk_points)
@@ -196,13 +286,27 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
                     axis=1)
                 if correlations is not None:
                     rho = np.where((c.active == 0)[:, None], out[:, 3:], np.nan)
-                    correlations.add("points", p.read_field("points", "id", a0, b0), rho)
+                    ids = p.read_field("points", "id", a0, b0)
+                    with lock:
+                        correlations.add("points", ids, rho)
         finally:
             fronts.leave()
         del m
 
-    try:
+    import numba
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ..blas import blas_limits
+
+    per, top = parallel_plan(tree, k, numba.get_num_threads())
+    if len(per) < 2:
         solver.inverse(on_node)
-    finally:
-        solver.close()
+        return var
+    held = solver.inverse(on_node, top) if top else {}
+    with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
+        jobs = [pool.submit(solver.inverse, on_node,
+                            [i for a, b in ranges for i in range(a, b)], held)
+                for ranges in per]
+        for j in jobs:
+            j.result()
     return var
