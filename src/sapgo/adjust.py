@@ -1067,6 +1067,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         d_ang = float(np.abs(delta[:, :3]).max()) if n else 0.0
         d_pos = float(np.abs(delta[:, 3:6]).max()) if n else 0.0
         step_s = delta
+        xb_step = step["xb"]
         del delta, step
         cost = 0.5 * st["vpv"]
         prev_cost = run.get("cost")
@@ -1075,7 +1076,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             # predicted decrease 1/2 (dx' b + mu dx' D dx), with dx' b = |y|^2 (the stations'
             # reduced system: y = U'^-1 d) + sum over points of c' Ndd^-1 c
             # (+ t' S^-1 t, the border's share, with self-calibration)
-            xb = step["xb"]
+            xb = xb_step
             dsd = float((np.clip(diag, 1e-6, 1e32) * step_s ** 2).sum()) if diag is not None \
                 else 0.0
             if border is not None:

@@ -70,12 +70,23 @@ def cmd_generate(args):
 def cmd_order(args):
     from .ordering import order_project
 
-    r = order_project(args.project, args.method, memory=args.memory)
+    r = order_project(args.project, args.method, memory=args.memory, solver=args.solver,
+                      leaf_stations=args.leaf_stations)
     _report_exclusions(r.excluded_points, r.excluded_stations, r.n_excluded_points,
                        r.n_excluded_stations)
     cands = ", ".join(f"{k} {v}" for k, v in r.candidates.items())
     print(f"band width before: {r.band_width_before}")
-    print(f"band width after:  {r.band_width}  ({r.ordering}; candidates: {cands})")
+    if r.solver == "tree":
+        t = r.tree
+        print(f"solver: tree ({t['method']} bisection): {t['nodes']} nodes, {t['leaves']} "
+              f"leaves, depth {t['depth']}, largest front {t['largest_front']} stations "
+              f"({t['largest_front_bytes'] / 2**20:.1f} MiB), factor "
+              f"{t['factor_bytes'] / 2**20:.1f} MiB, {t['flops'] / 1e9:.2f} GFlop")
+    else:
+        print(f"band width after:  {r.band_width}  ({r.ordering}; candidates: {cands})")
+    if r.predicted:
+        pred = ", ".join(f"{k} {v:.3g} s" for k, v in r.predicted.items())
+        print(f"predicted factorisation: {pred}")
     return 0
 
 
@@ -171,6 +182,7 @@ def cmd_adjust(args):
         tol_angle=args.tol_angle * math.pi / (180 * 3600),
         tol_sigma0=args.tol_sigma0,
         ordering=args.ordering,
+        solver=args.solver,
         keep_scratch=args.keep_scratch,
         resume=args.resume,
         memory=args.memory,
@@ -307,6 +319,8 @@ def cmd_info(args):
             "ordered": p.ordered,
             "ordering": p.attr("ordering"),
             "band_width": p.band_width,
+            "solver": p.solver if p.ordered else None,
+            "tree": _tree_info(p),
             "has_truth": p.has_truth,
             "adjusted": p.has_solution and p.file["solution"].attrs.get("state") == "adjusted",
         }
@@ -316,6 +330,21 @@ def cmd_info(args):
         for k, v in info.items():
             print(f"{k:16s} {v}")
     return 0
+
+
+def _tree_info(p):
+    from .errors import ProjectFormatError
+
+    try:
+        t = p.tree()
+    except ProjectFormatError as exc:
+        return f"stale ({exc}); run 'sapgo order'"
+    if t is None:
+        return None
+    k = 9 if p.attr("station_intrinsics", "") == "adjusted" else 6
+    f = t.figures(k)
+    return {key: f[key] for key in ("method", "nodes", "leaves", "depth", "largest_front",
+                                    "factor_bytes", "flops")}
 
 
 def _fraction(text, option):
@@ -488,6 +517,12 @@ def build_parser():
                         "across_strip_by_position, sweep_0 ... sweep_165")
     o.add_argument("--memory", default=None, metavar="SIZE",
                    help="memory budget of the external sorts, e.g. 256M or 2G (default 512M)")
+    o.add_argument("--solver", choices=("auto", "band", "tree"), default="auto",
+                   help="order for the band solver (long strips), for the partition tree "
+                        "(nested dissection: square, irregular and unordered blocks), or "
+                        "auto (default): the one of the smaller predicted factorisation time")
+    o.add_argument("--leaf-stations", type=int, default=None, metavar="N",
+                   help="the partition tree's largest leaf (default 48 stations)")
     o.set_defaults(func=cmd_order)
 
     m = sub.add_parser("import", help="import a block from text files (cameras, photos, image "
@@ -566,6 +601,11 @@ def build_parser():
     a.add_argument("--tol-sigma0", type=float, default=1e-3,
                    help="convergence: relative change of sigma0 below this (default 1e-3)")
     a.add_argument("--ordering", default="best", help="ordering when the project is unordered")
+    a.add_argument("--solver", choices=("auto", "band", "tree"), default="auto",
+                   help="the linear solver: band, tree (partition tree), or auto (default: "
+                        "as the project is ordered; an unordered project is ordered for the "
+                        "one of the smaller predicted time). A project ordered for the other "
+                        "solver is ordered again first")
     a.add_argument("--robust", choices=("huber", "cauchy"),
                    help="robust estimation of the image observations: least squares first, "
                         "then reweighted every iteration from the standardised residuals "

@@ -508,14 +508,16 @@ def _station_activity(p, chunk):
 SOLVERS = ("auto", "band", "tree")
 
 
-def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver="auto"):
+def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver="auto",
+                  leaf_stations=None):
     """Order a project: exclusions, station order, point order, records rewritten.
 
     ``method`` is ``"best"`` (smallest band width of all candidates) or one candidate name
     (``across_strip``, ``down_strip``, ``reverse_cuthill_mckee``, ...) for the band.
     ``solver``: "band" (the band order), "tree" (the partition tree's post-order, stored
     in ``/tree``; :mod:`sapgo.solve.partition`) or "auto" (the one of the smaller predicted
-    factorisation time, :func:`predict_solver`). Every pass streams
+    factorisation time, :func:`predict_solver`). ``leaf_stations``: the tree's largest leaf
+    (default :data:`sapgo.solve.partition.LEAF_STATIONS`). Every pass streams
     the records in chunks; the points and observations are put in their new order by external
     sorts within ``memory`` bytes (default :data:`sapgo.extsort.DEFAULT_MEMORY`). In core:
     per-station vectors and the station graph (a few edges per station). The project is
@@ -534,7 +536,7 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
         if solver not in SOLVERS:
             raise ParameterError(f"unknown solver {solver!r}; choose from {', '.join(SOLVERS)}")
         try:
-            result = _order(p, work, method, memory, chunk, solver)
+            result = _order(p, work, method, memory, chunk, solver, leaf_stations)
         finally:
             shutil.rmtree(work, ignore_errors=True)
     result.seconds = time.perf_counter() - t0
@@ -582,8 +584,8 @@ TREE_RATE = 25e9
 TREE_NODE_SECONDS = 2e-4
 
 
-def _order(p, work, method, memory, chunk, solver="auto"):
-    from .solve.partition import best_tree
+def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
+    from .solve.partition import LEAF_STATIONS, best_tree
 
     stations = p.read("stations")
     n_st, n_pt = p.n_stations, p.n_points
@@ -604,7 +606,8 @@ def _order(p, work, method, memory, chunk, solver="auto"):
     tree = None
     predicted = predict_solver(n_active, b, None, k_par)
     if solver != "band" and n_active:
-        tree, perm_t, _ = best_tree(stations["eo"][:, 3:6], st_active, edges, k=k_par)
+        tree, perm_t, _ = best_tree(stations["eo"][:, 3:6], st_active, edges,
+                                    leaf_stations or LEAF_STATIONS, k=k_par)
         predicted = predict_solver(n_active, b, tree, k_par)
         if solver == "tree" or predicted["tree"] < predicted["band"]:
             perm = perm_t

@@ -1,0 +1,270 @@
+"""The tree solver inside the adjustment: the same solution, sigma0, precision and
+observation quality as the band solver (and the dense reference), with Levenberg-Marquardt,
+9-parameter stations, snooping, robust estimation, a forest and kill-and-resume."""
+
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import sapgo
+from conftest import assert_one_line_error, read_records, rewrite, run_cli
+from sapgo.adjust import work_path
+from sapgo.project import Project
+from test_adjust import TIGHT, adjusted_by_id, dense_reference
+
+SOLUTION = ("station_corr", "point_corr", "residuals", "station_sigma", "point_sigma",
+            "obs_quality")
+
+
+def by_id(path):
+    """The solution arrays in id order (stations, points, observations by their ids)."""
+    with Project(path) as p:
+        st_ids = p.read_field("stations", "id")
+        pt_ids = p.read_field("points", "id")
+        ob = p.read("observations")
+        out = {k: p.solution(k) for k in SOLUTION}
+    so, po = np.argsort(st_ids), np.argsort(pt_ids)
+    oo = np.lexsort((st_ids[ob["station"]], pt_ids[ob["point"]]))
+    return {"station_corr": out["station_corr"][so], "station_sigma": out["station_sigma"][so],
+            "point_corr": out["point_corr"][po], "point_sigma": out["point_sigma"][po],
+            "residuals": out["residuals"][oo], "obs_quality": out["obs_quality"][oo]}
+
+
+def assert_same_solution(a, b, rtol=1e-9):
+    sa, sb = by_id(a), by_id(b)
+    for k in SOLUTION:
+        scale = max(np.abs(sb[k]).max(), 1e-300)
+        # obs_quality is stored in single precision
+        tol = 2e-6 if k == "obs_quality" else rtol
+        np.testing.assert_allclose(sa[k], sb[k], rtol=tol, atol=tol * scale, err_msg=k)
+
+
+def ordered_pair(src, tmp_path, leaf=4, name="b"):
+    """Copies of ``src`` ordered for the band and for a tree of small leaves."""
+    band, tree = tmp_path / f"{name}-band.h5", tmp_path / f"{name}-tree.h5"
+    shutil.copy(src, band)
+    shutil.copy(src, tree)
+    rb = sapgo.order_project(band, solver="band")
+    rt = sapgo.order_project(tree, solver="tree", leaf_stations=leaf)
+    assert rb.solver == "band" and rt.solver == "tree"
+    assert rt.tree["nodes"] > 3 and rt.tree["depth"] >= 3
+    return band, tree
+
+
+@pytest.fixture(scope="module")
+def square(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sq")
+    path = d / "sq.h5"
+    sapgo.generate_block(path, strips=6, photos_per_strip=7, control_points=8, seed=4)
+    return path
+
+
+def test_tree_equals_band_on_a_square_block(square, tmp_path):
+    band, tree = ordered_pair(square, tmp_path)
+    sb = sapgo.adjust(band, TIGHT)
+    st = sapgo.adjust(tree, TIGHT)
+    assert st.solver == "tree" and sb.solver == "band"
+    assert st.tree["nodes"] > 3 and st.tree["flops"] > 0
+    assert st.converged and st.iterations == sb.iterations
+    assert st.sigma0 == pytest.approx(sb.sigma0, rel=1e-10)
+    assert_same_solution(tree, band)
+    assert st.reliability["mean_redundancy_number"] == pytest.approx(
+        sb.reliability["mean_redundancy_number"], rel=1e-9)
+    assert "tree solver" in st.full_report() and "tree solver" in st.brief_report()
+    d = st.to_dict()
+    assert d["solver"] == "tree" and d["tree"]["leaves"] >= 2
+
+
+def test_tree_equals_the_dense_least_squares(square, tmp_path):
+    eo_ref, xyz_ref, sigma0_ref, _ = dense_reference(square)   # (records in id order)
+    path = tmp_path / "t.h5"
+    shutil.copy(square, path)
+    sapgo.order_project(path, solver="tree", leaf_stations=4)
+    s = sapgo.adjust(path, TIGHT)
+    assert s.solver == "tree" and s.converged
+    eo, xyz = adjusted_by_id(path)
+    assert np.abs(xyz - xyz_ref).max() < 1e-6
+    assert np.abs(eo[:, 3:] - eo_ref[:, 3:]).max() < 1e-6
+    assert np.abs(eo[:, :3] - eo_ref[:, :3]).max() < 1e-9
+    assert s.sigma0 == pytest.approx(sigma0_ref, rel=1e-8)
+
+
+def test_levenberg_marquardt_and_snooping_on_the_tree(tmp_path):
+    src = tmp_path / "bl.h5"
+    sapgo.generate_block(src, strips=4, photos_per_strip=8, control_points=8, blunders=3,
+                         blunder_size=(0.08, 0.1), seed=2)
+    band, tree = ordered_pair(src, tmp_path)
+    opts = sapgo.Options(progress=False, snooping=True, method="levenberg-marquardt",
+                         max_iterations=30)
+    sb, st = sapgo.adjust(band, opts), sapgo.adjust(tree, opts)
+    assert st.method == sb.method == "lm"
+    assert [r["cost"] for r in st.iteration_log] == pytest.approx(
+        [r["cost"] for r in sb.iteration_log], rel=1e-9)
+    assert [(r["photo_id"], r["point_id"]) for r in st.rejected] == \
+        [(r["photo_id"], r["point_id"]) for r in sb.rejected]
+    assert len(st.rejected) >= 2
+    assert_same_solution(tree, band, rtol=1e-8)
+
+
+def test_robust_estimation_on_the_tree(tmp_path):
+    src = tmp_path / "rb.h5"
+    sapgo.generate_block(src, strips=4, photos_per_strip=6, control_points=8, blunders=2,
+                         seed=5)
+    band, tree = ordered_pair(src, tmp_path)
+    opts = sapgo.Options(progress=False, robust="cauchy")
+    sb, st = sapgo.adjust(band, opts), sapgo.adjust(tree, opts)
+    assert st.sigma0 == pytest.approx(sb.sigma0, rel=1e-9)
+    assert_same_solution(tree, band, rtol=1e-8)
+
+
+def test_bal_with_the_photos_intrinsics_on_the_tree(tmp_path):
+    """A free network of 9-parameter stations (BAL problem-49, Levenberg-Marquardt): the
+    tree's costs equal the band's, step by step."""
+    src = tmp_path / "bal.h5"
+    data = os.path.join(os.path.dirname(__file__), "data", "problem-49-7776-pre.txt.gz")
+    from sapgo.formats.bal import import_bal
+
+    import_bal(data, src)
+    band, tree = tmp_path / "bb.h5", tmp_path / "bt.h5"
+    shutil.copy(src, band)
+    shutil.copy(src, tree)
+    sapgo.order_project(band, solver="band")
+    rt = sapgo.order_project(tree, solver="tree", leaf_stations=8)
+    assert rt.tree["nodes"] >= 3
+    opts = sapgo.Options(progress=False, max_iterations=6)
+    sb, st = sapgo.adjust(band, opts), sapgo.adjust(tree, opts)
+    assert [r["cost"] for r in st.iteration_log] == pytest.approx(
+        [r["cost"] for r in sb.iteration_log], rel=1e-8)
+    assert st.final_cost == pytest.approx(sb.final_cost, rel=1e-9)
+
+
+def test_a_disconnected_block_is_a_forest(tmp_path):
+    """Two blocks far apart in one project: one subtree each, the same as the band."""
+    a, b = tmp_path / "a.h5", tmp_path / "b.h5"
+    sapgo.generate_block(a, strips=3, photos_per_strip=5, control_points=6, seed=1)
+    sapgo.generate_block(b, strips=3, photos_per_strip=5, control_points=6, seed=2)
+    ra, rb = read_records(a), read_records(b)
+    shift = np.array([1e5, 0.0, 0.0])
+    rb["stations"]["eo"][:, 3:6] += shift
+    rb["points"]["xyz"] += shift
+    rb["points"]["control"] += shift
+    rb["truth"]["stations"]["eo"][:, 3:6] += shift
+    rb["truth"]["points"]["xyz"] += shift
+    ns, npt = len(ra["stations"]), len(ra["points"])
+    rb["stations"]["id"] += 10 ** 6
+    rb["points"]["id"] += 10 ** 6
+    rb["observations"]["station"] += ns
+    rb["observations"]["point"] += npt
+    merged = {k: np.concatenate([ra[k], rb[k]]) for k in ("cameras", "stations", "points",
+                                                          "observations", "station_priors")}
+    merged["cameras"] = ra["cameras"]
+    merged["truth"] = {k: np.concatenate([ra["truth"][k], rb["truth"][k]])
+                       for k in ("stations", "points")}
+    src = tmp_path / "two.h5"
+    rewrite(src, merged)
+    band, tree = tmp_path / "tb.h5", tmp_path / "tt.h5"
+    shutil.copy(src, band)
+    shutil.copy(src, tree)
+    sapgo.order_project(band, solver="band")
+    rt = sapgo.order_project(tree, solver="tree", leaf_stations=4)
+    assert rt.tree["roots"] == 2
+    sb, st = sapgo.adjust(band, TIGHT), sapgo.adjust(tree, TIGHT)
+    assert st.sigma0 == pytest.approx(sb.sigma0, rel=1e-10)
+    assert_same_solution(tree, band)
+
+
+def test_the_solver_option_orders_again(square, tmp_path):
+    path = tmp_path / "s.h5"
+    shutil.copy(square, path)
+    sapgo.order_project(path, solver="tree", leaf_stations=4)
+    s = sapgo.adjust(path, sapgo.Options(progress=False, solver="band"))
+    assert s.solver == "band"
+    with Project(path) as p:
+        assert p.solver == "band" and p.tree() is None and "tree" not in p.file
+    s = sapgo.adjust(path, sapgo.Options(progress=False, solver="tree"))
+    assert s.solver == "tree"
+    with Project(path) as p:
+        assert p.solver == "tree" and p.tree() is not None
+    # auto keeps the order the project has
+    s = sapgo.adjust(path, sapgo.Options(progress=False))
+    assert s.solver == "tree" and s.timings_s["order"] == 0.0
+    with pytest.raises(sapgo.SapgoError, match="solver 'x'"):
+        sapgo.adjust(path, sapgo.Options(solver="x"))
+
+
+def test_a_stale_tree_is_never_used(square, tmp_path):
+    """A tree that no longer matches the records is refused by Project.tree() and the
+    project ordered again before adjusting."""
+    import h5py
+
+    path = tmp_path / "s.h5"
+    shutil.copy(square, path)
+    sapgo.order_project(path, solver="tree", leaf_stations=4)
+    with h5py.File(path, "r+") as f:
+        pt = f["tree/pt_start"][()]
+        pt[-1] = 10 ** 9
+        f["tree/pt_start"][...] = pt
+    with Project(path) as p:
+        with pytest.raises(sapgo.SapgoError, match="does not match the records"):
+            p.tree()
+    s = sapgo.adjust(path, sapgo.Options(progress=False, solver="tree"))
+    assert s.converged and s.timings_s["order"] > 0
+
+
+def test_self_calibration_asks_for_the_band(square, tmp_path):
+    path = tmp_path / "s.h5"
+    shutil.copy(square, path)
+    sapgo.order_project(path, solver="tree", leaf_stations=4)
+    with pytest.raises(sapgo.SapgoError, match="--solver band"):
+        sapgo.adjust(path, sapgo.Options(progress=False, calibrate=("f",)))
+
+
+def test_order_and_adjust_from_the_command_line(square, tmp_path, capsys):
+    path = tmp_path / "s.h5"
+    shutil.copy(square, path)
+    code, out, _ = run_cli(capsys, "order", path, "--solver", "tree", "--leaf-stations", "4")
+    assert code == 0 and "solver: tree" in out and "predicted factorisation" in out
+    code, out, _ = run_cli(capsys, "info", path, "--json")
+    info = json.loads(out)
+    assert info["solver"] == "tree" and info["tree"]["nodes"] > 3
+    code, out, _ = run_cli(capsys, "adjust", path, "--no-progress")
+    assert code == 0 and "tree solver" in out
+    with pytest.raises(SystemExit) as e:
+        run_cli(capsys, "adjust", path, "--solver", "bush")
+    assert e.value.code == 2 and "invalid choice: 'bush'" in capsys.readouterr().err
+
+
+RUN = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "
+       "chunk_points=40, max_iterations=10))")
+
+
+@pytest.mark.parametrize("fault", ["build:2", "solve:1", "update:2", "checkpoint:2",
+                                   "commit-write:*"])
+def test_a_killed_tree_run_resumes_to_the_same_result(square, tmp_path, fault):
+    ref = tmp_path / "ref.h5"
+    shutil.copy(square, ref)
+    sapgo.order_project(ref, solver="tree", leaf_stations=4)
+    path = tmp_path / "k.h5"
+    shutil.copy(ref, path)
+    sapgo.adjust(ref, sapgo.Options(progress=False, chunk_points=40))
+    env = dict(os.environ, SAPGO_FAULT=fault)
+    r = subprocess.run([sys.executable, "-c", RUN, str(path)], env=env, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == -signal.SIGKILL, r.stderr
+    s = sapgo.adjust(path, sapgo.Options(progress=False, chunk_points=40, resume=True))
+    assert s.converged and s.solver == "tree"
+    a, b = by_id(path), by_id(ref)
+    for k in ("station_corr", "point_corr", "residuals"):
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    # the precision of a resumed run comes from normals built again at the final state (as
+    # on the band), not from the last iteration's: equal to the convergence tolerance
+    for k in ("station_sigma", "point_sigma"):
+        np.testing.assert_allclose(a[k], b[k], rtol=1e-6, err_msg=k)
+    assert not work_path(path).exists()
