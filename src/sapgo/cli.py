@@ -450,9 +450,19 @@ def cmd_plan(args):
         a = result["adjust"]
         t = f", predicted solve {a['predicted_solve_s']:.3f} s" if "predicted_solve_s" in a \
             else ""
-        print(f"sapgo order will choose {a['ordering']}: band width W {a['band_width_m']}, "
-              f"fill-in {a['fill_in_blocks']} blocks{t}")
-    print(f"recommended: {result['recommended']} (the least work for the band solver; T units, "
+        if a.get("solver") == "tree":
+            print(f"sapgo order will choose the partition tree ({a['ordering']}){t}")
+        else:
+            print(f"sapgo order will choose {a['ordering']}: band width W "
+                  f"{a['band_width_m']}, fill-in {a['fill_in_blocks']} blocks{t}")
+    tr = result.get("tree")
+    if tr:
+        print(f"partition tree ({tr['method']}): {tr['nodes']} nodes, depth {tr['depth']}, "
+              f"largest front {tr['largest_front']} units, factor "
+              f"{tr['factor_bytes'] / 2**20:.1f} MiB, {tr['flops']:.3g} flops, predicted "
+              f"solve {tr['predicted_solve_s']:.3f} s")
+    print(f"recommended: {result['recommended']} (the least work: a band ordering, or the "
+          f"partition tree; T units, "
           f"m non-zero blocks, W band width in blocks, D in whole sub-matrices of lines, F.I. "
           f"fill-in blocks; solve s <=: not timed, over ten times the least work, a bound)")
     return 0

@@ -564,28 +564,46 @@ def best_order(scored):
 
 
 def predict_solver(n_active, band_width, tree, k=6):
-    """Predicted seconds of one factorisation by the band and by the tree (and the choice):
-    flops at the rate each kernel reaches on this kind of machine (the band's panels on
-    2 cores about 25 GFlop/s; the tree's fronts 25 GFlop/s at the bottom of the tree, plus
-    a fixed cost per node). The band is kept on a tie: it is the tested path of strips."""
+    """Predicted seconds of one factorisation by the band and by the tree: flops at the
+    rate each kernel reaches on this kind of machine (2 cores: the band's panels and the
+    tree's fronts both about 25 GFlop/s in the mix of sizes they meet), plus the tree's
+    fixed costs (per node and per pass: a small block stays on the band, the tested path
+    of strips)."""
     u = k * band_width
-    band = k * n_active * float(u) * u / BAND_RATE
-    out = {"band": band}
+    out = {"band": k * n_active * float(u) * u / BAND_RATE}
     if tree is not None:
         f = tree.figures(k)
-        out["tree"] = f["flops"] / TREE_RATE + TREE_NODE_SECONDS * f["nodes"]
+        out["tree"] = (f["flops"] / TREE_RATE + TREE_NODE_SECONDS * f["nodes"]
+                       + TREE_FIXED_SECONDS)
     return out
 
 
-#: Rates of the solvers' kernels (flops per second) and the tree's cost per node (s), for
+#: Rates of the solvers' kernels (flops per second) and the tree's fixed costs (s), for
 #: :func:`predict_solver` (measured on 2 cores: benchmarks/shape.py).
 BAND_RATE = 25e9
 TREE_RATE = 25e9
 TREE_NODE_SECONDS = 2e-4
+TREE_FIXED_SECONDS = 0.01
+
+
+def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stations=None):
+    """The band or the partition tree for a station graph, as ``sapgo order`` chooses:
+    ``(tree or None, tree perm or None, predicted seconds per solver)``; ``solver`` "band"
+    or "tree" forces the choice."""
+    from .solve.partition import LEAF_STATIONS, best_tree
+
+    n_active = int(np.count_nonzero(active))
+    predicted = predict_solver(n_active, band_width, None, k)
+    if solver == "band" or n_active == 0:
+        return None, None, predicted
+    tree, perm, _ = best_tree(pos, active, edges, leaf_stations or LEAF_STATIONS, k=k)
+    predicted = predict_solver(n_active, band_width, tree, k)
+    if solver == "tree" or predicted["tree"] < predicted["band"]:
+        return tree, perm, predicted
+    return None, None, predicted
 
 
 def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
-    from .solve.partition import LEAF_STATIONS, best_tree
 
     stations = p.read("stations")
     n_st, n_pt = p.n_stations, p.n_points
@@ -602,21 +620,16 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
     candidates = {k: int(v[0]) for k, v in scored.items()}
     scored.clear()
     k_par = 9 if p.attr("station_intrinsics", "") == "adjusted" else 6
-    n_active = int(st_active.sum())
-    tree = None
-    predicted = predict_solver(n_active, b, None, k_par)
-    if solver != "band" and n_active:
-        tree, perm_t, _ = best_tree(stations["eo"][:, 3:6], st_active, edges,
-                                    leaf_stations or LEAF_STATIONS, k=k_par)
-        predicted = predict_solver(n_active, b, tree, k_par)
-        if solver == "tree" or predicted["tree"] < predicted["band"]:
-            perm = perm_t
-            pos = np.empty(n_st, np.int64)
-            pos[perm] = np.arange(n_st)
-            b = band_width_of(pos, edges)
-            name = f"nested_dissection_{tree.method}"
-        else:
-            tree = None
+    if method != "best" and solver == "auto":
+        solver = "band"   # a band ordering asked for by name
+    tree, perm_t, predicted = choose_solver(stations["eo"][:, 3:6], st_active, edges, b, k_par,
+                                            solver, leaf_stations)
+    if tree is not None:
+        perm = perm_t
+        pos = np.empty(n_st, np.int64)
+        pos[perm] = np.arange(n_st)
+        b = band_width_of(pos, edges)
+        name = f"nested_dissection_{tree.method}"
     del edges
 
     has_truth, has_solution = p.has_truth, p.has_solution

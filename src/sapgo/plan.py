@@ -47,6 +47,8 @@ class Network:
     kind: str = "photos"
     #: a project's: ``(name, perm)``, the order ``sapgo order`` gives it
     adjust_order: tuple | None = None
+    #: a project's: the solver ``sapgo order`` chooses for it, "band" or "tree"
+    adjust_solver: str = "band"
 
     @property
     def n(self):
@@ -151,7 +153,7 @@ def evaluate(net: Network, timing=False, seconds=1.0):
         res[name] = r
     best = min(res, key=lambda k: (res[k]["band_flops"], res[k]["fill_in_blocks"]))
     out = {"units": net.kind, "parameters_per_unit": p, "n_units": net.n,
-           "orderings": res, "recommended": best}
+           "orderings": res, "recommended": best, "tree": tree_figures(net)}
     rows = list(res.values())
     if net.adjust_order is not None:
         # a project: the order sapgo order will give it (its own candidates, the least band
@@ -159,13 +161,22 @@ def evaluate(net: Network, timing=False, seconds=1.0):
         name, perm = net.adjust_order
         c = symbolic_counts(net.n, (net.s, net.t), perm)
         c["band_width"] = c["band_width"] if net.n else 0
-        out["adjust"] = {"ordering": name, "band_width_m": c["band_width"],
+        out["adjust"] = {"ordering": name, "solver": net.adjust_solver,
+                         "band_width_m": c["band_width"],
                          "fill_in_blocks": c["fill_in_blocks"],
                          "band_flops": band_flops(net.n, c["band_width"], p)}
-        rows.append(out["adjust"])
+        if net.adjust_solver == "tree":  # its work is the tree's, not its order's band's
+            out["adjust"].update(band_flops=out["tree"]["flops"],
+                                 predicted_solve_s=out["tree"]["predicted_solve_s"])
+        else:
+            rows.append(out["adjust"])
         if (out["adjust"]["band_flops"], out["adjust"]["fill_in_blocks"]) < \
                 (res[best]["band_flops"], res[best]["fill_in_blocks"]):
             out["recommended"] = name  # (sapgo order --method NAME, or its default)
+    tr = out["tree"]
+    if tr is not None and out.get("adjust", {}).get("solver") != "tree" and \
+            tr["flops"] < min(r["band_flops"] for r in rows):
+        out["recommended"] = "tree"   # (sapgo order --solver tree)
     if timing and net.n:
         # the band widths of orderings within ten times the least work are timed; the rest
         # (hopeless ones: a spiral over a long block) get the rate of the widest timed one,
@@ -185,6 +196,23 @@ def evaluate(net: Network, timing=False, seconds=1.0):
                 r.update(predicted_solve_s=r["band_flops"] / rate, rate_flops=rate,
                          timed_units=0)
     return out
+
+
+def tree_figures(net: Network):
+    """The partition tree of the network (:func:`sapgo.solve.partition.best_tree` on the
+    units' positions): its figures (:meth:`~sapgo.solve.partition.Tree.figures`: nodes,
+    depth, leaves, largest front, factor bytes, flops) and the predicted time of one
+    factorisation (:func:`sapgo.ordering.predict_solver`)."""
+    from .ordering import predict_solver
+    from .solve.partition import best_tree
+
+    if net.n == 0:
+        return None
+    pos = np.column_stack([net.x, net.y, np.zeros(net.n)])
+    tree, _, _ = best_tree(pos, np.ones(net.n, bool), (net.s, net.t), k=net.params)
+    f = tree.figures(net.params)
+    f["predicted_solve_s"] = predict_solver(net.n, 1, tree, net.params)["tree"]
+    return f
 
 
 #: bytes passed over before every timed solve (twice a large last-level cache)
@@ -425,6 +453,7 @@ def project_network(path, chunk=None):
         _station_activity,
         best_order,
         candidate_orders,
+        choose_solver,
         grid_coordinates,
         score_orders,
     )
@@ -449,11 +478,16 @@ def project_network(path, chunk=None):
                               active, (s, t))
         name = best_order(scored)
         chosen = (name, local[scored[name][2][:len(idx)]])
+        tree, perm_t, _ = choose_solver(st["eo"][:, 3:6], active, (s, t),
+                                        scored[name][0], params)
+        if tree is not None:
+            chosen = (f"nested_dissection_{tree.method}", local[perm_t[:len(idx)]])
     else:
         x = y = np.zeros(0)
         chosen = ("record", np.zeros(0, np.int64))
+        tree = None
     return Network(x=x, y=y, s=local[s], t=local[t], params=params, kind="photos",
-                   adjust_order=chosen)
+                   adjust_order=chosen, adjust_solver="band" if tree is None else "tree")
 
 
 def check_design(strips, photos_per_strip, forelap, sidelap):
