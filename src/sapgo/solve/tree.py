@@ -86,7 +86,7 @@ def parallel_plan(tree, k, workers):
     return [sorted(x) for x in per], sorted(top)
 
 
-def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None):
+def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capture=None):
     """Build and factor the reduced normals on the tree and solve them.
 
     Independent subtrees are built and factored on ``threads`` threads (default: numba's
@@ -99,7 +99,9 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None):
     outside the tree), the stations' undamped diagonal (with ``lam > 0``, else None),
     ``y'y`` (for the Levenberg-Marquardt gain ratio) and the seconds spent factoring and
     solving (the rest is the build). Raises :class:`~sapgo.bandsolve.PivotError` (logical
-    station, parameter) when the normals are not positive definite.
+    station, parameter) when the normals are not positive definite. ``capture(i, front, rhs)``
+    (benchmarks) sees each node's front with its own points, priors and damping, before the
+    children's updates are added: their sum over the nodes is the reduced normal matrix.
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -129,13 +131,13 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None):
         if len(per) > 1:
             with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
                 jobs = [pool.submit(_run_nodes, p, work, blk, opts, tree, solver, ranges,
-                                    lam, diags[w], seconds, w, iteration, bar)
+                                    lam, diags[w], seconds, w, iteration, bar, capture)
                         for w, ranges in enumerate(per)]
                 for j in jobs:
                     j.result()
         else:
             _run_nodes(p, work, blk, opts, tree, solver, per[0], lam, diags[0], seconds, 0,
-                       iteration, bar)
+                       iteration, bar, capture)
         diag = None
         if lam > 0.0:
             diag = diags[0]
@@ -143,7 +145,7 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None):
                 diag += d
         if top:
             _run_nodes(p, work, blk, opts, tree, solver, [(j, j + 1) for j in top], lam,
-                       diag, seconds, len(per), iteration, bar)
+                       diag, seconds, len(per), iteration, bar, capture)
     t0 = time.perf_counter()
     delta = solver.solve(n)
     work.tree_factor = file
@@ -153,7 +155,7 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None):
 
 
 def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slot,
-               iteration, bar):
+               iteration, bar, capture=None):
     """Build and eliminate the nodes of ``ranges`` (``(first, stop)`` node ranges, each in
     post-order) from their points, read chunk by chunk; ``diag`` receives the stations'
     undamped diagonal of these points; the solver's seconds go to ``seconds[slot]``."""
@@ -182,6 +184,8 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
         damping = None
         if lam > 0.0:
             damping = lam * np.clip(diag[tree.lo[i]:tree.hi[i]], 1e-6, 1e32).ravel()
+        if capture is not None:
+            capture(i, state["a"], state["b"])
         t0 = time.perf_counter()
         solver.eliminate(i, state["a"], state["b"], damping)
         seconds[slot] += time.perf_counter() - t0
