@@ -123,7 +123,8 @@ class Options:
     keep_scratch: bool = False
     #: Continue an interrupted run from its last completed iteration (if there is one).
     resume: bool = False
-    #: Memory budget of the external sorts when the project has to be ordered first.
+    #: Memory budget of the external sorts when the project has to be ordered first (default
+    #: 512 MiB), and of the tree solver's fronts and in-core factor (default 1 GiB).
     memory: int | str | None = None
     #: Progress bars: True, False, or None for "when stderr is a terminal".
     progress: bool | None = None
@@ -1194,6 +1195,10 @@ def adjust(path, options: Options | None = None) -> Summary:
     with Project(path, "r") as p:
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
+        if blk.tree is not None:
+            from .solve.tree import check_tree_memory
+
+            check_tree_memory(blk.tree, blk.npar, opts, path)
         if blk.tree is not None and blk.border:
             raise SapgoError(f"{path}: self-calibration (--calibrate) runs on the band solver "
                              f"only so far: use --solver band")

@@ -24,6 +24,35 @@ from .fronts import TreeSolver, build_front
 #: File of the tree's factor in the work directory.
 FACTOR_FILE = "tree_factor.bin"
 
+#: The tree solver's memory budget when ``--memory`` is not given: its fronts and update
+#: matrices must fit it (checked before any work), and the factor stays in core when it fits
+#: beside them.
+DEFAULT_TREE_MEMORY = 1 << 30
+
+
+def tree_budget(opts):
+    """Bytes the tree solver may hold in core (``opts.memory`` or the default)."""
+    from ..extsort import parse_memory
+
+    return DEFAULT_TREE_MEMORY if opts.memory is None else parse_memory(opts.memory)
+
+
+def check_tree_memory(tree, k, opts, path):
+    """Refuse, before any work, a tree whose fronts do not fit the memory budget: one line
+    with the figures and the advice."""
+    from ..errors import SapgoError
+
+    need = tree.peak_front_bytes(k)
+    budget = tree_budget(opts)
+    if need > budget:
+        f = tree.figures(k)
+        raise SapgoError(
+            f"{path}: the partition tree's fronts need {need / 2**20:.0f} MiB in core (largest "
+            f"front {f['largest_front']} stations, {f['largest_front_bytes'] / 2**20:.0f} MiB), "
+            f"more than the memory budget of {budget / 2**20:.0f} MiB: give --memory "
+            f"{-(-need // 2**20) + 64}M or more (the tiled out-of-core factorisation of large "
+            f"fronts is not there yet), or --solver band")
+
 
 class _Fronts:
     """Node by node over the points: each node's front, filled from its own points."""
@@ -91,9 +120,9 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
 
     Independent subtrees are built and factored on ``threads`` threads (default: numba's
     thread count) with single-threaded BLAS each, the nodes above them afterwards with all
-    threads in BLAS (:func:`parallel_plan`). The factor is kept in core when it fits
-    ``opts.memory`` (default 512 MiB), else in ``tree_factor.bin``; either way it stays with
-    ``work.tree_factor`` for the precision pass.
+    threads in BLAS (:func:`parallel_plan`). The factor is kept in core when it fits the
+    memory budget beside the fronts (:func:`tree_budget`), else in ``tree_factor.bin``;
+    either way it stays with ``work.tree_factor`` for the precision pass.
 
     Returns ``(delta, diag, y_norm2, seconds)``: the stations' corrections (n x k, zero
     outside the tree), the stations' undamped diagonal (with ``lam > 0``, else None),
@@ -109,7 +138,6 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
 
     from ..adjust import _progress
     from ..blas import blas_limits
-    from ..extsort import DEFAULT_MEMORY, parse_memory
     from .fronts import FactorFile, factor_layout
 
     k = blk.npar
@@ -119,8 +147,8 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
         old.close()
         work.tree_factor = None
     layout = factor_layout(tree, k)
-    budget = DEFAULT_MEMORY if opts.memory is None else parse_memory(opts.memory)
-    in_core = 8 * int((layout[:, 0] ** 2 + layout[:, 0] * layout[:, 1]).sum()) <= budget
+    factor_bytes = 8 * int((layout[:, 0] ** 2 + layout[:, 0] * layout[:, 1]).sum())
+    in_core = factor_bytes + tree.peak_front_bytes(k) <= tree_budget(opts)
     file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout)
     solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file)
     nthreads = threads or numba.get_num_threads()
