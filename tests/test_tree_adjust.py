@@ -268,3 +268,17 @@ def test_a_killed_tree_run_resumes_to_the_same_result(square, tmp_path, fault):
     for k in ("station_sigma", "point_sigma"):
         np.testing.assert_allclose(a[k], b[k], rtol=1e-6, err_msg=k)
     assert not work_path(path).exists()
+
+
+def test_fronts_larger_than_the_memory_budget_are_refused_before_any_work(square, tmp_path,
+                                                                         monkeypatch, capsys):
+    from sapgo.solve.partition import Tree
+
+    path = tmp_path / "s.h5"
+    shutil.copy(square, path)
+    sapgo.order_project(path, solver="tree", leaf_stations=4)
+    before = open(path, "rb").read()
+    monkeypatch.setattr(Tree, "peak_front_bytes", lambda self, k=6: 3 << 30)
+    code, _, err = run_cli(capsys, "adjust", path, "--no-progress", "--memory", "2G")
+    assert_one_line_error(code, err, "fronts need 3072 MiB", "--memory 3136M", "--solver band")
+    assert open(path, "rb").read() == before and not work_path(path).exists()
