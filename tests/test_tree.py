@@ -139,11 +139,57 @@ def test_pivot_names_the_station(tmp_path):
     assert e.value.row == inv[bad] and e.value.parameter == 2
 
 
-def test_best_tree_prefers_fewer_flops():
+def test_best_tree_prefers_the_smaller_predicted_time():
+    from sapgo.ordering import TREE_NODE_SECONDS, TREE_RATE
+
     pos, edges = grid_graph(30, 30)
     tree, perm, flops = best_tree(pos, np.ones(900, bool), edges)
     assert set(flops) == {"geometric", "graph"}
-    assert tree.figures()["flops"] == min(flops.values())
+    other = [m for m in flops if m != tree.method][0]
+    t_other, _ = best_tree(pos, np.ones(900, bool), edges, methods=(other,))[:2]
+    cost = lambda t: t.figures()["flops"] / TREE_RATE + TREE_NODE_SECONDS * t.n_nodes
+    assert cost(tree) <= cost(t_other)
     # positions that say nothing: the graph method alone
     tree2, _, flops2 = best_tree(np.full((900, 3), np.nan), np.ones(900, bool), edges)
     assert set(flops2) == {"graph"}
+
+
+def test_konig_cover_is_a_minimum_vertex_cover():
+    """The separator kernel against scipy's maximum matching (König: a minimum cover has
+    as many vertices as a maximum matching) and the definition of a cover."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import maximum_bipartite_matching
+
+    from sapgo.solve.partition import _vertex_cover
+
+    rng = np.random.default_rng(7)
+    for trial in range(60):
+        nl, nr = rng.integers(1, 25, size=2)
+        ne = int(rng.integers(1, 3 * max(nl, nr)))
+        ls = rng.integers(0, nl, ne)
+        rs = rng.integers(0, nr, ne) + 1000        # right stations numbered apart
+        cover = set(_vertex_cover(ls, rs).tolist())
+        assert all(a in cover or b in cover for a, b in zip(ls, rs))
+        lu, li = np.unique(ls, return_inverse=True)
+        ru, ri = np.unique(rs, return_inverse=True)
+        g = csr_matrix((np.ones(ne), (li, ri)), shape=(len(lu), len(ru)))
+        matching = int((maximum_bipartite_matching(g, perm_type="column") >= 0).sum())
+        assert len(cover) == matching
+
+
+@pytest.mark.parametrize("shape", [(15, 12), (60, 4)])
+def test_metis_supernodal_tree_solves_exactly(tmp_path, shape):
+    from sapgo.solve.partition import supernodal_tree
+
+    pos, edges = grid_graph(*shape)
+    n = len(pos)
+    tree, perm = supernodal_tree(np.ones(n, bool), edges)
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(n)
+    assert check_separators(tree, inv[edges[0]], inv[edges[1]])
+    assert tree.n_nodes > 2 and (tree.lo[1:] == tree.hi[:-1]).all()
+    k = 6
+    m = spd_on_graph(n, edges, k, 9)
+    rhs = np.random.default_rng(3).normal(size=k * n)
+    _, ml, bl, x = _solve_tree(tree, perm, m, rhs, k, tmp_path)
+    np.testing.assert_allclose(x, np.linalg.solve(ml, bl), rtol=1e-9, atol=1e-12)

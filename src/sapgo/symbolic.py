@@ -101,7 +101,9 @@ def _column_counts(n, indptr, indices, inv):
     """Column counts of ``L`` (diagonal included) in O(nnz alpha), without visiting ``L``:
     the elimination tree with path compression, its postorder, and Gilbert, Ng & Peyton's
     skeleton-leaf counting with least common ancestors (as CSparse's ``cs_counts``). The
-    graph is given in original numbers, the order by ``inv`` (node -> logical number)."""
+    graph is given in original numbers, the order by ``inv`` (node -> logical number).
+    Returns ``(counts, parent, post)``: the counts, the elimination tree and its postorder,
+    all in logical numbers."""
     # the adjacency in logical numbers
     nbr = np.empty(indices.shape[0], np.int64)
     ptr = np.zeros(n + 1, np.int64)
@@ -191,7 +193,7 @@ def _column_counts(n, indptr, indices, inv):
     for j in range(n):
         if parent[j] != -1:
             delta[parent[j]] += delta[j]
-    return delta
+    return delta, parent, post
 
 
 def symbolic_counts(n, edges, perm):
@@ -217,7 +219,7 @@ def symbolic_counts(n, edges, perm):
     indptr, indices = _csr(n, s, t)
     # (L's columns counted without visiting L: a million photos in seconds, whatever the
     # fill; the envelope is M's: every row's first non-zero block)
-    count = _column_counts(n, indptr, indices, inv)
+    count = _column_counts(n, indptr, indices, inv)[0]
     a, b = inv[s], inv[t]
     first = np.arange(n)
     np.minimum.at(first, np.maximum(a, b), np.minimum(a, b))

@@ -35,9 +35,9 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from numba import njit
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import breadth_first_order, connected_components, \
-    maximum_bipartite_matching
+from scipy.sparse.csgraph import connected_components
 
 #: A part of at most this many stations is a leaf.
 LEAF_STATIONS = 48
@@ -170,27 +170,72 @@ def _vertex_cover(ls, rs):
     cover's stations."""
     lu, li = np.unique(ls, return_inverse=True)
     ru, ri = np.unique(rs, return_inverse=True)
-    nl, nr = len(lu), len(ru)
-    g = csr_matrix((np.ones(len(li), np.int8), (li, ri)), shape=(nl, nr))
-    g.sum_duplicates()
-    match_l = maximum_bipartite_matching(g, perm_type="column")   # left -> right or -1
+    order = np.argsort(li, kind="stable")
+    adj = ri[order].astype(np.int64)
+    ptr = np.searchsorted(li[order], np.arange(len(lu) + 1)).astype(np.int64)
+    in_l, in_r = _konig_cover(len(lu), len(ru), ptr, adj)
+    return np.concatenate([lu[in_l], ru[in_r]])
+
+
+@njit(cache=True)
+def _konig_cover(nl, nr, ptr, adj):
+    """Maximum matching of a bipartite graph (augmenting paths, Kuhn) and the minimum
+    vertex cover it gives (König): the left vertices not reached and the right vertices
+    reached by alternating paths from the unmatched left ones."""
+    match_l = np.full(nl, -1, np.int64)
     match_r = np.full(nr, -1, np.int64)
-    ok = match_l >= 0
-    match_r[match_l[ok]] = np.flatnonzero(ok)
-    # alternating paths from the unmatched left vertices: left -> right along any edge,
-    # right -> left along the matching; a source node (nl + nr) joins the free left ones
-    free = np.flatnonzero(~ok)
-    if len(free) == 0:
-        return lu  # a perfect matching on the left: the left side is a minimum cover
-    gl = g.tocoo()
-    rows = [gl.row, nl + np.flatnonzero(match_r >= 0), np.full(len(free), nl + nr)]
-    cols = [nl + gl.col, match_r[match_r >= 0], free]
-    d = csr_matrix((np.ones(sum(len(r) for r in rows), np.int8),
-                    (np.concatenate(rows), np.concatenate(cols))), shape=(nl + nr + 1,) * 2)
-    reached = breadth_first_order(d, nl + nr, directed=True, return_predecessors=False)
-    z = np.zeros(nl + nr + 1, bool)
-    z[reached] = True
-    return np.concatenate([lu[~z[:nl]], ru[z[nl:nl + nr]]])
+    stamp = np.zeros(nr, np.int64)
+    stack_u = np.empty(nl + 1, np.int64)
+    stack_e = np.empty(nl + 1, np.int64)
+    via = np.empty(nl + 1, np.int64)
+    for root in range(nl):
+        top = 0
+        stack_u[0] = root
+        stack_e[0] = ptr[root]
+        found = -1
+        while top >= 0:
+            u = stack_u[top]
+            e = stack_e[top]
+            if e == ptr[u + 1]:
+                top -= 1
+                continue
+            stack_e[top] = e + 1
+            v = adj[e]
+            if stamp[v] == root + 1:
+                continue
+            stamp[v] = root + 1
+            via[top] = v
+            if match_r[v] == -1:
+                found = top
+                break
+            top += 1
+            stack_u[top] = match_r[v]
+            stack_e[top] = ptr[match_r[v]]
+        for lev in range(found, -1, -1):
+            match_l[stack_u[lev]] = via[lev]
+            match_r[via[lev]] = stack_u[lev]
+    vis_l = np.zeros(nl, np.bool_)
+    vis_r = np.zeros(nr, np.bool_)
+    queue = np.empty(nl, np.int64)
+    head = tail = 0
+    for u in range(nl):
+        if match_l[u] == -1:
+            vis_l[u] = True
+            queue[tail] = u
+            tail += 1
+    while head < tail:
+        u = queue[head]
+        head += 1
+        for e in range(ptr[u], ptr[u + 1]):
+            v = adj[e]
+            if not vis_r[v]:
+                vis_r[v] = True
+                w = match_r[v]
+                if w >= 0 and not vis_l[w]:
+                    vis_l[w] = True
+                    queue[tail] = w
+                    tail += 1
+    return ~vis_l, vis_r
 
 
 def _separator(verts, side, es, et):
@@ -359,6 +404,105 @@ def _number(roots, n_st, act, s, t, method):
     return tree, perm
 
 
+#: Relaxed amalgamation of supernodes (as CHOLMOD's nrelax and zrelax, in stations): a
+#: child is merged into its parent when together they have at most ``n`` own stations and
+#: the explicit zeros are at most the fraction ``z`` of the merged front's entries.
+RELAX = ((8, 1.0), (32, 0.5), (96, 0.1))
+
+
+def supernodal_tree(active, edges, k=6, relax=RELAX):
+    """The tree of METIS' multilevel nested dissection ordering (``METIS_NodeND`` through
+    ``pymetis.nested_dissection``): the elimination tree of the station graph in that
+    order, postordered (each subtree contiguous), its chains of stations of equal structure
+    merged into supernodes, and small supernodes amalgamated with their parents when few
+    zeros come with it (``relax``: bigger fronts for BLAS-3 at the bottom of the tree, as
+    sparse direct solvers do). Returns ``(tree, perm)`` as :func:`nested_dissection`."""
+    import pymetis
+
+    from ..symbolic import _column_counts, _csr
+
+    n_st = len(active)
+    act = np.flatnonzero(active)
+    n = len(act)
+    s, t = (np.asarray(x, np.int64) for x in edges)
+    keep = active[s] & active[t]
+    s, t = s[keep], t[keep]
+    idx = np.full(n_st, -1, np.int64)
+    idx[act] = np.arange(n)
+    es, et = idx[s], idx[t]
+    indptr, indices = _csr(n, es, et)
+    if n > 1 and len(indices):
+        perm, _ = pymetis.nested_dissection(adjacency=pymetis.CSRAdjacency(
+            adj_starts=indptr, adjacent=indices))
+        perm = np.asarray(perm, np.int64)
+    else:
+        perm = np.arange(n)
+    inv = np.empty(n, np.int64)
+    inv[perm] = np.arange(n)
+    counts, parent, post = _column_counts(n, indptr, indices, inv)
+    # renumber in postorder
+    order = perm[post]                      # local station of each column, postordered
+    newpos = np.empty(n, np.int64)
+    newpos[post] = np.arange(n)
+    par = np.where(parent[post] >= 0, newpos[np.maximum(parent[post], 0)], -1)
+    cnt = counts[post]
+    nchild = np.bincount(par[par >= 0], minlength=n)
+    # fundamental supernodes: column j joins j - 1 when j is j-1's parent, j-1 its only
+    # child, and their structures agree
+    start = np.ones(n, bool)
+    if n > 1:
+        j = np.arange(1, n)
+        start[1:] = ~((par[j - 1] == j) & (nchild[j] == 1) & (cnt[j - 1] == cnt[j] + 1))
+    c0 = np.flatnonzero(start)
+    c1 = np.append(c0[1:], n)
+    sn_of = np.cumsum(start) - 1
+    m = len(c0)
+    sp = np.where(par[c1 - 1] >= 0, sn_of[np.maximum(par[c1 - 1], 0)], -1)
+    bnd = cnt[c0] - (c1 - c0)               # boundary stations of each supernode
+    csum = np.concatenate([[0], np.cumsum(cnt)])
+    zeros = np.zeros(m)
+    alive = np.ones(m, bool)
+    lo, hi = c0.copy(), c1.copy()
+    for a in range(m):                       # children before parents
+        q = sp[a]
+        if q < 0 or hi[a] != lo[q]:
+            continue                         # not the last child: its stations are not adjacent
+        cols = hi[q] - lo[a]
+        # the child's columns take the parent's structure: the zeros that brings
+        span = np.arange(lo[a], hi[a])
+        z = float((hi[q] - span + bnd[q]).sum() - (csum[hi[a]] - csum[lo[a]]))
+        total_z = zeros[a] + zeros[q] + z
+        entries = cols * (cols + 1) / 2 + cols * bnd[q]
+        if any(cols <= nr and total_z <= zr * entries for nr, zr in relax):
+            lo[q] = lo[a]
+            zeros[q] = total_z
+            alive[a] = False
+            sp[sp == a] = q   # (children of a: now children of q)
+    live = np.flatnonzero(alive)
+    new_id = np.full(m, -1, np.int64)
+    new_id[live] = np.arange(len(live))
+    parent_n = np.where(sp[live] >= 0, new_id[np.maximum(sp[live], 0)], -1)
+    nn = len(live)
+    first = lo[live].copy()
+    for i in range(nn):                      # a subtree starts at its first descendant
+        p_ = parent_n[i]
+        if p_ >= 0:
+            first[p_] = min(first[p_], first[i])
+    has_child = np.zeros(nn, bool)
+    has_child[parent_n[parent_n >= 0]] = True
+    tree = Tree(lo=lo[live].astype(np.int64), hi=hi[live].astype(np.int64), first=first,
+                parent=parent_n.astype(np.int64), leaf=~has_child,
+                bptr=np.zeros(1, np.int64), boundary=np.zeros(0, np.int64), n_active=n,
+                method="graph")
+    full = np.empty(n_st, np.int64)
+    full[:n] = act[order]
+    full[n:] = np.setdiff1d(np.arange(n_st), act)
+    pos = np.empty(n_st, np.int64)
+    pos[full] = np.arange(n_st)
+    set_boundaries(tree, pos[s], pos[t])
+    return tree, full
+
+
 def set_boundaries(tree, s, t):
     """Each node's boundary from the logical edges ``(s, t)``: the stations after its
     subtree adjacent to its own stations or in a child's boundary (bottom-up)."""
@@ -402,14 +546,24 @@ def check_separators(tree, s, t):
 
 
 def best_tree(pos, active, edges, leaf_stations=LEAF_STATIONS, methods=None, k=6):
-    """The tree of fewer predicted flops among the geometric and the graph bisection
-    (``methods`` to restrict them). Returns ``(tree, perm, {method: flops})``."""
+    """The tree of the smaller predicted factorisation time (flops and nodes) of the
+    geometric bisection and METIS' nested dissection (:func:`supernodal_tree`; ``methods``
+    to restrict them). Returns ``(tree, perm, {method: flops})``."""
     methods = methods or ("geometric", "graph")
     found = {}
     for m in methods:
         if m == "geometric" and (pos is None or not np.isfinite(pos).all()):
             continue
-        tree, perm = nested_dissection(pos, active, edges, m, leaf_stations)
+        if m == "graph":   # (a smaller leaf also caps the amalgamation)
+            relax = tuple((min(nr, leaf_stations), zr) for nr, zr in RELAX)
+            tree, perm = supernodal_tree(active, edges, k, relax)
+        else:
+            tree, perm = nested_dissection(pos, active, edges, m, leaf_stations)
         found[m] = (tree.figures(k)["flops"], tree, perm)
-    best = min(found, key=lambda m: found[m][0])
+    from ..ordering import TREE_NODE_SECONDS, TREE_RATE
+
+    def seconds(m):   # flops at the fronts' rate and the cost per node
+        return found[m][0] / TREE_RATE + TREE_NODE_SECONDS * found[m][1].n_nodes
+
+    best = min(found, key=seconds)
     return found[best][1], found[best][2], {m: v[0] for m, v in found.items()}
