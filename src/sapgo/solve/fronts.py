@@ -154,13 +154,14 @@ class FactorFile:
                               f"factor")
 
     def write(self, i, col, y1):
-        """Node ``i``'s factor columns ``[L11; L21]`` ((m + f) x m, F order; the upper
-        triangle of ``L11`` is not used) and ``y1``."""
-        if self._mem is not None:
-            self._mem[i] = (col, y1)
+        """Node ``i``'s factor columns ``[L11; L21]`` ((m + f) x m, F order, e.g. the first
+        columns of its front; the upper triangle of ``L11`` is not used) and ``y1``."""
+        if self._mem is not None:   # a copy: the front itself goes
+            self._mem[i] = (np.array(col, order="F"), y1)
             return
-        os.pwrite(self._fd, np.asfortranarray(col).tobytes(order="F") + y1.tobytes(),
-                  int(self.offset[i]))
+        col = np.asfortranarray(col)   # (the front's first columns: contiguous already)
+        os.pwrite(self._fd, memoryview(col.reshape(-1, order="F")), int(self.offset[i]))
+        os.pwrite(self._fd, memoryview(y1), int(self.offset[i]) + col.nbytes)
 
     def read(self, i):
         """``(col, y1)`` of node ``i`` (as :meth:`write`)."""
@@ -261,9 +262,10 @@ class TreeSolver:
             for c in self.children[i]:
                 if c not in self.updates:  # a child not adjacent to its parent's front
                     continue
-                u, ub = self.updates.pop(c)
+                u, mc, ub = self.updates.pop(c)
                 ix = _scalar(np.searchsorted(fr, t.bnd(c)), k)
-                _extend_add(a, b, u, ub, ix)
+                _extend_add_kernel(a, u, mc, ix)
+                b[ix] += ub
         if damping is not None:
             idx = np.arange(m)
             a[idx, idx] += damping
@@ -272,9 +274,9 @@ class TreeSolver:
             raise PivotError(int(t.lo[i]) + (fail - 1) // k, (fail - 1) % k)
         y1 = b[:m].copy()
         self.yy[i] = float(y1 @ y1)
-        if a.shape[0] > m and t.parent[i] >= 0:
-            self.updates[i] = (np.asfortranarray(a[m:, m:]), b[m:].copy())
-        self.file.write(i, np.array(a[:, :m], order="F"), y1)   # a copy: the front goes
+        if a.shape[0] > m and t.parent[i] >= 0:   # the update: the front's trailing block
+            self.updates[i] = (a, m, b[m:].copy())
+        self.file.write(i, a[:, :m], y1)
 
     def solve(self, n_stations):
         """``delta`` (n_stations x k; stations outside the tree 0) by back substitution
@@ -333,7 +335,7 @@ def _front_inverse(col, mine, held, t, k, i):
     inverse (in ``mine`` or ``held``): Takahashi's recurrences on the supernode."""
     m = col.shape[1]
     f = col.shape[0] - m
-    z = np.zeros((m + f, m + f), order="F")
+    z = np.empty((m + f, m + f), order="F")   # (every entry is written)
     if f:
         p = int(t.parent[i])
         zp = mine[p] if p in mine else held[p]
@@ -422,17 +424,12 @@ def _symmetrize_block(z, m):
             z[c, r] = z[r, c]
 
 
-def _extend_add(a, b, u, ub, ix):
-    """``a[ix, ix] += u`` (lower triangle of ``u`` mapped onto that of ``a``: ``ix`` is
-    ascending) and ``b[ix] += ub``."""
-    _extend_add_kernel(a, u, ix)
-    b[ix] += ub
-
-
 @njit(cache=True, nogil=True)
-def _extend_add_kernel(a, u, ix):
+def _extend_add_kernel(a, u, m, ix):
+    """``a[ix, ix] += u[m:, m:]`` on the lower triangles (``u`` a child's front, its update
+    matrix the trailing block; ``ix`` ascending)."""
     n = ix.shape[0]
     for c in range(n):
         jc = ix[c]
         for r in range(c, n):
-            a[ix[r], jc] += u[r, c]
+            a[ix[r], jc] += u[m + r, m + c]
