@@ -206,9 +206,13 @@ def run_child(*args):
     waited = cb.wait_for_idle()
     before = load()
     c0 = cb.cpu_snapshot()
+    ch0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     proc = subprocess.run([sys.executable, __file__, "--child", *map(str, args)],
                           capture_output=True, text=True)
-    foreign = cb.foreign_cpu_s(c0)
+    ch1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    # the CPU time other processes took meanwhile (the run's own process not counted)
+    child = (ch1.ru_utime + ch1.ru_stime) - (ch0.ru_utime + ch0.ru_stime)
+    foreign = max(0.0, cb.foreign_cpu_s(c0) - child)
     line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")]
     if proc.returncode != 0 or not line:
         return {"error": (proc.stderr or proc.stdout)[-2000:], "returncode": proc.returncode}

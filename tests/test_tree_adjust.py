@@ -46,14 +46,17 @@ def assert_same_solution(a, b, rtol=1e-9):
         np.testing.assert_allclose(sa[k], sb[k], rtol=tol, atol=tol * scale, err_msg=k)
 
 
-def ordered_pair(src, tmp_path, leaf=4, name="b"):
-    """Copies of ``src`` ordered for the band and for a tree of small leaves."""
+def ordered_pair(src, tmp_path, leaf=4, name="b", deep=True):
+    """Copies of ``src`` ordered for the band and for a tree of small leaves (``deep``:
+    checked to have several levels); with ``deep=False`` also the tree's order result."""
     band, tree = tmp_path / f"{name}-band.h5", tmp_path / f"{name}-tree.h5"
     shutil.copy(src, band)
     shutil.copy(src, tree)
     rb = sapgo.order_project(band, solver="band")
     rt = sapgo.order_project(tree, solver="tree", leaf_stations=leaf)
     assert rb.solver == "band" and rt.solver == "tree"
+    if not deep:
+        return band, tree, rt
     assert rt.tree["nodes"] > 3 and rt.tree["depth"] >= 3
     return band, tree
 
@@ -132,11 +135,7 @@ def test_bal_with_the_photos_intrinsics_on_the_tree(tmp_path):
     from sapgo.formats.bal import import_bal
 
     import_bal(data, src)
-    band, tree = tmp_path / "bb.h5", tmp_path / "bt.h5"
-    shutil.copy(src, band)
-    shutil.copy(src, tree)
-    sapgo.order_project(band, solver="band")
-    rt = sapgo.order_project(tree, solver="tree", leaf_stations=8)
+    band, tree, rt = ordered_pair(src, tmp_path, leaf=8, deep=False)
     assert rt.tree["nodes"] >= 3
     opts = sapgo.Options(progress=False, max_iterations=6)
     sb, st = sapgo.adjust(band, opts), sapgo.adjust(tree, opts)
@@ -169,11 +168,7 @@ def test_a_disconnected_block_is_a_forest(tmp_path):
                        for k in ("stations", "points")}
     src = tmp_path / "two.h5"
     rewrite(src, merged)
-    band, tree = tmp_path / "tb.h5", tmp_path / "tt.h5"
-    shutil.copy(src, band)
-    shutil.copy(src, tree)
-    sapgo.order_project(band, solver="band")
-    rt = sapgo.order_project(tree, solver="tree", leaf_stations=4)
+    band, tree, rt = ordered_pair(src, tmp_path, deep=False)
     assert rt.tree["roots"] == 2
     sb, st = sapgo.adjust(band, TIGHT), sapgo.adjust(tree, TIGHT)
     assert st.sigma0 == pytest.approx(sb.sigma0, rel=1e-10)

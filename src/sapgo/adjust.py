@@ -1364,30 +1364,11 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
 
     def points_of(start, stop, zb, base):
         p0, p1 = int(first[start]), int(first[stop])
+        xw = (np.ascontiguousarray(xb_ds[start:min(n_st, stop + blk.band_width)],
+                                   dtype=np.float64) if ng else None)
         for a in range(p0, p1, opts.chunk_points):
-            b = min(p1, a + opts.chunk_points)
-            c = PointChunk(p_read, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame,
-                           blk.rejected)
-            weight = _reweight(c, work, opts)
-            out = np.empty((b - a, 6))
-            out_r = np.empty((c.o1 - c.o0, 3))
-            out_w = np.empty((c.o1 - c.o0, 3))
-            xlo = start
-            xw = (np.ascontiguousarray(xb_ds[xlo:min(n_st, stop + blk.band_width)],
-                                       dtype=np.float64) if ng else None)
-            point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
-                         c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
-                         blk.camera, blk.cams, CTRL_MASK, c.max_rays, zb, base,
-                         np.ascontiguousarray(res_ds[c.o0:c.o1]), out, out_r, out_w, blk.npar,
-                         cal, xw, xlo, sig_b)
-            psig[a:b] = sigma0 * out[:, :3]
-            if weight is None:
-                weight = np.ones(c.o1 - c.o0)
-            quality[c.o0:c.o1] = np.concatenate(
-                [out_r, out_w / sigma0, np.where(c.obs_active, weight, 0.0)[:, None]], axis=1)
-            if correlations is not None:
-                rho = np.where((c.active == 0)[:, None], out[:, 3:], np.nan)
-                correlations.add("points", p_read.read_field("points", "id", a, b), rho)
+            _points_quality(p_read, work, blk, opts, a, min(p1, a + opts.chunk_points), sigma0,
+                            psig, quality, correlations, zb, base, None, xw, start, cal, sig_b)
 
     k = blk.npar
     cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
@@ -1401,16 +1382,58 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
             cov[a:b] = blocks
             var[a:b] = np.diagonal(blocks, axis1=1, axis2=2)
         if correlations is not None:
-            for a in range(0, n_st, opts.chunk_points):
-                b = min(n_st, a + opts.chunk_points)
-                rho = station_correlations(cov[a:b][:, :6, :6])
-                rho[~blk.station_active[a:b]] = np.nan
-                correlations.add("stations", blk.station_ids[a:b], rho)
+            _station_correlations(cov, blk, opts, correlations)
     finally:
         cov.close()
         if xb_ds is not None:
             xb_ds.close()
     return _station_sigma(blk, sigma0, var), psig, quality
+
+
+def _station_correlations(cov, blk, opts, correlations):
+    """Correlations of each station's parameters from its cofactor blocks (``cov``) into
+    ``correlations``, chunk by chunk."""
+    n_st = len(blk.station_ids)
+    for a in range(0, n_st, opts.chunk_points):
+        b = min(n_st, a + opts.chunk_points)
+        rho = station_correlations(cov[a:b][:, :6, :6])
+        rho[~blk.station_active[a:b]] = np.nan
+        correlations.add("stations", blk.station_ids[a:b], rho)
+
+
+def _points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correlations,
+                    zb, base, stations=None, xw=None, xlo=0, cal=None, sig_b=None, lock=None):
+    """Points ``a .. b`` (a chunk): their standard deviations into ``psig`` and their
+    observations' quality into ``quality`` (:func:`sapgo.normals.point_sigmas` with the
+    stations' cofactors ``zb`` from ``base``). ``stations(obs_station, obs_active)`` gives
+    the observations' stations as indices into ``zb``'s stations with their orientation
+    and camera (the tree numbers them by their place in a front); default the logical
+    stations."""
+    c = PointChunk(p_read, a, b, work.xyz_current[a:b], blk.camera, blk.cam_sigma, blk.frame,
+                   blk.rejected)
+    weight = _reweight(c, work, opts)
+    out = np.empty((b - a, 6))
+    out_r = np.empty((c.o1 - c.o0, 3))
+    out_w = np.empty((c.o1 - c.o0, 3))
+    st, eo, camera = ((c.obs_station, blk.eo, blk.camera) if stations is None else
+                      stations(c.obs_station, c.obs_active))
+    point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, st,
+                 c.obs_xy, c.obs_sigma, c.obs_active, eo, camera, blk.cams, CTRL_MASK,
+                 c.max_rays, zb, base, np.ascontiguousarray(work.res_current[c.o0:c.o1]), out,
+                 out_r, out_w, blk.npar, cal, xw, xlo, sig_b)
+    psig[a:b] = sigma0 * out[:, :3]
+    if weight is None:
+        weight = np.ones(c.o1 - c.o0)
+    quality[c.o0:c.o1] = np.concatenate(
+        [out_r, out_w / sigma0, np.where(c.obs_active, weight, 0.0)[:, None]], axis=1)
+    if correlations is not None:
+        rho = np.where((c.active == 0)[:, None], out[:, 3:], np.nan)
+        ids = p_read.read_field("points", "id", a, b)
+        if lock is None:
+            correlations.add("points", ids, rho)
+        else:
+            with lock:
+                correlations.add("points", ids, rho)
 
 
 def _station_sigma(blk, sigma0, var):
@@ -1433,11 +1456,7 @@ def _quality_tree(p_read, work, blk, opts, sigma0, correlations=None):
         var = tree_quality(p_read, work, blk, opts, blk.tree, sigma0, psig, quality, cov,
                            correlations, QUALITY_COLUMNS)
         if correlations is not None:
-            for a in range(0, n_st, opts.chunk_points):
-                b = min(n_st, a + opts.chunk_points)
-                rho = station_correlations(cov[a:b][:, :6, :6])
-                rho[~blk.station_active[a:b]] = np.nan
-                correlations.add("stations", blk.station_ids[a:b], rho)
+            _station_correlations(cov, blk, opts, correlations)
     finally:
         cov.close()
     return _station_sigma(blk, sigma0, var), psig, quality

@@ -175,6 +175,28 @@ def _workspace(max_rays, npar=6):
             np.zeros((3, 3)), np.empty(3), np.empty((max_rays, 2, 3)))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, diag, rhs_row, g, col, tmp):
+    """Ray ``q`` of a point: ``p A'A`` into its station's diagonal block ``diag[:npar,
+    :npar]``, ``p A'l - Nbar Ndd^-1 cdd`` into ``rhs_row`` (``h = Ndd^-1 cdd``), and its rows
+    of ``G = Nbar Ndd^-1`` into ``g[q]`` (``lo``: the Cholesky factor of ``Ndd``)."""
+    p = w_all[q]
+    a = a_all[q]
+    for u in range(npar):
+        for v in range(npar):
+            diag[u, v] += p * (a[0, u] * a[0, v] + a[1, u] * a[1, v])
+        s = p * (a[0, u] * l_all[q, 0] + a[1, u] * l_all[q, 1])
+        for c in range(3):
+            s -= nbar[q, u, c] * h[c]
+        rhs_row[u] += s
+    for u in range(npar):
+        for c in range(3):
+            col[c] = nbar[q, u, c]
+        _solve3(lo, col, tmp)
+        for c in range(3):
+            g[q, u, c] = tmp[c]
+
+
 @njit(cache=True, nogil=True)
 def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                  pt_smax, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
@@ -233,23 +255,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
             r = st_all[q] - base
             row = band[r] if r < split else ovf_band[r - split]
             rrow = rhs[r] if r < split else ovf_rhs[r - split]
-            p = w_all[q]
-            a = a_all[q]
-            # station diagonal block and right-hand side
-            for u in range(npar):
-                for v in range(npar):
-                    row[u, v] += p * (a[0, u] * a[0, v] + a[1, u] * a[1, v])
-                s = p * (a[0, u] * l_all[q, 0] + a[1, u] * l_all[q, 1])
-                for c in range(3):
-                    s -= nbar[q, u, c] * h[c]
-                rrow[u] += s
-            # G = Nbar Ndd^-1 (row by row)
-            for u in range(npar):
-                for c in range(3):
-                    col[c] = nbar[q, u, c]
-                _solve3(lo, col, tmp)
-                for c in range(3):
-                    g[q, u, c] = tmp[c]
+            _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, row, rrow, g, col, tmp)
         # Schur complement into the band rows: M[s_q, s_t] -= G_q Nbar_t'
         for q in range(k):
             r = st_all[q] - base

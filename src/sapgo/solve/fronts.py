@@ -46,7 +46,7 @@ from scipy.linalg import blas, lapack
 from ..bandsolve import PIVOT_TOLERANCE, PivotError
 from ..blas import FNS, L, N, R, T, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
 from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _chol3, _point_system,
-                       _solve3, _workspace)
+                       _ray_terms, _solve3, _workspace)
 
 
 @njit(cache=True, nogil=True)
@@ -83,21 +83,8 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
         _solve3(lo, cc, h)
         for q in range(k):
             s0 = npar * st_all[q]
-            p = w_all[q]
-            a = a_all[q]
-            for u in range(npar):
-                for v in range(npar):
-                    front[s0 + u, s0 + v] += p * (a[0, u] * a[0, v] + a[1, u] * a[1, v])
-                s = p * (a[0, u] * l_all[q, 0] + a[1, u] * l_all[q, 1])
-                for c in range(3):
-                    s -= nbar[q, u, c] * h[c]
-                rhs[s0 + u] += s
-            for u in range(npar):
-                for c in range(3):
-                    col[c] = nbar[q, u, c]
-                _solve3(lo, col, tmp)
-                for c in range(3):
-                    g[q, u, c] = tmp[c]
+            _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar,
+                       front[s0:s0 + npar, s0:s0 + npar], rhs[s0:s0 + npar], g, col, tmp)
         # Schur complement into the lower triangle: rays are in ascending station order, so
         # the later station's rows and the earlier's columns (a diagonal block in full;
         # two rays of one station add X and X')

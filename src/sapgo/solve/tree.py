@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from ..normals import CTRL_MASK, OK, PointChunk, point_sigmas, station_diagonal
+from ..normals import CTRL_MASK, OK, PointChunk, station_diagonal
 from .fronts import TreeSolver, build_front
 
 #: File of the tree's factor in the work directory.
@@ -72,6 +72,14 @@ class _Fronts:
 
     def leave(self):
         self.loc[self.stations] = -1
+
+    def numbered(self, obs_station, obs_active):
+        """The observations' stations, orientations and cameras by place in the front (for
+        :func:`sapgo.adjust._points_quality`; inactive observations at place 0, never looked
+        at)."""
+        st = self.local(obs_station, obs_active)
+        st[st < 0] = 0
+        return st, self.eo, self.camera
 
     def local(self, obs_station, obs_active):
         """The observations' stations as places in the current front (-1: outside, or an
@@ -263,7 +271,7 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
     the stations' cofactor blocks (``cov``), the points' standard deviations (``psig``) and
     their observations' quality (``quality``), as :func:`sapgo.adjust._quality_sweep` does
     along the band. Returns the stations' variances (n x k)."""
-    from ..adjust import _reweight
+    from ..adjust import _points_quality
 
     k = blk.npar
     n = len(blk.station_ids)
@@ -271,7 +279,6 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
     file = getattr(work, "tree_factor", None)
     solver = (TreeSolver(tree, k, None, file=file) if file is not None else
               TreeSolver.reopen(tree, k, work.dir / FACTOR_FILE))
-    xyz_ds, res_ds = work.xyz_current, work.res_current
     lock = threading.Lock()
     fronts_of = {}   # one numbering of the front's stations per thread
 
@@ -283,7 +290,6 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
 
     def on_node(i, z):
         lo, hi = int(tree.lo[i]), int(tree.hi[i])
-        m = k * (hi - lo)
         blocks = np.empty((hi - lo, k, k))
         for s in range(hi - lo):
             blocks[s] = z[k * s:k * s + k, k * s:k * s + k]
@@ -297,33 +303,11 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
         zc = z.T   # C order: z is symmetric
         try:
             for a0 in range(p0, p1, opts.chunk_points):
-                b0 = min(p1, a0 + opts.chunk_points)
-                c = PointChunk(p, a0, b0, xyz_ds[a0:b0], blk.camera, blk.cam_sigma, blk.frame,
-                               blk.rejected)
-                weight = _reweight(c, work, opts)
-                out = np.empty((b0 - a0, 6))
-                out_r = np.empty((c.o1 - c.o0, 3))
-                out_w = np.empty((c.o1 - c.o0, 3))
-                st = fronts.local(c.obs_station, c.obs_active)
-                st[st < 0] = 0   # inactive observations: never looked at
-                point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
-                             c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo,
-                             fronts.camera, blk.cams, CTRL_MASK, c.max_rays, zc, 0,
-                             np.ascontiguousarray(res_ds[c.o0:c.o1]), out, out_r, out_w, k)
-                psig[a0:b0] = sigma0 * out[:, :3]
-                if weight is None:
-                    weight = np.ones(c.o1 - c.o0)
-                quality[c.o0:c.o1] = np.concatenate(
-                    [out_r, out_w / sigma0, np.where(c.obs_active, weight, 0.0)[:, None]],
-                    axis=1)
-                if correlations is not None:
-                    rho = np.where((c.active == 0)[:, None], out[:, 3:], np.nan)
-                    ids = p.read_field("points", "id", a0, b0)
-                    with lock:
-                        correlations.add("points", ids, rho)
+                _points_quality(p, work, blk, opts, a0, min(p1, a0 + opts.chunk_points),
+                                sigma0, psig, quality, correlations, zc, 0, fronts.numbered,
+                                lock=lock)
         finally:
             fronts.leave()
-        del m
 
     import numba
     from concurrent.futures import ThreadPoolExecutor
