@@ -16,6 +16,18 @@ between 20 000 and 200 000 photos and between 100 000 and 1 000 000 photos.
 
 Writes ``results/scale.json`` (``rows``: ``photos``, ``peak_rss_mb``, ``wall_s``,
 ``band_width`` and the details) and prints the Markdown table for README.md.
+
+Square blocks (the partition tree, issue 16)::
+
+    python benchmarks/scale.py --squares 200,500,1000 [--dir DIR]
+
+``S x S`` photos (9-point pattern, one full control point per 25 photos), each phase a
+process of its own as above: ``sapgo generate``, ``sapgo order --memory 256M`` (the solver
+chosen by predicted cost: the tree) and ``sapgo adjust`` to convergence with the precision
+pass (``--keep-scratch``: the work directory's size at its fullest). A block the adjustment
+refuses (its fronts do not fit the memory budget) is recorded with the refusal and the tree's
+figures (``sapgo info --json``): where it stops and why. Writes
+``results/scale_square.json`` and prints its table.
 """
 
 from __future__ import annotations
@@ -131,6 +143,70 @@ def one(photos, root, to_solution):
     return row
 
 
+def one_square(side, root):
+    """Generate, order and adjust (to convergence, with precision) a side x side block."""
+    sapgo_cmd = [sys.executable, "-m", "sapgo.cli"]
+    photos = side * side
+    path = Path(root) / f"square-{side}.h5"
+    row = {"photos": photos, "strips": side, "photos_per_strip": side, "pattern": 9}
+    t_gen, rss_gen, _ = run(sapgo_cmd + ["generate", "--strips", str(side),
+                                         "--photos-per-strip", str(side), "--control-points",
+                                         str(photos // PHOTOS_PER_CONTROL_POINT), str(path)])
+    t_ord, rss_ord, out = run(sapgo_cmd + ["order", "--memory", "256M", str(path)])
+    row["order_output"] = out.strip().splitlines()[-3:]
+    row["project_bytes"] = du(path)
+    _, _, info = run(sapgo_cmd + ["info", str(path), "--json"])
+    info = json.loads(info)
+    row.update(points=info["points"], observations=info["observations"],
+               solver=info["solver"], tree=info["tree"])
+    row["phases"] = {"generate": {"wall_s": t_gen, "peak_rss_mb": rss_gen},
+                     "order": {"wall_s": t_ord, "peak_rss_mb": rss_ord}}
+    report = Path(root) / f"square-{side}.json"
+    try:
+        t_adj, rss_adj, _ = run(sapgo_cmd + ["adjust", str(path), "--no-progress", "--quiet",
+                                             "--keep-scratch", "--json", str(report)])
+    except RuntimeError as exc:   # refused or failed: where it stops, and why
+        row["stopped"] = str(exc).strip().splitlines()[-1][-1000:]
+        path.unlink(missing_ok=True)
+        return row
+    work = path.with_name(path.name + ".work")
+    row["work_bytes"] = du(work)
+    shutil.rmtree(work, ignore_errors=True)
+    rep = json.loads(report.read_text())
+    t = rep["timings_s"]
+    c = rep["check_points"]
+    row["phases"]["adjust"] = {"wall_s": t_adj, "peak_rss_mb": rss_adj,
+                               **{f"{k}_s": v for k, v in t.items()}}
+    row.update(iterations=rep["iterations"], converged=rep["converged"], sigma0=rep["sigma0"],
+               check_sxy_m=c["sxy"], check_sz_m=c["sz"], peak_rss_mb=rss_adj,
+               seconds_per_iteration=sum(rep["timings_per_iteration_s"].values()))
+    path.unlink()
+    report.unlink()
+    return row
+
+
+def square_markdown(rows):
+    out = ["| block | photos | solver | tree: nodes, largest front, factor GB, TFlop | "
+           "generate s | order s | adjust s (iterations) | s/iteration | precision s | "
+           "peak RSS adjust MB | work dir GB | sigma0 | stopped |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        t = r.get("tree") or {}
+        tree = (f"{t.get('nodes')}, {t.get('largest_front')}, "
+                f"{t.get('factor_bytes', 0) / 1e9:.1f}, {t.get('flops', 0) / 1e12:.2f}"
+                if isinstance(t, dict) and t else "")
+        ph = r["phases"]
+        a = ph.get("adjust", {})
+        out.append(
+            f"| {r['strips']} x {r['photos_per_strip']} | {r['photos']:,} | {r.get('solver')} | "
+            f"{tree} | {ph['generate']['wall_s']:.1f} | {ph['order']['wall_s']:.1f} | "
+            + (f"{a['wall_s']:.1f} ({r['iterations']}) | {r['seconds_per_iteration']:.2f} | "
+               f"{a.get('precision_s', 0):.1f} | {a['peak_rss_mb']:.0f} | "
+               f"{r['work_bytes'] / 1e9:.2f} | {r['sigma0']:.3f} | |" if a else
+               f" | | | | | | {r.get('stopped', '')} |"))
+    return "\n".join(out)
+
+
 def growth(rows, a, b):
     by = {r["photos"]: r for r in rows}
     if a in by and b in by:
@@ -176,7 +252,11 @@ def main():
     ap.add_argument("--solution-sizes", default="10000,100000")
     ap.add_argument("--dir", default=None, help="where the blocks are written (default: a "
                     "temporary directory under data/generated)")
+    ap.add_argument("--squares", default="", help="square blocks instead: sides, e.g. "
+                    "200,500,1000 (results/scale_square.json)")
     args = ap.parse_args()
+    if args.squares:
+        return squares(args)
     sizes = [int(s) for s in args.sizes.split(",") if s]
     full = {int(s) for s in args.solution_sizes.split(",") if s}
     root = Path(args.dir or Path(__file__).parent.parent / "data" / "generated" / "scale")
@@ -204,6 +284,33 @@ def main():
     out = Path(__file__).parent / "results" / "scale.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(markdown(result))
+
+
+def squares(args):
+    root = Path(args.dir or Path(__file__).parent.parent / "data" / "generated" / "scale")
+    root.mkdir(parents=True, exist_ok=True)
+    warm = root / "warm.h5"   # compile or load the kernels outside the measured runs
+    sapgo.generate_block(warm, strips=12, photos_per_strip=12, control_points=8,
+                         progress=False)
+    sapgo.order_project(warm, solver="tree")
+    sapgo.adjust(warm, sapgo.Options(progress=False))
+    warm.unlink()
+    rows = []
+    for side in (int(s) for s in args.squares.split(",") if s):
+        rows.append(one_square(side, root))
+        print(json.dumps(rows[-1]), file=sys.stderr)
+    sys.path.insert(0, str(Path(__file__).parent))
+    from colmap import git_state
+
+    result = {
+        "machine": {"python": sys.version.split()[0], "platform": platform.platform(),
+                    "cpus": os.cpu_count(),
+                    "memory_gb": os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9,
+                    "load_at_end": os.getloadavg()},
+        "sapgo_version": sapgo.__version__, "sapgo_source": git_state(), "rows": rows}
+    out = Path(__file__).parent / "results" / "scale_square.json"
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(square_markdown(rows))
 
 
 if __name__ == "__main__":

@@ -8,8 +8,9 @@ How to run::
 
 Blocks: ``sapgo generate --strips S --photos-per-strip P`` (9-point pattern, 60/20 overlap),
 one *fixed* control point per 25 photos, all other points check points (unknown to both
-tools). Every run is a process of its own (peak RSS is its ``ru_maxrss``), on a fresh copy of
-the unordered generated file; the rounds are interleaved (tree, COLMAP best, COLMAP default,
+tools). Every run is a process of its own (peak RSS: its ``ru_maxrss`` from ``wait4``,
+started from a bare interpreter as in scale.py), on a fresh copy of the unordered generated
+file; the rounds are interleaved (tree, COLMAP best, COLMAP default,
 band, CHOLMOD, then again), and each run records the machine's load average and the CPU time
 other processes took meanwhile. Reported: medians over the rounds and the spread (min, max).
 
@@ -207,8 +208,12 @@ def run_child(*args):
     before = load()
     c0 = cb.cpu_snapshot()
     ch0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    proc = subprocess.run([sys.executable, __file__, "--child", *map(str, args)],
-                          capture_output=True, text=True)
+    # through a bare interpreter (scale.LAUNCH): a process's peak RSS counts that of the
+    # process it was forked from, which would floor every figure at this script's size
+    from scale import LAUNCH
+
+    proc = subprocess.run([sys.executable, "-S", "-c", LAUNCH, sys.executable, __file__,
+                           "--child", *map(str, args)], capture_output=True, text=True)
     ch1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     # the CPU time other processes took meanwhile (the run's own process not counted)
     child = (ch1.ru_utime + ch1.ru_stime) - (ch0.ru_utime + ch0.ru_stime)
@@ -218,6 +223,9 @@ def run_child(*args):
         return {"error": (proc.stderr or proc.stdout)[-2000:], "returncode": proc.returncode}
     r = json.loads(line[-1][7:])
     r.update(load_before=before, foreign_cpu_s=foreign, waited_for_idle_s=waited)
+    launch = [x for x in proc.stderr.splitlines() if x.startswith("LAUNCH ")]
+    if launch:   # the peak RSS of the run's process alone (wait4's ru_maxrss)
+        r["peak_rss_mb"] = int(launch[-1].split()[2]) / 1024.0
     return r
 
 
