@@ -166,7 +166,9 @@ def one_square(side, root):
         t_adj, rss_adj, _ = run(sapgo_cmd + ["adjust", str(path), "--no-progress", "--quiet",
                                              "--keep-scratch", "--json", str(report)])
     except RuntimeError as exc:   # refused or failed: where it stops, and why
-        row["stopped"] = str(exc).strip().splitlines()[-1][-1000:]
+        lines = [x[x.index("sapgo: error:"):] for x in str(exc).splitlines()
+                 if "sapgo: error:" in x]
+        row["stopped"] = (lines[-1] if lines else str(exc).strip())[-1000:]
         path.unlink(missing_ok=True)
         return row
     work = path.with_name(path.name + ".work")
@@ -309,6 +311,10 @@ def squares(args):
                     "load_at_end": os.getloadavg()},
         "sapgo_version": sapgo.__version__, "sapgo_source": git_state(), "rows": rows}
     out = Path(__file__).parent / "results" / "scale_square.json"
+    if out.exists():   # rows of other sides measured before are kept
+        done = {r["strips"] for r in rows}
+        old = [r for r in json.loads(out.read_text()).get("rows", []) if r["strips"] not in done]
+        result["rows"] = rows = sorted(old + rows, key=lambda r: r["photos"])
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(square_markdown(rows))
 
