@@ -596,7 +596,9 @@ def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stati
     predicted = predict_solver(n_active, band_width, None, k)
     if solver == "band" or n_active == 0:
         return None, None, predicted
-    tree, perm, _ = best_tree(pos, active, edges, leaf_stations or LEAF_STATIONS, k=k)
+    band = predicted["band"]
+    tree, perm, _ = best_tree(pos, active, edges, leaf_stations or LEAF_STATIONS, k=k,
+                              enough=None if solver == "tree" else lambda t: t > 2.0 * band)
     predicted = predict_solver(n_active, band_width, tree, k)
     if solver == "tree" or predicted["tree"] < predicted["band"]:
         return tree, perm, predicted

@@ -545,13 +545,22 @@ def check_separators(tree, s, t):
     return bool(ok.all())
 
 
-def best_tree(pos, active, edges, leaf_stations=LEAF_STATIONS, methods=None, k=6):
+def best_tree(pos, active, edges, leaf_stations=LEAF_STATIONS, methods=None, k=6,
+              enough=None):
     """The tree of the smaller predicted factorisation time (flops and nodes) of the
     geometric bisection and METIS' nested dissection (:func:`supernodal_tree`; ``methods``
-    to restrict them). Returns ``(tree, perm, {method: flops})``."""
+    to restrict them). ``enough(seconds)``: when it says the first tree's predicted time
+    settles the matter (a long strip, where the band wins by far), the second is not
+    built. Returns ``(tree, perm, {method: flops})``."""
+    from ..ordering import TREE_NODE_SECONDS, TREE_RATE
+
     methods = methods or ("geometric", "graph")
     found = {}
     for m in methods:
+        if found and enough is not None:
+            first = next(iter(found.values()))
+            if enough(first[0] / TREE_RATE + TREE_NODE_SECONDS * first[1].n_nodes):
+                break
         if m == "geometric" and (pos is None or not np.isfinite(pos).all()):
             continue
         if m == "graph":   # (a smaller leaf also caps the amalgamation)
@@ -560,7 +569,6 @@ def best_tree(pos, active, edges, leaf_stations=LEAF_STATIONS, methods=None, k=6
         else:
             tree, perm = nested_dissection(pos, active, edges, m, leaf_stations)
         found[m] = (tree.figures(k)["flops"], tree, perm)
-    from ..ordering import TREE_NODE_SECONDS, TREE_RATE
 
     def seconds(m):   # flops at the fronts' rate and the cost per node
         return found[m][0] / TREE_RATE + TREE_NODE_SECONDS * found[m][1].n_nodes
