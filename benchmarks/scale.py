@@ -91,16 +91,27 @@ def du(path):
     return sum(p.stat().st_blocks * 512 for p in path.rglob("*") if p.is_file())
 
 
+SAPGO = [sys.executable, "-m", "sapgo.cli"]
+
+
+def generate_and_order(strips, per_strip, path):
+    """``sapgo generate`` and ``sapgo order --memory 256M`` of a block, each a process of
+    its own: the row so far, the phases' (wall s, peak RSS MB) and order's output."""
+    photos = strips * per_strip
+    row = {"photos": photos, "strips": strips, "photos_per_strip": per_strip, "pattern": 9}
+    t_gen, rss_gen, _ = run(SAPGO + ["generate", "--strips", str(strips),
+                                     "--photos-per-strip", str(per_strip), "--control-points",
+                                     str(photos // PHOTOS_PER_CONTROL_POINT), str(path)])
+    t_ord, rss_ord, out = run(SAPGO + ["order", "--memory", "256M", str(path)])
+    row["project_bytes"] = du(path)
+    return row, (t_gen, rss_gen), (t_ord, rss_ord), out
+
+
 def one(photos, root, to_solution):
-    sapgo_cmd = [sys.executable, "-m", "sapgo.cli"]
+    sapgo_cmd = SAPGO
     g = photos // STRIPS
     path = Path(root) / f"scale-{photos}.h5"
-    row = {"photos": photos, "strips": STRIPS, "photos_per_strip": g, "pattern": 9}
-    t_gen, rss_gen, out = run(sapgo_cmd + ["generate", "--strips", str(STRIPS),
-                                           "--photos-per-strip", str(g), "--control-points",
-                                           str(photos // PHOTOS_PER_CONTROL_POINT), str(path)])
-    t_ord, rss_ord, out = run(sapgo_cmd + ["order", "--memory", "256M", str(path)])
-    row["project_bytes"] = du(path)
+    row, (t_gen, rss_gen), (t_ord, rss_ord), _ = generate_and_order(STRIPS, g, path)
     with sapgo.open_project(path) as p:
         row.update(points=p.n_points, observations=p.n_observations,
                    band_width=p.band_width)
@@ -145,16 +156,10 @@ def one(photos, root, to_solution):
 
 def one_square(side, root):
     """Generate, order and adjust (to convergence, with precision) a side x side block."""
-    sapgo_cmd = [sys.executable, "-m", "sapgo.cli"]
-    photos = side * side
+    sapgo_cmd = SAPGO
     path = Path(root) / f"square-{side}.h5"
-    row = {"photos": photos, "strips": side, "photos_per_strip": side, "pattern": 9}
-    t_gen, rss_gen, _ = run(sapgo_cmd + ["generate", "--strips", str(side),
-                                         "--photos-per-strip", str(side), "--control-points",
-                                         str(photos // PHOTOS_PER_CONTROL_POINT), str(path)])
-    t_ord, rss_ord, out = run(sapgo_cmd + ["order", "--memory", "256M", str(path)])
+    row, (t_gen, rss_gen), (t_ord, rss_ord), out = generate_and_order(side, side, path)
     row["order_output"] = out.strip().splitlines()[-3:]
-    row["project_bytes"] = du(path)
     _, _, info = run(sapgo_cmd + ["info", str(path), "--json"])
     info = json.loads(info)
     row.update(points=info["points"], observations=info["observations"],

@@ -2,7 +2,6 @@
 observation quality as the band solver (and the dense reference), with Levenberg-Marquardt,
 9-parameter stations, snooping, robust estimation, a forest and kill-and-resume."""
 
-import dataclasses
 import json
 import os
 import shutil

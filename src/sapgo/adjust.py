@@ -1339,7 +1339,6 @@ def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     weight). Correlations of a station's or a point's parameters above the threshold go to
     ``correlations`` (a :class:`~sapgo.report.HighCorrelations`) when given. Returns
     ``(station_sigma, point_sigma file, quality file)``."""
-    xyz_ds, res_ds = work.xyz_current, work.res_current
     n_st = len(blk.station_ids)
     if blk.refactor:
         _undamped_factor(p_read, work, blk, opts)

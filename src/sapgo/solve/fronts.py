@@ -41,7 +41,6 @@ import os
 import numpy as np
 import scipy.linalg
 from numba import njit
-from scipy.linalg import blas, lapack
 
 from ..bandsolve import PIVOT_TOLERANCE, PivotError
 from ..blas import FNS, L, N, R, T, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
