@@ -276,3 +276,31 @@ def test_fronts_larger_than_the_memory_budget_are_refused_before_any_work(square
     code, _, err = run_cli(capsys, "adjust", path, "--no-progress", "--memory", "2G")
     assert_one_line_error(code, err, "fronts need 3072 MiB", "--memory 3136M", "--solver band")
     assert open(path, "rb").read() == before and not work_path(path).exists()
+
+
+def test_a_point_the_tree_cannot_place_is_named(square, tmp_path, capsys):
+    """An observation moved to a station outside its point's front (records changed after
+    ordering): one line naming the point, the project untouched."""
+    import h5py
+
+    path = tmp_path / "s.h5"
+    shutil.copy(square, path)
+    sapgo.order_project(path, solver="tree", leaf_stations=4)
+    with Project(path) as p:
+        tree = p.tree()
+        pts = p.read("points")
+        ob = p.read("observations")
+    leaf = int(np.flatnonzero(tree.leaf)[0])
+    j = int(tree.pt_start[leaf])           # the first point of a leaf
+    far = [s for s in range(tree.n_active) if s not in set(tree.front(leaf).tolist())]
+    o = int(pts["obs_start"][j]) + int(pts["n_obs"][j]) - 1
+    assert far and ob["station"][o] < far[-1]
+    with h5py.File(path, "r+") as f:
+        rec = f["observations"][o]
+        rec["station"] = far[-1]
+        f["observations"][o] = rec
+    before = open(path, "rb").read()
+    code, _, err = run_cli(capsys, "adjust", path, "--no-progress")
+    assert_one_line_error(code, err, f"point id {int(pts['id'][j])}", "partition tree",
+                          "sapgo order")
+    assert open(path, "rb").read() == before

@@ -556,10 +556,12 @@ def _point_error(p, chunk, j, status, blk):
     rec = p.read("points", chunk.start + j, chunk.start + j + 1)[0]
     pid = int(rec["id"])
     if status == BAD_LAYOUT:
+        where = (f"has a station outside the front of its partition tree node"
+                 if blk.tree is not None else
+                 f"does not follow the stored logical order and band width {p.band_width}")
         return SapgoError(
-            f"{p.path}: point id {pid} (record {chunk.start + j}) does not follow the stored "
-            f"logical order and band width {p.band_width}: the records were changed after "
-            f"ordering; run 'sapgo order' again"
+            f"{p.path}: point id {pid} (record {chunk.start + j}) {where}: the records were "
+            f"changed after ordering; run 'sapgo order' again"
         )
     if status == BEHIND_CAMERA:
         return SapgoError(
