@@ -5,7 +5,8 @@ import pytest
 
 from sapgo.bandsolve import PivotError
 from sapgo.solve.fronts import TreeSolver
-from sapgo.solve.partition import best_tree, check_separators, nested_dissection
+from sapgo.solve.partition import best_tree, check_separators, nested_dissection, \
+    supernodal_tree
 
 
 def grid_graph(nx, ny, reach=(2, 1)):
@@ -66,7 +67,8 @@ def test_tree_solve_equals_dense(tmp_path, method, shape):
     pos, edges = grid_graph(*shape)
     n = len(pos)
     active = np.ones(n, bool)
-    tree, perm = nested_dissection(pos, active, edges, method, leaf_stations=6)
+    tree, perm = (nested_dissection(pos, active, edges, leaf_stations=6) if method == "geometric"
+                  else supernodal_tree(active, edges, relax=((6, 1.0),)))
     inv = np.empty_like(perm)
     inv[perm] = np.arange(n)
     assert check_separators(tree, inv[edges[0]], inv[edges[1]])
@@ -99,7 +101,7 @@ def test_disconnected_block_is_a_forest(tmp_path):
     edges = (np.concatenate([e1[0], e1[0] + n1]), np.concatenate([e1[1], e1[1] + n1]))
     active = np.ones(2 * n1, bool)
     active[5] = False            # an excluded station follows the tree
-    tree, perm = nested_dissection(pos, active, edges, "geometric", leaf_stations=8)
+    tree, perm = nested_dissection(pos, active, edges, leaf_stations=8)
     assert (tree.parent < 0).sum() == 2
     assert tree.n_active == 2 * n1 - 1 and perm[-1] == 5
     k = 6
@@ -125,7 +127,7 @@ def test_disconnected_block_is_a_forest(tmp_path):
 def test_pivot_names_the_station(tmp_path):
     pos, edges = grid_graph(8, 4)
     n = len(pos)
-    tree, perm = nested_dissection(pos, np.ones(n, bool), edges, "geometric", leaf_stations=6)
+    tree, perm = nested_dissection(pos, np.ones(n, bool), edges, leaf_stations=6)
     k = 6
     m = spd_on_graph(n, edges, k, 5)
     bad = 17

@@ -556,7 +556,7 @@ def _point_error(p, chunk, j, status, blk):
     rec = p.read("points", chunk.start + j, chunk.start + j + 1)[0]
     pid = int(rec["id"])
     if status == BAD_LAYOUT:
-        where = (f"has a station outside the front of its partition tree node"
+        where = ("has a station outside the front of its partition tree node"
                  if blk.tree is not None else
                  f"does not follow the stored logical order and band width {p.band_width}")
         return SapgoError(
@@ -1455,7 +1455,7 @@ def _quality_tree(p_read, work, blk, opts, sigma0, correlations=None):
     cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
     try:
         var = tree_quality(p_read, work, blk, opts, blk.tree, sigma0, psig, quality, cov,
-                           correlations, QUALITY_COLUMNS)
+                           correlations)
         if correlations is not None:
             _station_correlations(cov, blk, opts, correlations)
     finally:

@@ -16,12 +16,13 @@ Separators (George 1973; the practice of METIS and of sparse direct solvers):
 - **geometric**: the stations of a part are cut across the longest principal axis of their
   positions (aerial and orbital blocks: the positions carry the topology) at the cut among a
   few near the median with the fewest separator stations;
-- **graph**: METIS (``pymetis.part_graph``) bisects the part's graph by an edge cut, for
-  networks whose positions say nothing of their topology (close-range, unordered models).
+- **graph**: METIS' multilevel nested dissection of the graph alone (``METIS_NodeND``), read
+  as a supernodal elimination tree (:func:`supernodal_tree`), for networks whose positions say
+  nothing of their topology (close-range, unordered models).
 
-An edge cut becomes a vertex separator by a minimum vertex cover of the cut's bipartite graph
-(König's theorem: a maximum matching, then alternating paths). ``nested_dissection`` builds a
-tree with either, :func:`best_tree` both and keeps the one of fewer predicted flops.
+A geometric cut becomes a vertex separator by a minimum vertex cover of the cut's bipartite
+graph (König's theorem: a maximum matching, then alternating paths). :func:`best_tree` builds
+both trees and keeps the one of the smaller predicted time.
 
 Each node's *front* is its own stations followed by its *boundary*: the ancestors' stations
 adjacent to its subtree (the structure of its columns of the Cholesky factor). The factor's
@@ -273,21 +274,6 @@ def _geometric_cut(pos, es, et):
     return best
 
 
-def _metis_cut(n, es, et):
-    """Side of each station of a part by METIS' bisection, and its separator."""
-    import pymetis
-
-    adj = csr_matrix((np.ones(2 * len(es), np.int8),
-                      (np.concatenate([es, et]), np.concatenate([et, es]))), shape=(n, n))
-    adj.sum_duplicates()
-    _, parts = pymetis.part_graph(2, adjacency=pymetis.CSRAdjacency(
-        adj_starts=adj.indptr.astype(np.int64), adjacent=adj.indices.astype(np.int64)))
-    side = np.asarray(parts, np.int8)
-    if side.min() == side.max():
-        return None
-    return side, _separator(None, side, es, et)
-
-
 # -- the tree -----------------------------------------------------------------------------
 
 class _Node:
@@ -297,7 +283,7 @@ class _Node:
         self.own, self.children, self.leaf = own, [], leaf
 
 
-def _dissect(verts, es, et, pos, method, leaf_stations):
+def _dissect(verts, es, et, pos, leaf_stations):
     """The subtree(s) of the part ``verts`` (station numbers; ``es``, ``et`` its edges as
     positions in ``verts``): a list of root nodes (several when the part falls apart)."""
     roots = []
@@ -308,8 +294,7 @@ def _dissect(verts, es, et, pos, method, leaf_stations):
         if n <= leaf_stations:
             out.append(_Node(v, True))
             continue
-        cut = (_geometric_cut(pos[v], a, b) if method == "geometric" else
-               _metis_cut(n, a, b))
+        cut = _geometric_cut(pos[v], a, b)
         if cut is None or len(cut[1]) >= n // 2:   # no useful separator: a (large) leaf
             out.append(_Node(v, True))
             continue
@@ -331,10 +316,11 @@ def _dissect(verts, es, et, pos, method, leaf_stations):
     return roots
 
 
-def nested_dissection(pos, active, edges, method="geometric", leaf_stations=LEAF_STATIONS):
-    """The partition tree of the active stations and the logical order it gives.
+def nested_dissection(pos, active, edges, leaf_stations=LEAF_STATIONS):
+    """The partition tree of the active stations by geometric bisection, and the logical
+    order it gives (:func:`supernodal_tree` for METIS' graph method).
 
-    ``pos`` (n x d) station positions (used by the geometric method), ``active`` the
+    ``pos`` (n x d) station positions, ``active`` the
     stations in the adjustment, ``edges = (s, t)`` the station graph (station numbers).
     Returns ``(tree, perm)``: ``perm`` the stations in logical order (the tree's post-order,
     then the inactive stations), ``tree`` with logical station numbers.
@@ -358,8 +344,8 @@ def nested_dissection(pos, active, edges, method="geometric", leaf_stations=LEAF
         loc = np.full(n, -1, np.int64)
         loc[mask] = np.arange(int(mask.sum()))
         e = mask[es]
-        roots.extend(_dissect(act[mask], loc[es[e]], loc[et[e]], pos, method, leaf_stations))
-    return _number(roots, n_st, act, s, t, method)
+        roots.extend(_dissect(act[mask], loc[es[e]], loc[et[e]], pos, leaf_stations))
+    return _number(roots, n_st, act, s, t, "geometric")
 
 
 def _number(roots, n_st, act, s, t, method):
@@ -567,7 +553,7 @@ def best_tree(pos, active, edges, leaf_stations=LEAF_STATIONS, methods=None, k=6
             relax = tuple((min(nr, leaf_stations), zr) for nr, zr in RELAX)
             tree, perm = supernodal_tree(active, edges, k, relax)
         else:
-            tree, perm = nested_dissection(pos, active, edges, m, leaf_stations)
+            tree, perm = nested_dissection(pos, active, edges, leaf_stations)
         found[m] = (tree.figures(k)["flops"], tree, perm)
 
     def seconds(m):   # flops at the fronts' rate and the cost per node

@@ -265,8 +265,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
             close_node()
 
 
-def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlations,
-                 quality_columns):
+def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlations):
     """The precision pass on the tree: the selected inversion top-down and, node by node,
     the stations' cofactor blocks (``cov``), the points' standard deviations (``psig``) and
     their observations' quality (``quality``), as :func:`sapgo.adjust._quality_sweep` does
