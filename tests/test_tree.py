@@ -195,3 +195,56 @@ def test_metis_supernodal_tree_solves_exactly(tmp_path, shape):
     rhs = np.random.default_rng(3).normal(size=k * n)
     _, ml, bl, x = _solve_tree(tree, perm, m, rhs, k, tmp_path)
     np.testing.assert_allclose(x, np.linalg.solve(ml, bl), rtol=1e-9, atol=1e-12)
+
+
+def test_extend_add_and_front_zeros_against_numpy():
+    """The extend-add kernel (stretch by stretch) equals numpy's fancy-indexed add on the
+    lower triangle, for scattered and contiguous places; a fresh front is zero on its block
+    lower triangle (all that is read)."""
+    from sapgo.solve.fronts import _block_lower_zeros, _extend_add_kernel
+
+    rng = np.random.default_rng(7)
+    k = 6
+    for trial in range(30):
+        nf = int(rng.integers(2, 40))
+        places = np.sort(rng.choice(nf, int(rng.integers(1, nf + 1)), replace=False))
+        ix = (k * places[:, None] + np.arange(k)).ravel()
+        m, n = int(rng.integers(0, 25)), len(ix)
+        u = np.asfortranarray(rng.normal(size=(m + n, m + n)))
+        a = np.asfortranarray(rng.normal(size=(k * nf, k * nf)))
+        want = a.copy()
+        low = np.tril(u[m:, m:])
+        r, c = np.nonzero(np.tril(np.ones((n, n))))
+        np.add.at(want, (ix[r], ix[c]), low[r, c])
+        _extend_add_kernel(a, u, m, ix)
+        assert np.array_equal(a, want)
+    z = _block_lower_zeros(5 * k, k)
+    assert z.flags.f_contiguous
+    blocks = np.kron(np.tril(np.ones((5, 5))), np.ones((k, k))) > 0
+    assert np.all(z[blocks] == 0.0)
+
+
+def test_held_records_read_as_the_file(tmp_path):
+    """Records held in core read exactly as from the file, a copy each time; too large a
+    budget keeps them in the file, a writable project never holds them."""
+    import shutil
+
+    from sapgo.generate import generate_block
+    from sapgo.project import Project
+
+    path = tmp_path / "h.h5"
+    generate_block(path, strips=3, photos_per_strip=6, control_points=6, progress=False)
+    with Project(path) as p:
+        ref = {n: (p.read(n, 3, 40), p.read_field(n, "status", 5, 30))
+               for n in ("points", "observations")}
+        assert p.hold(max_bytes=10) == 0
+        assert p.hold() > 0
+        for n, (recs, status) in ref.items():
+            got = p.read(n, 3, 40)
+            assert np.array_equal(got, recs) and got.dtype == recs.dtype
+            assert np.array_equal(p.read_field(n, "status", 5, 30), status)
+            got["status"] = 99   # a copy: the held records do not change
+            assert np.array_equal(p.read(n, 3, 40), recs)
+    shutil.copy(path, tmp_path / "w.h5")
+    with Project(tmp_path / "w.h5", "r+") as q:
+        assert q.hold() == 0

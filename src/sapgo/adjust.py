@@ -124,7 +124,8 @@ class Options:
     #: Continue an interrupted run from its last completed iteration (if there is one).
     resume: bool = False
     #: Memory budget of the external sorts when the project has to be ordered first (default
-    #: 512 MiB), and of the tree solver's fronts and in-core factor (default 1 GiB).
+    #: 512 MiB), of the tree solver's fronts and in-core factor (default 1 GiB), and of the
+    #: point and observation records held in core for the run's passes (a quarter of it).
     memory: int | str | None = None
     #: Progress bars: True, False, or None for "when stderr is a terminal".
     progress: bool | None = None
@@ -1167,6 +1168,15 @@ def _needs_order(p: Project, opts: Options):
     return False
 
 
+def _hold_budget(opts):
+    """Bytes of point and observation records that a run reads into core once instead of
+    from the project in every pass: a quarter of the run's memory budget (``--memory``,
+    default 1 GiB as for the tree solver)."""
+    from .solve.tree import tree_budget
+
+    return tree_budget(opts) // 4
+
+
 def _work_band(blk: _Block):
     """The band width of the work files' band rows: none for the tree (its factor has a
     file of its own)."""
@@ -1195,6 +1205,7 @@ def adjust(path, options: Options | None = None) -> Summary:
     log = []
     resumed_from = None
     with Project(path, "r") as p:
+        p.hold(max_bytes=_hold_budget(opts))
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
         if blk.tree is not None:

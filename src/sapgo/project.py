@@ -323,6 +323,7 @@ class Project:
             raise ProjectFormatError(
                 f"{self.path}: not a sapgo project (the file is not HDF5)"
             )
+        self._held = {}
         try:
             self._f = h5py.File(self.path, mode)
         except OSError as exc:
@@ -390,6 +391,7 @@ class Project:
         self.close()
 
     def close(self):
+        self._held = {}
         if self._f is not None:
             self._f.close()
             self._f = None
@@ -483,13 +485,33 @@ class Project:
         self.file.attrs["history"] = append_history(self.attr("history", "[]"), entry)
 
     # -- record access ------------------------------------------------------------------
+    def hold(self, names=("points", "observations"), max_bytes=256 << 20):
+        """Read the records of datasets ``names`` into core once, when together they take at
+        most ``max_bytes``, so that the many passes of an adjustment slice memory instead of
+        reading the file (a project opened read only: the records cannot change under it).
+        Returns the bytes held (0: the records stay in the file)."""
+        if self.file.mode != "r":
+            return 0
+        size = sum(self.file[n].size * self.file[n].dtype.itemsize for n in names)
+        if size > max_bytes:
+            return 0
+        for n in names:
+            self._held[n] = self.file[n][...]
+        return size
+
     def read(self, name, start=0, stop=None):
         """Records ``start:stop`` of dataset ``name`` (e.g. ``"points"``, ``"truth/points"``)."""
+        held = self._held.get(name)
+        if held is not None:
+            return held[start:stop].copy()
         ds = self.file[name]
         stop = ds.shape[0] if stop is None else stop
         return ds[start:stop]
 
     def read_field(self, name, field, start=0, stop=None):
+        held = self._held.get(name)
+        if held is not None:
+            return held[field][start:stop].copy()
         ds = self.file[name]
         stop = ds.shape[0] if stop is None else stop
         if stop <= start:

@@ -235,7 +235,7 @@ class TreeSolver:
         t = self.tree
         nf = t.own(i) + len(t.bnd(i))
         kf = self.k * nf
-        return np.zeros((kf, kf), order="F"), np.zeros(kf)
+        return _block_lower_zeros(kf, self.k), np.zeros(kf)
 
     def eliminate(self, i, a, b, damping=None):
         """Extend-add the children's updates into front ``a`` (F-order, lower triangle) and
@@ -403,6 +403,17 @@ def _gather(zp, ix):
 
 
 @njit(cache=True, nogil=True)
+def _block_lower_zeros(n, k):
+    """An n x n F-order matrix whose block lower triangle (blocks k x k) is zero: all that a
+    front uses, its lower triangle and its stations' diagonal blocks in full; the rest is
+    never read (half the memory traffic of zeroing it all)."""
+    a = np.empty((n, n)).T
+    for c in range(n):
+        a[c - c % k:, c] = 0.0
+    return a
+
+
+@njit(cache=True, nogil=True)
 def _symmetrize_block(z, m):
     """Copy the lower triangle of ``z[:m, :m]`` into its upper one."""
     for c in range(m):
@@ -413,9 +424,26 @@ def _symmetrize_block(z, m):
 @njit(cache=True, nogil=True)
 def _extend_add_kernel(a, u, m, ix):
     """``a[ix, ix] += u[m:, m:]`` on the lower triangles (``u`` a child's front, its update
-    matrix the trailing block; ``ix`` ascending)."""
+    matrix the trailing block; ``ix`` ascending). ``ix`` runs in stretches of consecutive
+    places (a station's k unknowns at least), so each column is added stretch by stretch,
+    contiguous on both sides."""
     n = ix.shape[0]
+    # the stretches of consecutive places: [start[s], start[s + 1])
+    start = np.empty(n + 1, np.int64)
+    ns = 0
+    for r in range(n):
+        if r == 0 or ix[r] != ix[r - 1] + 1:
+            start[ns] = r
+            ns += 1
+    start[ns] = n
+    s0 = 0
     for c in range(n):
         jc = ix[c]
-        for r in range(c, n):
-            a[ix[r], jc] += u[m + r, m + c]
+        while start[s0 + 1] <= c:
+            s0 += 1
+        for s in range(s0, ns):
+            r0 = max(start[s], c)
+            r1 = start[s + 1]
+            d = ix[r0] - r0
+            for r in range(r0, r1):
+                a[d + r, jc] += u[m + r, m + c]

@@ -236,6 +236,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
             c = PointChunk(p, a0, b0, work.xyz_current[a0:b0], blk.camera, blk.cam_sigma,
                            blk.frame, blk.rejected, blk.rejected_points)
             _reweight(c, work, opts)
+            st = np.full(len(c.obs_station), -1, np.int64)
             if diag is not None:
                 station_diagonal(c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
                                  c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams, diag)
@@ -246,7 +247,10 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
                     node += 1
                     open_node(node)
                 j1 = min(b0, int(pt[node + 1]))
-                st = fronts.local(c.obs_station, c.obs_active)
+                if j1 > j:   # the places of these points' observations only
+                    o0 = int(c.pt_start[j - a0])
+                    o1 = int(c.pt_start[j1 - 1 - a0] + c.nobs[j1 - 1 - a0])
+                    st[o0:o1] = fronts.local(c.obs_station[o0:o1], c.obs_active[o0:o1])
                 status, bad = build_front(
                     j - a0, j1 - a0, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start,
                     c.nobs, c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo,
