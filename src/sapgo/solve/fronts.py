@@ -235,7 +235,9 @@ class TreeSolver:
         t = self.tree
         nf = t.own(i) + len(t.bnd(i))
         kf = self.k * nf
-        return _block_lower_zeros(kf, self.k), np.zeros(kf)
+        a = np.empty((kf, kf), order="F")   # (numpy's allocation: huge pages where large)
+        _zero_block_lower(a, self.k)
+        return a, np.zeros(kf)
 
     def eliminate(self, i, a, b, damping=None):
         """Extend-add the children's updates into front ``a`` (F-order, lower triangle) and
@@ -403,14 +405,12 @@ def _gather(zp, ix):
 
 
 @njit(cache=True, nogil=True)
-def _block_lower_zeros(n, k):
-    """An n x n F-order matrix whose block lower triangle (blocks k x k) is zero: all that a
+def _zero_block_lower(a, k):
+    """Zero the block lower triangle (blocks k x k) of a square F-order matrix: all that a
     front uses, its lower triangle and its stations' diagonal blocks in full; the rest is
     never read (half the memory traffic of zeroing it all)."""
-    a = np.empty((n, n)).T
-    for c in range(n):
+    for c in range(a.shape[1]):
         a[c - c % k:, c] = 0.0
-    return a
 
 
 @njit(cache=True, nogil=True)
