@@ -328,9 +328,24 @@ def test_reliability_formulas():
     weakest redundancy of an observation's 2 x 2 block and its minimal detectable blunder."""
     from sapgo.report import minimal_detectable_blunder, noncentrality, weakest_redundancy
 
+    from scipy.optimize import brentq
+    from scipy.stats import chi2, ncx2
+
+    from sapgo.report import chi2_isf, ncx2_sf
+
     assert noncentrality(0.001, 0.8, dof=1) == pytest.approx(17.07, abs=0.02)
     lam2 = noncentrality(0.001)
     assert lam2 > 17.07
+    # the closed form for 2 (even) degrees of freedom against scipy's distributions
+    for alpha in (0.1, 0.05, 0.001, 1e-6, 1e-12):
+        crit = chi2.isf(alpha, 2)
+        assert chi2_isf(alpha) == pytest.approx(crit, rel=1e-14)
+        ref = brentq(lambda lam: ncx2.sf(crit, 2, lam) - 0.8, 1e-6, 1e4, xtol=1e-14)
+        assert noncentrality(alpha) == pytest.approx(ref, rel=1e-11)
+    for dof in (2, 4):
+        for x in (0.1, 3.0, 13.8, 50.0, 300.0):
+            for lam in (0.0, 0.5, 10.0, 400.0, 3000.0):
+                assert ncx2_sf(x, dof, lam) == pytest.approx(ncx2.sf(x, dof, lam), abs=1e-12)
     rng = np.random.default_rng(3)
     for _ in range(20):
         m = rng.normal(size=(2, 2))

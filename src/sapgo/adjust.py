@@ -1479,9 +1479,9 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
     observation, ``t = sqrt(v' Q_vv^-1 v) / sigma0`` (its two coordinates together), exceeds
     the critical value of ``opts.snooping_alpha`` (chi-square with 2 degrees of freedom),
     reject that observation (flagged, never deleted) and iterate again. Returns converged."""
-    from scipy.stats import chi2
+    from .report import chi2_isf
 
-    crit = float(np.sqrt(chi2.isf(opts.snooping_alpha, 2)))
+    crit = float(np.sqrt(chi2_isf(opts.snooping_alpha, 2)))
     while len(blk.rejected) < opts.max_rejections:
         t0 = time.perf_counter()
         _, _, quality = _quality_sweep(p, work, blk, opts, _accepted(log)[-1]["sigma0"])

@@ -153,14 +153,58 @@ def station_correlations(cov):
         return np.stack([cov[:, i, k] / (d[:, i] * d[:, k]) for i, k in STATION_PAIRS], axis=1)
 
 
+def chi2_isf(alpha, dof=2):
+    """The critical value of a chi-square test of ``dof`` degrees of freedom at significance
+    ``alpha``: ``-2 ln alpha`` for 2 (exact, without importing scipy.stats), scipy's
+    otherwise."""
+    if dof == 2:
+        return -2.0 * math.log(alpha)
+    from scipy.stats import chi2
+
+    return float(chi2.isf(alpha, dof))
+
+
+def ncx2_sf(x, dof, lam):
+    """The survival function of the non-central chi-square distribution at ``x``: the
+    Poisson(``lam / 2``) mixture of central chi-squares of ``dof + 2j`` degrees of freedom,
+    in closed form for even ``dof`` (Poisson weights in logarithms; the sum runs 40 standard
+    deviations past the Poisson mean)."""
+    if dof % 2:
+        from scipy.stats import ncx2
+
+        return float(ncx2.sf(x, dof, lam))
+    h, mu = 0.5 * x, 0.5 * lam
+    # central chi-square sf of 2m degrees of freedom: exp(-h) sum_{i<m} h^i / i!
+    term_c = math.exp(-h)              # h^i / i! exp(-h), i = 0
+    central = 0.0
+    for i in range(dof // 2):
+        central += term_c
+        term_c *= h / (i + 1)
+    log_mu = math.log(mu) if mu > 0 else -math.inf
+    total = 0.0
+    for j in range(int(mu + 40.0 * math.sqrt(mu) + 50)):
+        if j:
+            central += term_c          # sf of dof + 2j degrees of freedom
+            term_c *= h / (dof // 2 + j)
+        total += math.exp(-mu + (j * log_mu if j else 0.0) - math.lgamma(j + 1)) * central
+    return min(1.0, total)
+
+
 def noncentrality(alpha, power=0.8, dof=2):
     """Baarda's lower bound of the non-centrality parameter: the lambda at which a test of
-    ``dof`` degrees of freedom at significance ``alpha`` rejects with probability ``power``."""
-    from scipy.optimize import brentq
-    from scipy.stats import chi2, ncx2
-
-    crit = chi2.isf(alpha, dof)
-    return float(brentq(lambda lam: ncx2.sf(crit, dof, lam) - power, 1e-6, 1e4))
+    ``dof`` degrees of freedom at significance ``alpha`` rejects with probability ``power``
+    (bisection: the power grows with lambda)."""
+    crit = chi2_isf(alpha, dof)
+    lo, hi = 1e-6, 1e4
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if ncx2_sf(crit, dof, mid) < power:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-12 * hi:
+            break
+    return 0.5 * (lo + hi)
 
 
 def weakest_redundancy(r_x, r_y, r_xy):

@@ -129,8 +129,12 @@ class FactorFile:
         if path is None:
             return
         if mode == "w":
-            self._fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
-            os.ftruncate(self._fd, self.nbytes)
+            # the last factorisation's file is overwritten in place, not truncated: every
+            # record is written again, and truncating a large file costs the page cache (and
+            # a forced write-back on close on ext4)
+            self._fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            if os.fstat(self._fd).st_size != self.nbytes:
+                os.ftruncate(self._fd, self.nbytes)
         else:
             self._fd = os.open(path, os.O_RDONLY)
             actual = os.fstat(self._fd).st_size
