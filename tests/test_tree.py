@@ -162,15 +162,20 @@ def test_konig_cover_is_a_minimum_vertex_cover():
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import maximum_bipartite_matching
 
-    from sapgo.solve.partition import _vertex_cover
+    from sapgo.solve.partition import _cut_cover
 
     rng = np.random.default_rng(7)
     for trial in range(60):
-        nl, nr = rng.integers(1, 25, size=2)
+        nl, nr = (int(x) for x in rng.integers(1, 25, size=2))
         ne = int(rng.integers(1, 3 * max(nl, nr)))
         ls = rng.integers(0, nl, ne)
-        rs = rng.integers(0, nr, ne) + 1000        # right stations numbered apart
-        cover = set(_vertex_cover(ls, rs).tolist())
+        rs = rng.integers(0, nr, ne) + nl            # right vertices after the left ones
+        side = np.r_[np.zeros(nl, np.int8), np.ones(nr, np.int8)]
+        swap = rng.random(ne) < 0.5                  # edges given either way round
+        same = rng.integers(0, nl, 5), rng.integers(0, nl, 5)   # not cut: ignored
+        es = np.r_[np.where(swap, rs, ls), same[0]].astype(np.int64)
+        et = np.r_[np.where(swap, ls, rs), same[1]].astype(np.int64)
+        cover = set(_cut_cover(side, es, et).tolist())
         assert all(a in cover or b in cover for a, b in zip(ls, rs))
         lu, li = np.unique(ls, return_inverse=True)
         ru, ri = np.unique(rs, return_inverse=True)

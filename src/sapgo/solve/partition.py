@@ -165,19 +165,6 @@ class Tree:
 
 # -- separators ---------------------------------------------------------------------------
 
-def _vertex_cover(ls, rs):
-    """A minimum vertex cover of the bipartite graph of the cut edges ``(ls[e], rs[e])``
-    (left and right stations): König's construction from a maximum matching. Returns the
-    cover's stations."""
-    lu, li = np.unique(ls, return_inverse=True)
-    ru, ri = np.unique(rs, return_inverse=True)
-    order = np.argsort(li, kind="stable")
-    adj = ri[order].astype(np.int64)
-    ptr = np.searchsorted(li[order], np.arange(len(lu) + 1)).astype(np.int64)
-    in_l, in_r = _konig_cover(len(lu), len(ru), ptr, adj)
-    return np.concatenate([lu[in_l], ru[in_r]])
-
-
 @njit(cache=True)
 def _konig_cover(nl, nr, ptr, adj):
     """Maximum matching of a bipartite graph (augmenting paths, Kuhn) and the minimum
@@ -241,14 +228,71 @@ def _konig_cover(nl, nr, ptr, adj):
 
 def _separator(verts, side, es, et):
     """The vertex separator of a cut of ``verts`` into ``side`` 0 and 1 (``side`` indexed by
-    position in ``verts``; ``es``, ``et`` the part's edges as positions)."""
-    cross = side[es] != side[et]
-    if not cross.any():
+    position in ``verts``; ``es``, ``et`` the part's edges as positions): a minimum vertex
+    cover of the cut edges (:func:`_cut_cover`)."""
+    return _cut_cover(side, es, et)
+
+
+@njit(cache=True)
+def _cut_cover(side, es, et):
+    """A minimum vertex cover of the edges between side 0 and side 1 (positions): the cut's
+    bipartite graph in compressed rows, left (side 0) vertices numbered as met, and König's
+    cover of it (:func:`_konig_cover`)."""
+    n = side.shape[0]
+    lid = np.full(n, -1, np.int64)
+    rid = np.full(n, -1, np.int64)
+    lpos = np.empty(n, np.int64)
+    rpos = np.empty(n, np.int64)
+    nl = nr = nc = 0
+    for e in range(es.shape[0]):
+        a, b = es[e], et[e]
+        if side[a] == side[b]:
+            continue
+        if side[a] != 0:
+            a, b = b, a
+        if lid[a] < 0:
+            lid[a] = nl
+            lpos[nl] = a
+            nl += 1
+        if rid[b] < 0:
+            rid[b] = nr
+            rpos[nr] = b
+            nr += 1
+        nc += 1
+    if nc == 0:
         return np.zeros(0, np.int64)
-    a, b = es[cross], et[cross]
-    left = np.where(side[a] == 0, a, b)
-    right = np.where(side[a] == 0, b, a)
-    return _vertex_cover(left, right)
+    ptr = np.zeros(nl + 1, np.int64)
+    for e in range(es.shape[0]):
+        a, b = es[e], et[e]
+        if side[a] == side[b]:
+            continue
+        if side[a] != 0:
+            a = b
+        ptr[lid[a] + 1] += 1
+    for u in range(nl):
+        ptr[u + 1] += ptr[u]
+    fill = ptr[:-1].copy()
+    adj = np.empty(nc, np.int64)
+    for e in range(es.shape[0]):
+        a, b = es[e], et[e]
+        if side[a] == side[b]:
+            continue
+        if side[a] != 0:
+            a, b = b, a
+        adj[fill[lid[a]]] = rid[b]
+        fill[lid[a]] += 1
+    in_l, in_r = _konig_cover(nl, nr, ptr, adj)
+    out = np.empty(int(in_l.sum()) + int(in_r.sum()), np.int64)
+    j = 0
+    for u in range(nl):
+        if in_l[u]:
+            out[j] = lpos[u]
+            j += 1
+    for v in range(nr):
+        if in_r[v]:
+            out[j] = rpos[v]
+            j += 1
+    return out
 
 
 def _geometric_cut(pos, es, et):
