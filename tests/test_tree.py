@@ -91,7 +91,46 @@ def test_tree_solve_equals_dense(tmp_path, method, shape):
 
     sol.inverse(check)
     assert sorted(seen) == list(range(tree.n_nodes))
+    # as the precision pass runs it on two threads: the top first, then each worker's
+    # subtrees from the inverses over their roots' boundaries alone
+    from sapgo.solve.tree import parallel_plan
+
+    per, top = parallel_plan(tree, k, 2)
+    seen.clear()
+    held = sol.inverse(check, top) if top else {}
+    assert all(tree.parent[c] in top for c in held)
+    for ranges in per:
+        sol.inverse(check, [i for a, b in ranges for i in range(a, b)], held)
+    assert sorted(seen) == list(range(tree.n_nodes))
     sol.close()
+
+
+def test_front_memory_model_is_what_the_solver_holds(tmp_path):
+    """The fronts' peak of ``Tree.peak_front_bytes`` is, to the byte, the most the solver
+    holds at once (the front being built plus the updates waiting for their parents); the
+    plan of two workers needs at least as much."""
+    from sapgo.solve.tree import parallel_plan
+
+    pos, edges = grid_graph(30, 12)
+    n = len(pos)
+    tree, perm = nested_dissection(pos, np.ones(n, bool), edges, leaf_stations=8)
+    k = 6
+    m = spd_on_graph(n, edges, k, 4)
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(n)
+    sc = (k * perm[:, None] + np.arange(k)).ravel()
+    ml = m[np.ix_(sc, sc)]
+    sol = TreeSolver(tree, k, None, file=None)
+    peak = 0
+    for i in range(tree.n_nodes):
+        a, b = sol.open(i)
+        peak = max(peak, a.nbytes + sum(u[0].nbytes for u in sol.updates.values()))
+        fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
+        own = k * tree.own(i)
+        a[:, :own] = np.tril(ml[np.ix_(fs, fs[:own])])
+        sol.eliminate(i, a, b)
+    assert peak == tree.peak_front_bytes(k)
+    assert tree.peak_front_bytes(k, parallel_plan(tree, k, 2)) >= peak
 
 
 def test_disconnected_block_is_a_forest(tmp_path):

@@ -272,7 +272,7 @@ def test_fronts_larger_than_the_memory_budget_are_refused_before_any_work(square
     shutil.copy(square, path)
     sapgo.order_project(path, solver="tree", leaf_stations=4)
     before = open(path, "rb").read()
-    monkeypatch.setattr(Tree, "peak_front_bytes", lambda self, k=6: 3 << 30)
+    monkeypatch.setattr(Tree, "peak_front_bytes", lambda self, k=6, plan=None: 3 << 30)
     code, _, err = run_cli(capsys, "adjust", path, "--no-progress", "--memory", "2G")
     assert_one_line_error(code, err, "fronts need 3072 MiB", "--memory 3136M", "--solver band")
     assert open(path, "rb").read() == before and not work_path(path).exists()

@@ -332,6 +332,9 @@ class _Block:
     #: the partition tree (:class:`sapgo.solve.partition.Tree`) when the project is ordered
     #: for the tree solver, else None (the band)
     tree: object = None
+    #: bytes of point and observation records held in core for the run (out of the memory
+    #: budget that the tree solver's fronts and factor share)
+    held: int = 0
 
     @property
     def solver(self):
@@ -1168,13 +1171,18 @@ def _needs_order(p: Project, opts: Options):
     return False
 
 
-def _hold_budget(opts):
-    """Bytes of point and observation records that a run reads into core once instead of
-    from the project in every pass: a quarter of the run's memory budget (``--memory``,
-    default 1 GiB as for the tree solver)."""
+def _hold_records(p, blk, opts):
+    """Read the point and observation records into core once for the run's passes, when
+    they take at most a quarter of the memory budget (``--memory``, default 1 GiB as for the
+    tree solver) and leave the tree's fronts their share of it. Returns the bytes held,
+    which the tree solver's budget then lacks."""
     from .solve.tree import tree_budget
 
-    return tree_budget(opts) // 4
+    budget = tree_budget(opts)
+    size = sum(p.file[n].size * p.file[n].dtype.itemsize for n in ("points", "observations"))
+    if blk.tree is not None and size + blk.tree.peak_front_bytes(blk.npar) > budget:
+        return 0
+    return p.hold(max_bytes=budget // 4)
 
 
 def _work_band(blk: _Block):
@@ -1205,13 +1213,13 @@ def adjust(path, options: Options | None = None) -> Summary:
     log = []
     resumed_from = None
     with Project(path, "r") as p:
-        p.hold(max_bytes=_hold_budget(opts))
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
         if blk.tree is not None:
             from .solve.tree import check_tree_memory
 
             check_tree_memory(blk.tree, blk.npar, opts, path)
+        blk.held = _hold_records(p, blk, opts)
         if blk.tree is not None and blk.border:
             raise SapgoError(f"{path}: self-calibration (--calibrate) runs on the band solver "
                              f"only so far: use --solver band")

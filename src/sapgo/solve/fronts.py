@@ -266,9 +266,11 @@ class TreeSolver:
             raise PivotError(int(t.lo[i]) + (fail - 1) // k, (fail - 1) % k)
         y1 = b[:m].copy()
         self.yy[i] = float(y1 @ y1)
-        if a.shape[0] > m and t.parent[i] >= 0:   # the update: the front's trailing block
-            self.updates[i] = (a, m, b[m:].copy())
         self.file.write(i, a[:, :m], y1)
+        if a.shape[0] > m and t.parent[i] >= 0:
+            # the update, the front's trailing block, copied out (lower triangle) so that the
+            # front goes: the stack holds f x f, not (m + f)^2, a child
+            self.updates[i] = (_trailing_lower(a, m), 0, b[m:].copy())
 
     def solve(self, n_stations):
         """``delta`` (n_stations x k; stations outside the tree 0) by back substitution
@@ -290,52 +292,45 @@ class TreeSolver:
         symmetric) the inverse of the reduced matrix over node ``i``'s front.
 
         ``nodes``: the nodes to visit (default all), visited in reverse post-order, so that
-        a parent comes before its children; ``held``: the inverses of the fronts of the
-        parents outside ``nodes`` (a dict, read only) -- the way the subtrees of
-        :func:`sapgo.solve.tree.parallel_plan` are inverted by several threads. Returns
-        the inverses of the visited fronts that a child outside ``nodes`` still needs."""
+        a parent comes before its children; ``held``: for the nodes whose parent is not
+        visited, the inverse over their boundary (a dict by node, read only) -- the way the
+        subtrees of :func:`sapgo.solve.tree.parallel_plan` are inverted by several threads.
+        Returns the inverses over the boundaries of the children not visited. A front's
+        inverse goes as soon as it has given each child its part (the inverse over the
+        child's boundary), so that in core are the front at hand and the parts of the
+        children still to visit."""
         t, k = self.tree, self.k
         nodes = range(t.n_nodes) if nodes is None else nodes
-        visit = sorted(nodes, reverse=True)
-        inside = set(visit)
-        mine = {}
-        left = {}
-        for i in visit:
-            left[i] = sum(1 for c in self.children[i] if c in inside)
+        inside = set(nodes)
+        parts = {}   # the inverses over the boundaries of the children still to visit
         keep = {}
-        for i in visit:
+        for i in sorted(inside, reverse=True):
             col, _ = self.file.read(i)
-            z = _front_inverse(col, mine, held, t, k, i)
+            z22 = parts.pop(i, None)
+            if z22 is None:
+                z22 = held[i] if len(t.bnd(i)) else np.zeros((0, 0), order="F")
+            z = _front_inverse(col, z22, k)
             on_node(i, z)
-            p = int(t.parent[i])
-            if p in left:
-                left[p] -= 1
-                if left[p] == 0:
-                    mine.pop(p, None)
-            if left[i] > 0:
-                mine[i] = z
-            if len(self.children[i]) > left[i]:   # children visited elsewhere need it
-                keep[i] = z
+            fr = t.front(i)
+            for c in self.children[i]:   # each child's part now: z goes
+                if len(t.bnd(c)):
+                    zc = _gather(z, _scalar(np.searchsorted(fr, t.bnd(c)), k))
+                    (parts if c in inside else keep)[c] = zc
+            del z
         return keep
 
     def close(self):
         self.file.close()
 
 
-def _front_inverse(col, mine, held, t, k, i):
-    """The inverse over node ``i``'s front from its factor columns and its parent's front
-    inverse (in ``mine`` or ``held``): Takahashi's recurrences on the supernode."""
+def _front_inverse(col, z22, k):
+    """The inverse over a front from its factor columns and the inverse over its boundary
+    ``z22`` (f x f, F order): Takahashi's recurrences on the supernode."""
     m = col.shape[1]
     f = col.shape[0] - m
     z = np.empty((m + f, m + f), order="F")   # (every entry is written)
-    if f:
-        p = int(t.parent[i])
-        zp = mine[p] if p in mine else held[p]
-        z22 = _gather(zp, _scalar(np.searchsorted(t.front(p), t.bnd(i)), k))
-    else:
-        z22 = np.zeros((0, 0), order="F")
     _inverse_front(FNS, np.asfortranarray(col).reshape(-1, order="F"), m, f,
-                   z22.reshape(-1, order="F"), z.reshape(-1, order="F"))
+                   np.asfortranarray(z22).reshape(-1, order="F"), z.reshape(-1, order="F"))
     return z
 
 
@@ -406,6 +401,16 @@ def _gather(zp, ix):
         for r in range(n):
             out[r, c] = zp[ix[r], jc]
     return out
+
+
+@njit(cache=True, nogil=True)
+def _trailing_lower(a, m):
+    """The lower triangle of ``a[m:, m:]`` in a new F-order matrix (the upper one unset)."""
+    f = a.shape[0] - m
+    u = np.empty((f, f)).T
+    for c in range(f):
+        u[c:, c] = a[m + c:, m + c]
+    return u
 
 
 @njit(cache=True, nogil=True)

@@ -126,22 +126,41 @@ class Tree:
             "method": self.method,
         }
 
-    def peak_front_bytes(self, k=6):
-        """Bytes in core at the worst moment of a post-order factorisation: the front being
-        factored plus the children's update matrices waiting on the stack."""
+    def peak_front_bytes(self, k=6, plan=None):
+        """Bytes in core at the worst moment of the factorisation: the fronts being factored
+        plus the update matrices (f x f each) waiting for their parents.
+
+        ``plan``: ``(per_worker, top)`` of :func:`sapgo.solve.tree.parallel_plan`, the
+        subtrees (node ranges) factored side by side and the nodes above them factored after:
+        the workers' peaks add up (each with the updates of its finished subtrees, which
+        wait for the top), then the top runs with all of them. None: one worker, all nodes
+        in post-order."""
         f = k * np.diff(self.bptr).astype(np.float64)
         upd = 8 * f * f
         m = k * (self.hi - self.lo).astype(np.float64)
-        stack = 0.0
-        peak = 0.0
+        front = 8 * (m + f) ** 2
+        parent = self.parent
         pending = np.zeros(self.n_nodes)   # bytes of the children's updates held per parent
-        for i in range(self.n_nodes):
-            stack -= pending[i]
-            peak = max(peak, stack + pending[i] + 8 * (m[i] + f[i]) ** 2)
-            if self.parent[i] >= 0:
-                pending[self.parent[i]] += upd[i]
-                stack += upd[i]
-        return int(peak)
+
+        def run(nodes, held):
+            stack, peak = held, held
+            for i in nodes:
+                stack -= pending[i]
+                peak = max(peak, stack + pending[i] + front[i])
+                if parent[i] >= 0:
+                    pending[parent[i]] += upd[i]
+                    stack += upd[i]
+            return peak, stack
+
+        if plan is None:
+            return int(run(range(self.n_nodes), 0.0)[0])
+        per, top = plan
+        total, left = 0.0, 0.0
+        for ranges in per:
+            peak, stack = run((i for a, b in ranges for i in range(a, b)), 0.0)
+            total += peak
+            left += stack
+        return int(max(total, run(sorted(top), left)[0]))
 
     # -- storage in the project ------------------------------------------------------
     def to_arrays(self):

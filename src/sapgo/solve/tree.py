@@ -30,11 +30,12 @@ FACTOR_FILE = "tree_factor.bin"
 DEFAULT_TREE_MEMORY = 1 << 30
 
 
-def tree_budget(opts):
-    """Bytes the tree solver may hold in core (``opts.memory`` or the default)."""
+def tree_budget(opts, held=0):
+    """Bytes the tree solver may hold in core: ``opts.memory`` or the default, less the
+    ``held`` bytes of records that the run keeps in core (:func:`sapgo.adjust._hold_records`)."""
     from ..extsort import parse_memory
 
-    return DEFAULT_TREE_MEMORY if opts.memory is None else parse_memory(opts.memory)
+    return (DEFAULT_TREE_MEMORY if opts.memory is None else parse_memory(opts.memory)) - held
 
 
 def check_tree_memory(tree, k, opts, path):
@@ -42,7 +43,7 @@ def check_tree_memory(tree, k, opts, path):
     with the figures and the advice."""
     from ..errors import SapgoError
 
-    need = tree.peak_front_bytes(k)
+    need = tree.peak_front_bytes(k)   # one worker: the least the tree needs
     budget = tree_budget(opts)
     if need > budget:
         f = tree.figures(k)
@@ -88,11 +89,11 @@ class _Fronts:
         return np.ascontiguousarray(np.where(obs_active, loc, -1))
 
 
-def parallel_plan(tree, k, workers):
+def parallel_plan(tree, k, workers, share=0.5):
     """Split the tree for ``workers`` threads: disjoint subtrees (as node ranges ``(first,
     last + 1)``) dealt to the workers largest first (by flops) and the *top* nodes above
     them, factored afterwards by all threads' BLAS. Subtrees are split until none holds more
-    than half a worker's share. Returns ``(per_worker, top)``."""
+    than ``share`` of a worker's share. Returns ``(per_worker, top)``."""
     m = k * (tree.hi - tree.lo).astype(np.float64)
     f = k * np.diff(tree.bptr).astype(np.float64)
     sub = m ** 3 / 3 + m * m * f + m * f * f + 1e6   # (a node's fixed cost in flops)
@@ -109,7 +110,7 @@ def parallel_plan(tree, k, workers):
     parts, top = list(roots), []
     while parts:
         j = max(parts, key=lambda x: sub[x])
-        if sub[j] <= total / (2 * workers) or not children[j]:
+        if sub[j] <= share * total / workers or not children[j]:
             break
         parts.remove(j)
         top.append(j)
@@ -123,12 +124,30 @@ def parallel_plan(tree, k, workers):
     return [sorted(x) for x in per], sorted(top)
 
 
+def work_plan(tree, k, opts, threads=None, held=0):
+    """The plan of :func:`parallel_plan` for ``threads`` workers (default numba's thread
+    count) whose fronts fit the memory budget side by side (subtrees split smaller, the
+    large fronts near the root left to the top, until they do), else one worker. Returns
+    ``(per_worker, top, bytes)`` with the bytes of fronts and updates it holds at its
+    peak (:meth:`~sapgo.solve.partition.Tree.peak_front_bytes`)."""
+    import numba
+
+    budget = tree_budget(opts, held)
+    for share in (0.5, 0.25, 0.125, 0.0625):   # smaller subtrees, more nodes on top
+        per, top = parallel_plan(tree, k, threads or numba.get_num_threads(), share)
+        need = tree.peak_front_bytes(k, (per, top))
+        if len(per) < 2 or need <= budget:
+            return per, top, need
+    return [[(0, tree.n_nodes)]], [], tree.peak_front_bytes(k)
+
+
 def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capture=None):
     """Build and factor the reduced normals on the tree and solve them.
 
     Independent subtrees are built and factored on ``threads`` threads (default: numba's
     thread count) with single-threaded BLAS each, the nodes above them afterwards with all
-    threads in BLAS (:func:`parallel_plan`). The factor is kept in core when it fits the
+    threads in BLAS (:func:`parallel_plan`; one worker when the subtrees' fronts side by
+    side would not fit the memory budget, :func:`work_plan`). The factor is kept in core when it fits the
     memory budget beside the fronts (:func:`tree_budget`), else in ``tree_factor.bin``;
     either way it stays with ``work.tree_factor`` for the precision pass.
 
@@ -142,8 +161,6 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    import numba
-
     from ..adjust import _progress
     from ..blas import blas_limits
     from .fronts import FactorFile, factor_layout
@@ -156,11 +173,10 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
         work.tree_factor = None
     layout = factor_layout(tree, k)
     factor_bytes = 8 * int((layout[:, 0] ** 2 + layout[:, 0] * layout[:, 1]).sum())
-    in_core = factor_bytes + tree.peak_front_bytes(k) <= tree_budget(opts)
+    per, top, need = work_plan(tree, k, opts, threads, blk.held)
+    in_core = factor_bytes + need <= tree_budget(opts, blk.held)
     file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout)
     solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file)
-    nthreads = threads or numba.get_num_threads()
-    per, top = parallel_plan(tree, k, nthreads)
     diags = [np.zeros((n, k)) if lam > 0.0 else None for _ in per]
     seconds = np.zeros(len(per) + 1)
     with _progress(opts.progress, p.n_points, "build") as bar:
@@ -312,12 +328,11 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
         finally:
             fronts.leave()
 
-    import numba
     from concurrent.futures import ThreadPoolExecutor
 
     from ..blas import blas_limits
 
-    per, top = parallel_plan(tree, k, numba.get_num_threads())
+    per, top, _ = work_plan(tree, k, opts, held=blk.held)
     if len(per) < 2:
         solver.inverse(on_node)
         return var
