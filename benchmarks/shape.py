@@ -118,7 +118,8 @@ def child_cholmod(path, repeat=3):
     import scipy.sparse as sp
     from sksparse.cholmod import analyze
 
-    from sapgo.adjust import Work, _load_block, work_path
+    from sapgo.adjust import _load_block
+    from sapgo.work import Work, work_path
     from sapgo.ordering import order_project
     from sapgo.project import Project
     from sapgo.solve.tree import tree_step

@@ -8,7 +8,7 @@ The matrices are real reduced normal equations: blocks of a fixed number of phot
 generated with 3 to 49 strips (band width 8 to 100 stations after ordering across the strips),
 and their band rows are built by sapgo's own ``build`` pass. On each matrix, in one run:
 
-- **sapgo in core**: ``sapgo.bandsolve.cholesky_banded`` on LAPACK's lower band storage (the
+- **sapgo in core**: ``sapgo.solve.band.cholesky_banded`` on LAPACK's lower band storage (the
   drop-in; includes its copies in and out), checked against LAPACK's factor to 1e-8 relative;
 - **sapgo out of core**: ``solve_out_of_core`` on the band rows in direct-access files (factor,
   forward and back substitution, ``chunk_rows=256``), against the same driver in core (band
@@ -44,8 +44,9 @@ import scipy.sparse.linalg
 from threadpoolctl import threadpool_limits
 
 import sapgo
-from sapgo.adjust import Options, Work, _load_block, build
-from sapgo.bandsolve import (  # the private pieces time the kernel without its copies
+from sapgo.adjust import Options, _load_block, build
+from sapgo.work import Work
+from sapgo.solve.band import (  # the private pieces time the kernel without its copies
     _factor_range,
     _skewed,
     band_to_dense,

@@ -208,7 +208,7 @@ def test_planted_blunders_are_recorded_and_survive_ordering(tmp_path):
 
 
 def test_robust_weights():
-    from sapgo.adjust import robust_weights
+    from sapgo.quality import robust_weights
 
     res = np.array([[0.005, 0.0], [0.0, 0.030], [0.06, 0.08]])  # 5, 30, 100 um
     np.testing.assert_allclose(robust_weights(res, sapgo.Options()), 1.0)
@@ -226,7 +226,7 @@ def test_point_precision_equals_the_dense_inverse(small_block):
     densely (1e-8 relative)."""
     import dataclasses
 
-    from sapgo.adjust import work_path
+    from sapgo.work import work_path
     from sapgo.rawfile import RawArray
 
     summary = sapgo.adjust(small_block, dataclasses.replace(TIGHT, keep_scratch=True))
@@ -363,7 +363,7 @@ def test_reliability_formulas():
 
 def test_standardised_residuals_equal_the_pseudo_inverse_form():
     """sqrt(v' R^+ v) for full-rank and rank-1 redundancy blocks, and robust weights from it."""
-    from sapgo.adjust import robust_weights, standardised_residuals
+    from sapgo.quality import robust_weights, standardised_residuals
 
     rng = np.random.default_rng(5)
     m = rng.normal(size=(30, 2, 2))

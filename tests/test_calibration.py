@@ -12,7 +12,7 @@ from conftest import assert_one_line_error, read_records, rewrite, run_cli
 
 import naive
 import sapgo
-from sapgo.bandsolve import (
+from sapgo.solve.band import (
     BandSolver,
     BorderPivotError,
     border_back_substitute,
@@ -239,9 +239,7 @@ def test_precision_with_self_calibration_equals_the_dense_inverse(miscalibrated)
     redundancy numbers equal those of the inverse of the full normal matrix over stations,
     points and camera parameters, computed densely (the border's rank-g term X S^-1 X' in
     the stations, V' S^-1 V in the points, and E, X, V in every observation)."""
-    import dataclasses
-
-    from sapgo.adjust import work_path
+    from sapgo.work import work_path
     from sapgo.rawfile import RawArray
 
     calib = ("f", "x0", "y0", "k1", "p1", "p2")

@@ -5,8 +5,9 @@ import pytest
 
 import naive
 from conftest import read_records, rewrite
-from sapgo.adjust import Options, Work, _load_block, build
-from sapgo.bandsolve import band_to_dense
+from sapgo.adjust import Options, _load_block, build
+from sapgo.work import Work
+from sapgo.solve.band import band_to_dense
 from sapgo.ordering import order_project
 from sapgo.project import (
     CONTROL_MASK,

@@ -18,7 +18,7 @@ import pytest
 
 import sapgo
 from conftest import digest, read_records
-from sapgo.adjust import work_path
+from sapgo.work import work_path
 from sapgo.project import Project
 
 RUN = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "

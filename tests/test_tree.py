@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from sapgo.bandsolve import PivotError
+from sapgo.solve.band import PivotError
 from sapgo.solve.fronts import TreeSolver
 from sapgo.solve.partition import best_tree, check_separators, nested_dissection, \
     supernodal_tree

@@ -14,7 +14,7 @@ import pytest
 
 import sapgo
 from conftest import assert_one_line_error, read_records, rewrite, run_cli
-from sapgo.adjust import work_path
+from sapgo.work import work_path
 from sapgo.project import Project
 from test_adjust import TIGHT, adjusted_by_id, dense_reference
 

@@ -27,7 +27,6 @@ import json
 import math
 import os
 import shutil
-import signal
 import sys
 import time
 import uuid
@@ -37,13 +36,11 @@ import numba
 import numpy as np
 
 from . import normals
-from .bandsolve import (
+from .solve.band import (
     PIVOT_TOLERANCE,
     BandSolver,
     BorderPivotError,
     PivotError,
-    border_back_substitute,
-    covariance_blocks,
 )
 from .errors import DatumDefectError, ProjectFormatError, SapgoError, SingularNormalsError
 from .geometry import (
@@ -61,13 +58,11 @@ from .normals import (
     build_points_parallel,
     control_rotations,
     point_costs,
-    point_sigmas,
     station_diagonal,
     update_points,
 )
 from .ordering import order_project
 from .extsort import parse_memory
-from .rawfile import RawArray
 from .project import (
     STATUS_REJECTED,
     CONTROL_MASK,
@@ -82,10 +77,11 @@ from .report import (
     precision_summary,
     noncentrality,
     reliability_statistics,
-    station_correlations,
     truth_statistics,
 )
+from .quality import quality_sweep, reweight
 from .stripcmp import StripComparison
+from .work import Work, _fault, _identity, work_path
 from .frames import frame_info
 from .validate import check_values
 
@@ -93,7 +89,6 @@ ARCSEC = math.pi / (180 * 3600)
 #: Solution methods (:attr:`Options.method`).
 METHODS = ("auto", "gauss-newton", "levenberg-marquardt")
 #: Columns of the observations' quality (work file ``quality.bin``, ``/solution/obs_quality``).
-QUALITY_COLUMNS = ("r_x", "r_y", "r_xy", "w_x", "w_y", "t", "weight")
 #: At most this many ids of excluded points or stations are listed in a report.
 LISTED_IDS = 1000
 
@@ -220,27 +215,6 @@ def _progress(enabled, total, desc):
 
 def _wrap(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
-
-
-def work_path(path):
-    """The work directory of a run on ``path``: ``NAME.h5.work`` beside the project."""
-    path = Path(path)
-    return path.with_name(path.name + ".work")
-
-
-#: Fault injection for the crash-safety tests: ``SAPGO_FAULT=phase:iteration`` kills the
-#: process with SIGKILL when it reaches that point (phases: build, solve, update,
-#: checkpoint, commit-copy, commit-write, commit-replace; iteration ``*`` for any).
-FAULT_ENV = "SAPGO_FAULT"
-
-
-def _fault(phase, iteration=0):
-    spec = os.environ.get(FAULT_ENV)
-    if not spec:
-        return
-    want_phase, _, want_it = spec.partition(":")
-    if want_phase == phase and want_it in ("*", "", str(iteration)):
-        os.kill(os.getpid(), signal.SIGKILL)
 
 
 class _PriorCursor:
@@ -584,56 +558,12 @@ def _point_error(p, chunk, j, status, blk):
     )
 
 
-def standardised_residuals(residuals_mm, redundancy):
-    """The residual of each observation scaled to the observation's own size,
-    ``sqrt(v' R^+ v)`` (mm), ``R`` its 2 x 2 block of the redundancy matrix (columns r_x, r_y,
-    r_xy of ``redundancy``; pseudo-inverse where R has rank 1). A good observation's is
-    about sigma per coordinate whatever its redundancy, a blunder's about the blunder's size
-    times sqrt(r); 0 where R is 0 (a blunder there cannot be seen)."""
-    vx, vy = residuals_mm[:, 0], residuals_mm[:, 1]
-    rx, ry, rxy = redundancy[:, 0], redundancy[:, 1], redundancy[:, 2]
-    det = rx * ry - rxy * rxy
-    tr = rx + ry
-    full = det > 1e-8 * tr * tr
-    with np.errstate(invalid="ignore", divide="ignore"):
-        s2 = np.where(full, (ry * vx * vx - 2 * rxy * vx * vy + rx * vy * vy) / det,
-                      (rx * vx * vx + 2 * rxy * vx * vy + ry * vy * vy) / (tr * tr))
-    return np.sqrt(np.where(tr > 1e-12, np.maximum(s2, 0.0), 0.0))
-
-
-def robust_weights(residuals_mm, opts: Options, redundancy=None):
-    """Weights of the image observations from their previous residuals (n x 2, mm): Huber
-    ``min(1, k / r)`` or Cauchy ``1 / (1 + (r / k)^2)``, ``k`` the threshold (um) and ``r``
-    the residual's length in um or, given the observations' ``redundancy`` (n x 3: r_x, r_y,
-    r_xy), its :func:`standardised_residuals`; all ones without robust estimation."""
-    if opts.robust is None or not len(residuals_mm):
-        return np.ones(len(residuals_mm))
-    if redundancy is None:
-        r = 1000.0 * np.hypot(residuals_mm[:, 0], residuals_mm[:, 1])
-    else:
-        r = 1000.0 * standardised_residuals(residuals_mm, redundancy)
-    k = opts.robust_threshold_um
-    if opts.robust == "huber":
-        return np.where(r <= k, 1.0, k / np.maximum(r, 1e-300))
-    return 1.0 / (1.0 + (r / k) ** 2)
-
-
-def _reweight(c, work, opts):
-    """Robust estimation, once the least-squares phase has given the redundancy numbers
-    (``work.robust_r``): the chunk's observation sigmas divided by sqrt(weight)."""
-    if opts.robust is not None and work.robust_r is not None and c.o1 > c.o0:
-        w = robust_weights(work.res_current[c.o0:c.o1], opts, work.robust_r[c.o0:c.o1])
-        c.obs_sigma = np.ascontiguousarray(c.obs_sigma / np.sqrt(np.maximum(w, 1e-12)))
-        return w
-    return None
-
-
 def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, sink=None,
           lam=0.0):
     """Stream the points and hand over the reduced normal band rows as they are completed.
 
     Completed rows go to ``sink(band_rows, rhs_rows)`` in station order (the adjustment feeds
-    them straight to the :class:`~sapgo.bandsolve.BandSolver`). Without a sink they are
+    them straight to the :class:`~sapgo.solve.band.BandSolver`). Without a sink they are
     written into the files ``work.factor`` and ``work.y`` as they are, for tests and
     benchmarks that look at the band rows themselves. ``xyz`` is the array of current point
     coordinates (rows in point order; default ``work.xyz_current``). ``lam > 0``:
@@ -700,7 +630,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
         for a, b in p.chunks("points", opts.chunk_points):
             c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
                            blk.rejected_points)
-            _reweight(c, work, opts)
+            reweight(c, work, opts)
             if lam > 0.0:
                 station_diagonal(c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
                                  c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams, diag)
@@ -766,7 +696,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
         for a, b in p.chunks("points", opts.chunk_points):
             c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
                            blk.rejected_points)
-            w = _reweight(c, work, opts)
+            w = reweight(c, work, opts)
             if w is not None:
                 stats_robust[0] += int((w < 1.0).sum())
                 stats_robust[1] += int((w < 0.1).sum())
@@ -844,133 +774,6 @@ def _pivot_error(exc: PivotError, blk: _Block, p: Project):
     )
 
 
-class Work:
-    """The work directory of a run: scratch record files and the checkpoint.
-
-    Files: ``factor.bin`` (n x 6 x 6b factor rows, diagonal-first), ``y.bin`` (n x 6, the
-    forward-substituted right-hand side),
-    ``xyz.0.bin`` / ``xyz.1.bin`` (point coordinates, double-buffered), ``residuals.0.bin`` /
-    ``residuals.1.bin`` (vx, vy of every observation), ``eo.K.npy`` (the stations'
-    orientation after iteration K) and ``checkpoint.json`` (the last completed iteration K,
-    its log, timings and the identity of the project). State K uses buffer ``K % 2``.
-    """
-
-    def __init__(self, path, p: Project, band_width, create, block=6, n_border=0):
-        self.dir = Path(path)
-        self.n_st, self.n_pt, self.n_obs = p.n_stations, p.n_points, p.n_observations
-        self.band_width = band_width
-        mode = "w" if create else "r+"
-        if create:
-            if self.dir.exists():
-                shutil.rmtree(self.dir)
-            self.dir.mkdir(parents=True)
-        bw = band_width
-        k = self.block = block
-        self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=mode)
-        self.y = RawArray(self.dir / "y.bin", (self.n_st, k), mode=mode)
-        # self-calibration: the border columns of the band rows, then W = U'^-1 B
-        self.border = (RawArray(self.dir / "border.bin", (self.n_st, k, n_border), mode=mode)
-                       if n_border else None)
-        self.xyz = [RawArray(self.dir / f"xyz.{i}.bin", (self.n_pt, 3), mode=mode)
-                    for i in (0, 1)]
-        self.res = [RawArray(self.dir / f"residuals.{i}.bin", (self.n_obs, 2), mode=mode)
-                    for i in (0, 1)]
-        self.state = 0  # the completed iteration whose buffers are current
-        #: the partition tree's factor of the last factorisation
-        #: (:class:`sapgo.solve.fronts.FactorFile`, in core or in ``tree_factor.bin``)
-        self.tree_factor = None
-        # robust estimation: the observations' redundancy (r_x, r_y, r_xy) of the
-        # least-squares solution, once that phase is over
-        self.robust_r = None
-        if not create and (self.dir / "robust_r.bin").exists():
-            self.robust_r = RawArray(self.dir / "robust_r.bin", (self.n_obs, 3), mode="r")
-
-    @property
-    def xyz_current(self):
-        return self.xyz[self.state % 2]
-
-    @property
-    def xyz_next(self):
-        return self.xyz[(self.state + 1) % 2]
-
-    @property
-    def res_current(self):
-        return self.res[self.state % 2]
-
-    @property
-    def res_next(self):
-        return self.res[(self.state + 1) % 2]
-
-    def initialise(self, p: Project, chunk):
-        for a, b in p.chunks("points", chunk):
-            self.xyz[0][a:b] = p.read_field("points", "xyz", a, b)
-
-    def save(self, iteration, eo, record, cams=None):
-        """Make iteration ``iteration`` the checkpoint (its buffers must be complete);
-        ``cams``: the camera rows when the photos' intrinsics are adjusted."""
-        eo_file = self.dir / f"eo.{iteration}.npy"
-        tmp = self.dir / f"eo.{iteration}.npy.tmp"
-        with open(tmp, "wb") as f:
-            np.save(f, eo)
-        os.replace(tmp, eo_file)
-        record = dict(record, iteration=iteration, eo_file=eo_file.name)
-        if cams is not None:
-            cams_file = self.dir / f"cams.{iteration}.npy"
-            with open(self.dir / f"cams.{iteration}.npy.tmp", "wb") as f:
-                np.save(f, cams)
-            os.replace(self.dir / f"cams.{iteration}.npy.tmp", cams_file)
-            record["cams_file"] = cams_file.name
-        _fault("checkpoint", iteration)
-        tmp = self.dir / "checkpoint.json.tmp"
-        tmp.write_text(json.dumps(record))
-        os.replace(tmp, self.dir / "checkpoint.json")
-        self.state = iteration
-        keep = {eo_file.name, record.get("cams_file")}
-        for old in [*self.dir.glob("eo.*.npy"), *self.dir.glob("cams.*.npy")]:
-            if old.name not in keep:
-                old.unlink(missing_ok=True)
-
-    @staticmethod
-    def load_checkpoint(path):
-        """The checkpoint record of an interrupted run in ``path``, or None."""
-        f = Path(path) / "checkpoint.json"
-        try:
-            record = json.loads(f.read_text())
-            eo = np.load(Path(path) / record["eo_file"])
-            if record.get("cams_file"):
-                record["cams"] = np.load(Path(path) / record["cams_file"])
-        except (OSError, ValueError, KeyError):
-            return None
-        record["eo"] = eo
-        return record
-
-    def start_robust(self, quality, chunk):
-        """Keep the least-squares redundancy numbers for the robust phase."""
-        tmp = self.dir / "robust_r.bin.tmp"
-        r = RawArray(tmp, (self.n_obs, 3), mode="w")
-        for a in range(0, self.n_obs, chunk):
-            r[a:a + chunk] = quality[a:a + chunk][:, :3]
-        r.close()
-        os.replace(tmp, self.dir / "robust_r.bin")  # whole or absent after a kill
-        self.robust_r = RawArray(self.dir / "robust_r.bin", (self.n_obs, 3), mode="r")
-
-    def close(self):
-        for a in [self.factor, self.y, *self.xyz, *self.res]:
-            a.close()
-        if self.border is not None:
-            self.border.close()
-        if self.robust_r is not None:
-            self.robust_r.close()
-        if self.tree_factor is not None:
-            self.tree_factor.close()
-            self.tree_factor = None
-
-
-def _identity(p: Project, band_width):
-    return {"project_uuid": p.attr("uuid", ""), "stations": p.n_stations,
-            "points": p.n_points, "observations": p.n_observations, "band_width": band_width}
-
-
 def _accepted(log):
     """The log entries of accepted steps (Levenberg-Marquardt logs rejected ones too)."""
     return [r for r in log if r.get("step", "accepted") == "accepted"]
@@ -984,7 +787,7 @@ def _cost(p: Project, work, blk: _Block, opts: Options):
     for a, b in p.chunks("points", opts.chunk_points):
         c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
                        blk.rejected_points)
-        _reweight(c, work, opts)
+        reweight(c, work, opts)
         img, ctl = point_costs(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
                                c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active,
                                blk.eo, blk.camera, blk.cams, CTRL_MASK)
@@ -1302,7 +1105,7 @@ def adjust(path, options: Options | None = None) -> Summary:
                 if not converged:
                     _iterate(p, work, blk, opts, timings, log, run)
                 t0 = time.perf_counter()
-                sig, _, quality = _quality_sweep(p, work, blk, opts,
+                sig, _, quality = _precision(p, work, blk, opts,
                                                  _accepted(log)[-1]["sigma0"])
                 # reweighting converges linearly: it stops when the corrections are below
                 # a fraction of the least-squares standard deviations
@@ -1338,6 +1141,14 @@ def adjust(path, options: Options | None = None) -> Summary:
     return summary
 
 
+def _precision(p: Project, work, blk: _Block, opts: Options, sigma0, correlations=None):
+    """:func:`sapgo.quality.quality_sweep` from the undamped factor of the current state
+    (factored once more first when the last one was damped or rejected)."""
+    if blk.refactor:
+        _undamped_factor(p, work, blk, opts)
+    return quality_sweep(p, work, blk, opts, sigma0, correlations)
+
+
 def _undamped_factor(p: Project, work, blk: _Block, opts: Options):
     """Build and factor the normals of the current state without damping (the work files'
     factor, ``y`` and border), for the precision sweep after Levenberg-Marquardt steps."""
@@ -1345,141 +1156,6 @@ def _undamped_factor(p: Project, work, blk: _Block, opts: Options):
     if step["border"] is not None:
         blk.border_cov = step["border_cov"]
     blk.refactor = False
-
-
-def _quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
-    """Precision and observation quality from the last iteration's factor.
-
-    The stations' cofactor blocks by Takahashi's recurrence streamed backwards (the blocks to
-    ``cov.bin``; ``station_sigma`` in core, 48 bytes a station), and, in step with it, the
-    points whose first station is in the block just finished (points are sorted by it,
-    excluded ones last): their standard deviations (``point_sigma.bin``) and their
-    observations' redundancy numbers and normalised residuals (``quality.bin``, columns
-    ``QUALITY_COLUMNS``: r_x, r_y and r_xy of the observation's block of the redundancy
-    matrix, w_x, w_y, the 2-D statistic ``t = sqrt(v' Q_vv^+ v) / sigma0`` and the robust
-    weight). Correlations of a station's or a point's parameters above the threshold go to
-    ``correlations`` (a :class:`~sapgo.report.HighCorrelations`) when given. Returns
-    ``(station_sigma, point_sigma file, quality file)``."""
-    n_st = len(blk.station_ids)
-    if blk.refactor:
-        _undamped_factor(p_read, work, blk, opts)
-    if blk.tree is not None:
-        return _quality_tree(p_read, work, blk, opts, sigma0, correlations)
-    first = np.zeros(n_st + 1, np.int64)
-    for a, b in p_read.chunks("points", opts.chunk_points):
-        sm = p_read.read_field("points", "station_min", a, b)
-        act = p_read.read_field("points", "status", a, b) == STATUS_ACTIVE
-        first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
-    np.cumsum(first, out=first)
-    ng = blk.n_border
-    cal = sig_b = xb_ds = None
-    if ng:  # self-calibration: X = M^-1 B (its own file: W stays, the sweep can run again)
-        xb_ds = RawArray(work.dir / "xborder.bin", (n_st, blk.npar, ng), mode="w")
-        border_back_substitute(work.factor, work.border, n_st, blk.band_width, opts.chunk_rows,
-                               out=xb_ds)
-        cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
-    psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
-    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
-                       mode="w")
-
-    def points_of(start, stop, zb, base):
-        p0, p1 = int(first[start]), int(first[stop])
-        xw = (np.ascontiguousarray(xb_ds[start:min(n_st, stop + blk.band_width)],
-                                   dtype=np.float64) if ng else None)
-        for a in range(p0, p1, opts.chunk_points):
-            _points_quality(p_read, work, blk, opts, a, min(p1, a + opts.chunk_points), sigma0,
-                            psig, quality, correlations, zb, base, None, xw, start, cal, sig_b)
-
-    k = blk.npar
-    cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
-    try:
-        var = covariance_blocks(work.factor, n_st, blk.band_width, opts.chunk_rows, out=cov,
-                                on_block=points_of)
-        for a in range(0, n_st, opts.chunk_points) if ng else ():  # + X S^-1 X'
-            b = min(n_st, a + opts.chunk_points)
-            x = np.asarray(xb_ds[a:b], dtype=np.float64)
-            blocks = cov[a:b] + np.einsum("iag,gh,ibh->iab", x, sig_b, x)
-            cov[a:b] = blocks
-            var[a:b] = np.diagonal(blocks, axis1=1, axis2=2)
-        if correlations is not None:
-            _station_correlations(cov, blk, opts, correlations)
-    finally:
-        cov.close()
-        if xb_ds is not None:
-            xb_ds.close()
-    return _station_sigma(blk, sigma0, var), psig, quality
-
-
-def _station_correlations(cov, blk, opts, correlations):
-    """Correlations of each station's parameters from its cofactor blocks (``cov``) into
-    ``correlations``, chunk by chunk."""
-    n_st = len(blk.station_ids)
-    for a in range(0, n_st, opts.chunk_points):
-        b = min(n_st, a + opts.chunk_points)
-        rho = station_correlations(cov[a:b][:, :6, :6])
-        rho[~blk.station_active[a:b]] = np.nan
-        correlations.add("stations", blk.station_ids[a:b], rho)
-
-
-def _points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correlations,
-                    zb, base, stations=None, xw=None, xlo=0, cal=None, sig_b=None, lock=None):
-    """Points ``a .. b`` (a chunk): their standard deviations into ``psig`` and their
-    observations' quality into ``quality`` (:func:`sapgo.normals.point_sigmas` with the
-    stations' cofactors ``zb`` from ``base``). ``stations(obs_station, obs_active)`` gives
-    the observations' stations as indices into ``zb``'s stations with their orientation
-    and camera (the tree numbers them by their place in a front); default the logical
-    stations."""
-    c = PointChunk(p_read, a, b, work.xyz_current[a:b], blk.camera, blk.cam_sigma, blk.frame,
-                   blk.rejected)
-    weight = _reweight(c, work, opts)
-    out = np.empty((b - a, 6))
-    out_r = np.empty((c.o1 - c.o0, 3))
-    out_w = np.empty((c.o1 - c.o0, 3))
-    st, eo, camera = ((c.obs_station, blk.eo, blk.camera) if stations is None else
-                      stations(c.obs_station, c.obs_active))
-    point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, st,
-                 c.obs_xy, c.obs_sigma, c.obs_active, eo, camera, blk.cams, CTRL_MASK,
-                 c.max_rays, zb, base, np.ascontiguousarray(work.res_current[c.o0:c.o1]), out,
-                 out_r, out_w, blk.npar, cal, xw, xlo, sig_b)
-    psig[a:b] = sigma0 * out[:, :3]
-    if weight is None:
-        weight = np.ones(c.o1 - c.o0)
-    quality[c.o0:c.o1] = np.concatenate(
-        [out_r, out_w / sigma0, np.where(c.obs_active, weight, 0.0)[:, None]], axis=1)
-    if correlations is not None:
-        rho = np.where((c.active == 0)[:, None], out[:, 3:], np.nan)
-        ids = p_read.read_field("points", "id", a, b)
-        if lock is None:
-            correlations.add("points", ids, rho)
-        else:
-            with lock:
-                correlations.add("points", ids, rho)
-
-
-def _station_sigma(blk, sigma0, var):
-    station_sigma = sigma0 * np.sqrt(np.maximum(var[:, :6], 0.0))
-    station_sigma[~blk.station_active] = 0.0
-    return station_sigma
-
-
-def _quality_tree(p_read, work, blk, opts, sigma0, correlations=None):
-    """:func:`_quality_sweep` on the partition tree (:func:`sapgo.solve.tree.tree_quality`:
-    the selected inversion top-down, the points node by node)."""
-    from .solve.tree import tree_quality
-
-    n_st, k = len(blk.station_ids), blk.npar
-    psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
-    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
-                       mode="w")
-    cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
-    try:
-        var = tree_quality(p_read, work, blk, opts, blk.tree, sigma0, psig, quality, cov,
-                           correlations)
-        if correlations is not None:
-            _station_correlations(cov, blk, opts, correlations)
-    finally:
-        cov.close()
-    return _station_sigma(blk, sigma0, var), psig, quality
 
 
 def _snoop(p, work, blk, opts, timings, log, run, converged):
@@ -1492,7 +1168,7 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
     crit = float(np.sqrt(chi2_isf(opts.snooping_alpha, 2)))
     while len(blk.rejected) < opts.max_rejections:
         t0 = time.perf_counter()
-        _, _, quality = _quality_sweep(p, work, blk, opts, _accepted(log)[-1]["sigma0"])
+        _, _, quality = _precision(p, work, blk, opts, _accepted(log)[-1]["sigma0"])
         _note_planted(p, blk, quality, run)
         best, worst = 0.0, -1
         for a, b in p.chunks("observations", opts.chunk_points):
@@ -1635,7 +1311,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         psig = quality = None
         correlations = reliability = None
     else:
-        station_sigma, psig, quality = _quality_sweep(p_read, work, blk, opts,
+        station_sigma, psig, quality = _precision(p_read, work, blk, opts,
                                                       last["sigma0"], correlations)
         _note_planted(p_read, blk, quality, run)
         reliability = reliability_statistics(opts.snooping_alpha)

@@ -139,7 +139,7 @@ def _chol3(nn, lo):
     """Cholesky factor ``lo`` (lower) of the 3x3 SPD matrix ``nn``; False if not SPD.
 
     A pivot counts as zero at or below 1e-13 of its own diagonal element (scale-free, as in
-    :mod:`sapgo.bandsolve`).
+    :mod:`sapgo.solve.band`).
     """
     for i in range(3):
         for j in range(i + 1):
@@ -569,7 +569,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
         Q_pp = G + G (sum_q sum_r Nbar_q' Z[s_q, s_r] Nbar_r) G,    G = N_pp^-1,
 
     ``Z`` the stations' cofactors inside the band (``zb[k - base, j - base]``, the window of
-    :func:`sapgo.bandsolve.covariance_blocks`); fixed components and excluded points 0,
+    :func:`sapgo.solve.band.covariance_blocks`); fixed components and excluded points 0,
     singular points nan. ``out_r`` (observations x 3): redundancy numbers ``r = q_vv / sigma^2``
     of x and y and the off-diagonal ``q_xy / sigma^2`` of the observation's 2 x 2 block of the
     redundancy matrix, with ``Q_vv = sigma^2 I - [A B] Q [A B]'``

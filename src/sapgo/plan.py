@@ -222,7 +222,7 @@ _FLUSH_BYTES = 64 << 20
 def solve_time(n_units, band_width, params=6, seconds=1.0, memory=400e6):
     """The time of one solve of ``n_units`` units of ``params`` parameters at a band width
     (blocks), measured on this machine as ``sapgo adjust`` runs the solver: a random
-    positive definite band of that shape fed to :class:`sapgo.bandsolve.BandSolver` in
+    positive definite band of that shape fed to :class:`sapgo.solve.band.BandSolver` in
     segments of 256 stations, its factor rows written to a work file and read back by the
     back substitution (the solver's own time, the fastest of several runs, in about
     ``seconds`` in all), each run with caches as cold as after adjust's build.
@@ -232,7 +232,7 @@ def solve_time(n_units, band_width, params=6, seconds=1.0, memory=400e6):
     the largest size ``n1`` that is, and its time extrapolated in proportion to the band
     flops (:func:`band_flops`; at that size the fixed costs are negligible). Returns
     ``{"predicted_s", "rate_flops", "timed_units", "extrapolated"}``."""
-    from .bandsolve import BandSolver
+    from .solve.band import BandSolver
 
     b = max(1, int(band_width))
     n_units = int(n_units)

@@ -150,7 +150,7 @@ SOLUTION_LAYOUT = {
     "residuals": ("observations", (2,)),  # vx, vy (mm), adjusted minus observed
     "station_sigma": ("stations", (6,)),  # a-posteriori standard deviations (rad x3, m x3)
     "point_sigma": ("points", (3,)),  # a-posteriori standard deviations (m)
-    # per observation r_x, r_y, r_xy, w_x, w_y, t, robust weight (adjust.QUALITY_COLUMNS)
+    # per observation r_x, r_y, r_xy, w_x, w_y, t, robust weight (quality.QUALITY_COLUMNS)
     "obs_quality": ("observations", (7,)),
     # corrections to the camera rows (geometry.CAMERA_FIELDS: f, x0, y0, k1, k2, k3, p1, p2)
     # when the photos' own intrinsics are adjusted; zeros otherwise

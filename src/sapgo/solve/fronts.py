@@ -42,7 +42,7 @@ import numpy as np
 import scipy.linalg
 from numba import njit
 
-from ..bandsolve import PIVOT_TOLERANCE, PivotError
+from .band import PIVOT_TOLERANCE, PivotError
 from ..blas import FNS, L, N, R, T, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
 from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _chol3, _point_system,
                        _ray_terms, _solve3, _workspace)

@@ -76,7 +76,7 @@ class _Fronts:
 
     def numbered(self, obs_station, obs_active):
         """The observations' stations, orientations and cameras by place in the front (for
-        :func:`sapgo.adjust._points_quality`; inactive observations at place 0, never looked
+        :func:`sapgo.quality.points_quality`; inactive observations at place 0, never looked
         at)."""
         st = self.local(obs_station, obs_active)
         st[st < 0] = 0
@@ -154,7 +154,7 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     Returns ``(delta, diag, y_norm2, seconds)``: the stations' corrections (n x k, zero
     outside the tree), the stations' undamped diagonal (with ``lam > 0``, else None),
     ``y'y`` (for the Levenberg-Marquardt gain ratio) and the seconds spent factoring and
-    solving (the rest is the build). Raises :class:`~sapgo.bandsolve.PivotError` (logical
+    solving (the rest is the build). Raises :class:`~sapgo.solve.band.PivotError` (logical
     station, parameter) when the normals are not positive definite. ``capture(i, front, rhs)``
     (benchmarks) sees each node's front with its own points, priors and damping, before the
     children's updates are added: their sum over the nodes is the reduced normal matrix.
@@ -211,7 +211,9 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
     """Build and eliminate the nodes of ``ranges`` (``(first, stop)`` node ranges, each in
     post-order) from their points, read chunk by chunk; ``diag`` receives the stations'
     undamped diagonal of these points; the solver's seconds go to ``seconds[slot]``."""
-    from ..adjust import _PriorCursor, _fault, _point_error, _prior_residual, _reweight
+    from ..adjust import _PriorCursor, _point_error, _prior_residual
+    from ..quality import reweight
+    from ..work import _fault
 
     k = blk.npar
     fronts = _Fronts(tree, blk, k)
@@ -251,7 +253,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
             b0 = min(p1, a0 + opts.chunk_points)
             c = PointChunk(p, a0, b0, work.xyz_current[a0:b0], blk.camera, blk.cam_sigma,
                            blk.frame, blk.rejected, blk.rejected_points)
-            _reweight(c, work, opts)
+            reweight(c, work, opts)
             st = np.full(len(c.obs_station), -1, np.int64)
             if diag is not None:
                 station_diagonal(c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
@@ -288,9 +290,9 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
 def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlations):
     """The precision pass on the tree: the selected inversion top-down and, node by node,
     the stations' cofactor blocks (``cov``), the points' standard deviations (``psig``) and
-    their observations' quality (``quality``), as :func:`sapgo.adjust._quality_sweep` does
+    their observations' quality (``quality``), as :func:`sapgo.quality.quality_sweep` does
     along the band. Returns the stations' variances (n x k)."""
-    from ..adjust import _points_quality
+    from ..quality import points_quality
 
     k = blk.npar
     n = len(blk.station_ids)
@@ -322,7 +324,7 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
         zc = z.T   # C order: z is symmetric
         try:
             for a0 in range(p0, p1, opts.chunk_points):
-                _points_quality(p, work, blk, opts, a0, min(p1, a0 + opts.chunk_points),
+                points_quality(p, work, blk, opts, a0, min(p1, a0 + opts.chunk_points),
                                 sigma0, psig, quality, correlations, zc, 0, fronts.numbered,
                                 lock=lock)
         finally:

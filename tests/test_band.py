@@ -6,7 +6,7 @@ import pytest
 import scipy.linalg
 
 from naive import banded_from_dense
-from sapgo.bandsolve import (
+from sapgo.solve.band import (
     BandSolver,
     PivotError,
     band_to_dense,
@@ -164,7 +164,7 @@ def scalar_banded(n, u, seed):
 
 @pytest.mark.parametrize("n, u", [(1, 0), (7, 3), (40, 0), (61, 17), (150, 71), (96, 95)])
 def test_cholesky_banded_is_a_drop_in_for_scipy(n, u):
-    from sapgo.bandsolve import cho_solve_banded, cholesky_banded
+    from sapgo.solve.band import cho_solve_banded, cholesky_banded
 
     a, up, lo = scalar_banded(n, u, seed=n + u)
     rng = np.random.default_rng(1)
@@ -183,7 +183,7 @@ def test_cholesky_banded_is_a_drop_in_for_scipy(n, u):
 
 
 def test_cholesky_banded_names_the_leading_minor_like_scipy():
-    from sapgo.bandsolve import cholesky_banded
+    from sapgo.solve.band import cholesky_banded
 
     _, up, _ = scalar_banded(30, 4, seed=3)
     up[4, 17] = -1.0  # diagonal element 17: the 18th leading minor is not positive definite
@@ -202,7 +202,7 @@ def test_covariance_blocks_equal_the_dense_inverse(step, n, bw):
     """Takahashi's selected inversion from the factor rows, streamed backwards in blocks of
     any size (the window shifted many times for the longer block), gives the diagonal blocks
     of the dense inverse."""
-    from sapgo.bandsolve import covariance_blocks
+    from sapgo.solve.band import covariance_blocks
 
     a = random_block_banded(n, bw, seed=11)
     band = dense_to_band(a, bw)
@@ -220,7 +220,7 @@ def test_covariance_blocks_equal_the_dense_inverse(step, n, bw):
 
 
 def test_covariance_window_holds_the_band_of_the_inverse_for_each_block():
-    from sapgo.bandsolve import covariance_blocks
+    from sapgo.solve.band import covariance_blocks
 
     n, bw = 40, 4
     a = random_block_banded(n, bw, seed=12)
@@ -245,7 +245,7 @@ def test_covariance_window_holds_the_band_of_the_inverse_for_each_block():
 def test_stations_of_nine_parameters(n, bw, chunk_rows):
     """Stations of 9 parameters (orientation and per-photo intrinsics): the solver, fed in
     pieces, the out-of-core path and the selected inversion equal the dense computation."""
-    from sapgo.bandsolve import covariance_blocks
+    from sapgo.solve.band import covariance_blocks
 
     a = random_block_banded(n, bw, seed=5, q=9)
     band = dense_to_band(a, bw, block=9)

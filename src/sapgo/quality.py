@@ -1,0 +1,200 @@
+"""The quality passes of an adjustment: precision and observation quality from the
+factor (DESIGN section 6), and the robust weights they give.
+
+:func:`quality_sweep` streams the stations' cofactor blocks from the band's factor
+(Takahashi's recurrence, :func:`sapgo.solve.band.covariance_blocks`) or the tree's
+(:func:`sapgo.solve.tree.tree_quality`) and, in step with them, the points' standard
+deviations and their observations' redundancy numbers and normalised residuals
+(:func:`points_quality`). The factor must be the undamped one of the current state
+(:func:`sapgo.adjust._precision` sees to it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .normals import CTRL_MASK, PointChunk, point_sigmas
+from .project import STATUS_ACTIVE
+from .rawfile import RawArray
+from .report import station_correlations
+from .solve.band import border_back_substitute, covariance_blocks
+
+#: Columns of the observations' quality file (see :func:`quality_sweep`).
+QUALITY_COLUMNS = ("r_x", "r_y", "r_xy", "w_x", "w_y", "t", "weight")
+
+
+def standardised_residuals(residuals_mm, redundancy):
+    """The residual of each observation scaled to the observation's own size,
+    ``sqrt(v' R^+ v)`` (mm), ``R`` its 2 x 2 block of the redundancy matrix (columns r_x, r_y,
+    r_xy of ``redundancy``; pseudo-inverse where R has rank 1). A good observation's is
+    about sigma per coordinate whatever its redundancy, a blunder's about the blunder's size
+    times sqrt(r); 0 where R is 0 (a blunder there cannot be seen)."""
+    vx, vy = residuals_mm[:, 0], residuals_mm[:, 1]
+    rx, ry, rxy = redundancy[:, 0], redundancy[:, 1], redundancy[:, 2]
+    det = rx * ry - rxy * rxy
+    tr = rx + ry
+    full = det > 1e-8 * tr * tr
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s2 = np.where(full, (ry * vx * vx - 2 * rxy * vx * vy + rx * vy * vy) / det,
+                      (rx * vx * vx + 2 * rxy * vx * vy + ry * vy * vy) / (tr * tr))
+    return np.sqrt(np.where(tr > 1e-12, np.maximum(s2, 0.0), 0.0))
+
+
+def robust_weights(residuals_mm, opts, redundancy=None):
+    """Weights of the image observations from their previous residuals (n x 2, mm): Huber
+    ``min(1, k / r)`` or Cauchy ``1 / (1 + (r / k)^2)``, ``k`` the threshold (um) and ``r``
+    the residual's length in um or, given the observations' ``redundancy`` (n x 3: r_x, r_y,
+    r_xy), its :func:`standardised_residuals`; all ones without robust estimation."""
+    if opts.robust is None or not len(residuals_mm):
+        return np.ones(len(residuals_mm))
+    if redundancy is None:
+        r = 1000.0 * np.hypot(residuals_mm[:, 0], residuals_mm[:, 1])
+    else:
+        r = 1000.0 * standardised_residuals(residuals_mm, redundancy)
+    k = opts.robust_threshold_um
+    if opts.robust == "huber":
+        return np.where(r <= k, 1.0, k / np.maximum(r, 1e-300))
+    return 1.0 / (1.0 + (r / k) ** 2)
+
+
+def reweight(c, work, opts):
+    """Robust estimation, once the least-squares phase has given the redundancy numbers
+    (``work.robust_r``): the chunk's observation sigmas divided by sqrt(weight)."""
+    if opts.robust is not None and work.robust_r is not None and c.o1 > c.o0:
+        w = robust_weights(work.res_current[c.o0:c.o1], opts, work.robust_r[c.o0:c.o1])
+        c.obs_sigma = np.ascontiguousarray(c.obs_sigma / np.sqrt(np.maximum(w, 1e-12)))
+        return w
+    return None
+
+
+def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
+    """Precision and observation quality from the last iteration's factor.
+
+    The stations' cofactor blocks by Takahashi's recurrence streamed backwards (the blocks to
+    ``cov.bin``; ``station_sigma`` in core, 48 bytes a station), and, in step with it, the
+    points whose first station is in the block just finished (points are sorted by it,
+    excluded ones last): their standard deviations (``point_sigma.bin``) and their
+    observations' redundancy numbers and normalised residuals (``quality.bin``, columns
+    ``QUALITY_COLUMNS``: r_x, r_y and r_xy of the observation's block of the redundancy
+    matrix, w_x, w_y, the 2-D statistic ``t = sqrt(v' Q_vv^+ v) / sigma0`` and the robust
+    weight). Correlations of a station's or a point's parameters above the threshold go to
+    ``correlations`` (a :class:`~sapgo.report.HighCorrelations`) when given. Returns
+    ``(station_sigma, point_sigma file, quality file)``."""
+    n_st = len(blk.station_ids)
+    if blk.tree is not None:
+        return _quality_tree(p_read, work, blk, opts, sigma0, correlations)
+    first = np.zeros(n_st + 1, np.int64)
+    for a, b in p_read.chunks("points", opts.chunk_points):
+        sm = p_read.read_field("points", "station_min", a, b)
+        act = p_read.read_field("points", "status", a, b) == STATUS_ACTIVE
+        first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
+    np.cumsum(first, out=first)
+    ng = blk.n_border
+    cal = sig_b = xb_ds = None
+    if ng:  # self-calibration: X = M^-1 B (its own file: W stays, the sweep can run again)
+        xb_ds = RawArray(work.dir / "xborder.bin", (n_st, blk.npar, ng), mode="w")
+        border_back_substitute(work.factor, work.border, n_st, blk.band_width, opts.chunk_rows,
+                               out=xb_ds)
+        cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
+    psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
+    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
+                       mode="w")
+
+    def points_of(start, stop, zb, base):
+        p0, p1 = int(first[start]), int(first[stop])
+        xw = (np.ascontiguousarray(xb_ds[start:min(n_st, stop + blk.band_width)],
+                                   dtype=np.float64) if ng else None)
+        for a in range(p0, p1, opts.chunk_points):
+            points_quality(p_read, work, blk, opts, a, min(p1, a + opts.chunk_points), sigma0,
+                            psig, quality, correlations, zb, base, None, xw, start, cal, sig_b)
+
+    k = blk.npar
+    cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
+    try:
+        var = covariance_blocks(work.factor, n_st, blk.band_width, opts.chunk_rows, out=cov,
+                                on_block=points_of)
+        for a in range(0, n_st, opts.chunk_points) if ng else ():  # + X S^-1 X'
+            b = min(n_st, a + opts.chunk_points)
+            x = np.asarray(xb_ds[a:b], dtype=np.float64)
+            blocks = cov[a:b] + np.einsum("iag,gh,ibh->iab", x, sig_b, x)
+            cov[a:b] = blocks
+            var[a:b] = np.diagonal(blocks, axis1=1, axis2=2)
+        if correlations is not None:
+            _station_correlations(cov, blk, opts, correlations)
+    finally:
+        cov.close()
+        if xb_ds is not None:
+            xb_ds.close()
+    return station_sigma(blk, sigma0, var), psig, quality
+
+
+def _station_correlations(cov, blk, opts, correlations):
+    """Correlations of each station's parameters from its cofactor blocks (``cov``) into
+    ``correlations``, chunk by chunk."""
+    n_st = len(blk.station_ids)
+    for a in range(0, n_st, opts.chunk_points):
+        b = min(n_st, a + opts.chunk_points)
+        rho = station_correlations(cov[a:b][:, :6, :6])
+        rho[~blk.station_active[a:b]] = np.nan
+        correlations.add("stations", blk.station_ids[a:b], rho)
+
+
+def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correlations,
+                    zb, base, stations=None, xw=None, xlo=0, cal=None, sig_b=None, lock=None):
+    """Points ``a .. b`` (a chunk): their standard deviations into ``psig`` and their
+    observations' quality into ``quality`` (:func:`sapgo.normals.point_sigmas` with the
+    stations' cofactors ``zb`` from ``base``). ``stations(obs_station, obs_active)`` gives
+    the observations' stations as indices into ``zb``'s stations with their orientation
+    and camera (the tree numbers them by their place in a front); default the logical
+    stations."""
+    c = PointChunk(p_read, a, b, work.xyz_current[a:b], blk.camera, blk.cam_sigma, blk.frame,
+                   blk.rejected)
+    weight = reweight(c, work, opts)
+    out = np.empty((b - a, 6))
+    out_r = np.empty((c.o1 - c.o0, 3))
+    out_w = np.empty((c.o1 - c.o0, 3))
+    st, eo, camera = ((c.obs_station, blk.eo, blk.camera) if stations is None else
+                      stations(c.obs_station, c.obs_active))
+    point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, st,
+                 c.obs_xy, c.obs_sigma, c.obs_active, eo, camera, blk.cams, CTRL_MASK,
+                 c.max_rays, zb, base, np.ascontiguousarray(work.res_current[c.o0:c.o1]), out,
+                 out_r, out_w, blk.npar, cal, xw, xlo, sig_b)
+    psig[a:b] = sigma0 * out[:, :3]
+    if weight is None:
+        weight = np.ones(c.o1 - c.o0)
+    quality[c.o0:c.o1] = np.concatenate(
+        [out_r, out_w / sigma0, np.where(c.obs_active, weight, 0.0)[:, None]], axis=1)
+    if correlations is not None:
+        rho = np.where((c.active == 0)[:, None], out[:, 3:], np.nan)
+        ids = p_read.read_field("points", "id", a, b)
+        if lock is None:
+            correlations.add("points", ids, rho)
+        else:
+            with lock:
+                correlations.add("points", ids, rho)
+
+
+def station_sigma(blk, sigma0, var):
+    station_sigma = sigma0 * np.sqrt(np.maximum(var[:, :6], 0.0))
+    station_sigma[~blk.station_active] = 0.0
+    return station_sigma
+
+
+def _quality_tree(p_read, work, blk, opts, sigma0, correlations=None):
+    """:func:`quality_sweep` on the partition tree (:func:`sapgo.solve.tree.tree_quality`:
+    the selected inversion top-down, the points node by node)."""
+    from .solve.tree import tree_quality
+
+    n_st, k = len(blk.station_ids), blk.npar
+    psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
+    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
+                       mode="w")
+    cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
+    try:
+        var = tree_quality(p_read, work, blk, opts, blk.tree, sigma0, psig, quality, cov,
+                           correlations)
+        if correlations is not None:
+            _station_correlations(cov, blk, opts, correlations)
+    finally:
+        cov.close()
+    return station_sigma(blk, sigma0, var), psig, quality

@@ -1,0 +1,170 @@
+"""The work directory of a run: its scratch record files, its checkpoint, and the fault
+injection that the crash-safety tests kill a run with (DESIGN section 2, "Crash safety").
+
+Band rows, right-hand side, point coordinates and residuals live in direct-access files
+(:class:`sapgo.rawfile.RawArray`) in ``NAME.h5.work/`` beside the project; point coordinates
+and residuals are double-buffered and the checkpoint is replaced atomically once an
+iteration is complete, so that a run killed at any moment resumes from its last completed
+iteration (``sapgo adjust --resume``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+from pathlib import Path
+
+import numpy as np
+
+from .project import Project
+from .rawfile import RawArray
+
+
+def work_path(path):
+    """The work directory of a run on ``path``: ``NAME.h5.work`` beside the project."""
+    path = Path(path)
+    return path.with_name(path.name + ".work")
+
+
+#: Fault injection for the crash-safety tests: ``SAPGO_FAULT=phase:iteration`` kills the
+#: process with SIGKILL when it reaches that point (phases: build, solve, update,
+#: checkpoint, commit-copy, commit-write, commit-replace; iteration ``*`` for any).
+FAULT_ENV = "SAPGO_FAULT"
+
+
+def _fault(phase, iteration=0):
+    spec = os.environ.get(FAULT_ENV)
+    if not spec:
+        return
+    want_phase, _, want_it = spec.partition(":")
+    if want_phase == phase and want_it in ("*", "", str(iteration)):
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+class Work:
+    """The work directory of a run: scratch record files and the checkpoint.
+
+    Files: ``factor.bin`` (n x 6 x 6b factor rows, diagonal-first), ``y.bin`` (n x 6, the
+    forward-substituted right-hand side),
+    ``xyz.0.bin`` / ``xyz.1.bin`` (point coordinates, double-buffered), ``residuals.0.bin`` /
+    ``residuals.1.bin`` (vx, vy of every observation), ``eo.K.npy`` (the stations'
+    orientation after iteration K) and ``checkpoint.json`` (the last completed iteration K,
+    its log, timings and the identity of the project). State K uses buffer ``K % 2``.
+    """
+
+    def __init__(self, path, p: Project, band_width, create, block=6, n_border=0):
+        self.dir = Path(path)
+        self.n_st, self.n_pt, self.n_obs = p.n_stations, p.n_points, p.n_observations
+        self.band_width = band_width
+        mode = "w" if create else "r+"
+        if create:
+            if self.dir.exists():
+                shutil.rmtree(self.dir)
+            self.dir.mkdir(parents=True)
+        bw = band_width
+        k = self.block = block
+        self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=mode)
+        self.y = RawArray(self.dir / "y.bin", (self.n_st, k), mode=mode)
+        # self-calibration: the border columns of the band rows, then W = U'^-1 B
+        self.border = (RawArray(self.dir / "border.bin", (self.n_st, k, n_border), mode=mode)
+                       if n_border else None)
+        self.xyz = [RawArray(self.dir / f"xyz.{i}.bin", (self.n_pt, 3), mode=mode)
+                    for i in (0, 1)]
+        self.res = [RawArray(self.dir / f"residuals.{i}.bin", (self.n_obs, 2), mode=mode)
+                    for i in (0, 1)]
+        self.state = 0  # the completed iteration whose buffers are current
+        #: the partition tree's factor of the last factorisation
+        #: (:class:`sapgo.solve.fronts.FactorFile`, in core or in ``tree_factor.bin``)
+        self.tree_factor = None
+        # robust estimation: the observations' redundancy (r_x, r_y, r_xy) of the
+        # least-squares solution, once that phase is over
+        self.robust_r = None
+        if not create and (self.dir / "robust_r.bin").exists():
+            self.robust_r = RawArray(self.dir / "robust_r.bin", (self.n_obs, 3), mode="r")
+
+    @property
+    def xyz_current(self):
+        return self.xyz[self.state % 2]
+
+    @property
+    def xyz_next(self):
+        return self.xyz[(self.state + 1) % 2]
+
+    @property
+    def res_current(self):
+        return self.res[self.state % 2]
+
+    @property
+    def res_next(self):
+        return self.res[(self.state + 1) % 2]
+
+    def initialise(self, p: Project, chunk):
+        for a, b in p.chunks("points", chunk):
+            self.xyz[0][a:b] = p.read_field("points", "xyz", a, b)
+
+    def save(self, iteration, eo, record, cams=None):
+        """Make iteration ``iteration`` the checkpoint (its buffers must be complete);
+        ``cams``: the camera rows when the photos' intrinsics are adjusted."""
+        eo_file = self.dir / f"eo.{iteration}.npy"
+        tmp = self.dir / f"eo.{iteration}.npy.tmp"
+        with open(tmp, "wb") as f:
+            np.save(f, eo)
+        os.replace(tmp, eo_file)
+        record = dict(record, iteration=iteration, eo_file=eo_file.name)
+        if cams is not None:
+            cams_file = self.dir / f"cams.{iteration}.npy"
+            with open(self.dir / f"cams.{iteration}.npy.tmp", "wb") as f:
+                np.save(f, cams)
+            os.replace(self.dir / f"cams.{iteration}.npy.tmp", cams_file)
+            record["cams_file"] = cams_file.name
+        _fault("checkpoint", iteration)
+        tmp = self.dir / "checkpoint.json.tmp"
+        tmp.write_text(json.dumps(record))
+        os.replace(tmp, self.dir / "checkpoint.json")
+        self.state = iteration
+        keep = {eo_file.name, record.get("cams_file")}
+        for old in [*self.dir.glob("eo.*.npy"), *self.dir.glob("cams.*.npy")]:
+            if old.name not in keep:
+                old.unlink(missing_ok=True)
+
+    @staticmethod
+    def load_checkpoint(path):
+        """The checkpoint record of an interrupted run in ``path``, or None."""
+        f = Path(path) / "checkpoint.json"
+        try:
+            record = json.loads(f.read_text())
+            eo = np.load(Path(path) / record["eo_file"])
+            if record.get("cams_file"):
+                record["cams"] = np.load(Path(path) / record["cams_file"])
+        except (OSError, ValueError, KeyError):
+            return None
+        record["eo"] = eo
+        return record
+
+    def start_robust(self, quality, chunk):
+        """Keep the least-squares redundancy numbers for the robust phase."""
+        tmp = self.dir / "robust_r.bin.tmp"
+        r = RawArray(tmp, (self.n_obs, 3), mode="w")
+        for a in range(0, self.n_obs, chunk):
+            r[a:a + chunk] = quality[a:a + chunk][:, :3]
+        r.close()
+        os.replace(tmp, self.dir / "robust_r.bin")  # whole or absent after a kill
+        self.robust_r = RawArray(self.dir / "robust_r.bin", (self.n_obs, 3), mode="r")
+
+    def close(self):
+        for a in [self.factor, self.y, *self.xyz, *self.res]:
+            a.close()
+        if self.border is not None:
+            self.border.close()
+        if self.robust_r is not None:
+            self.robust_r.close()
+        if self.tree_factor is not None:
+            self.tree_factor.close()
+            self.tree_factor = None
+
+
+def _identity(p: Project, band_width):
+    return {"project_uuid": p.attr("uuid", ""), "stations": p.n_stations,
+            "points": p.n_points, "observations": p.n_observations, "band_width": band_width}
