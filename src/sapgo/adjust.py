@@ -975,15 +975,18 @@ def _needs_order(p: Project, opts: Options):
 
 
 def _hold_records(p, blk, opts):
-    """Read the point and observation records into core once for the run's passes, when
-    they take at most a quarter of the memory budget (``--memory``, default 1 GiB as for the
-    tree solver) and leave the tree's fronts their share of it. Returns the bytes held,
-    which the tree solver's budget then lacks."""
+    """On the tree, read the point and observation records into core once for the run's
+    passes (which visit them node by node, many small reads), when they take at most a
+    quarter of the memory budget (``--memory``, default 1 GiB) and leave the fronts their
+    share of it. Returns the bytes held, which the tree solver's budget then lacks. The band
+    streams them in large chunks and holds nothing proportional to them."""
     from .solve.tree import tree_budget
 
+    if blk.tree is None:
+        return 0
     budget = tree_budget(opts)
     size = sum(p.file[n].size * p.file[n].dtype.itemsize for n in ("points", "observations"))
-    if blk.tree is not None and size + blk.tree.peak_front_bytes(blk.npar) > budget:
+    if size + blk.tree.peak_front_bytes(blk.npar) > budget:
         return 0
     return p.hold(max_bytes=budget // 4)
 
