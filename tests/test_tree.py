@@ -292,3 +292,47 @@ def test_held_records_read_as_the_file(tmp_path):
     shutil.copy(path, tmp_path / "w.h5")
     with Project(tmp_path / "w.h5", "r+") as q:
         assert q.hold() == 0
+
+
+def test_bordered_tree_solve_equals_dense(tmp_path):
+    """Self-calibration's border on the tree: the right-hand side and the border's columns
+    ``B`` forward-substituted together through the fronts; the border's Schur complement
+    from ``W'W`` and ``W'y``, then the stations, ``X = M^-1 B`` and ``t'S^-1 t`` against a
+    dense solve of the bordered matrix (in core and through the factor file)."""
+    from sapgo.solve.band import border_schur_solve
+    from sapgo.solve.fronts import FactorFile, factor_layout
+
+    pos, edges = grid_graph(14, 6)
+    n = len(pos)
+    tree, perm = nested_dissection(pos, np.ones(n, bool), edges, leaf_stations=6)
+    k, ng = 6, 5
+    rng = np.random.default_rng(11)
+    m = spd_on_graph(n, edges, k, 3)
+    sc = (k * perm[:, None] + np.arange(k)).ravel()
+    ml = m[np.ix_(sc, sc)]
+    bb = rng.normal(size=(k * n, ng))
+    c = bb.T @ np.linalg.solve(ml, bb) + np.diag(rng.uniform(1, 2, ng))
+    d, g = rng.normal(size=k * n), rng.normal(size=ng)
+    full = np.block([[ml, bb], [bb.T, c]])
+    want = np.linalg.solve(full, np.r_[d, g])
+    for path in (None, tmp_path / "f.bin"):
+        file = FactorFile(path, factor_layout(tree, k), n_rhs=1 + ng)
+        sol = TreeSolver(tree, k, None, file=file, n_border=ng)
+        for i in range(tree.n_nodes):
+            a, b = sol.open(i)
+            fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
+            own = k * tree.own(i)
+            a[:, :own] = np.tril(ml[np.ix_(fs, fs[:own])])
+            b[:own, 0] = d[fs[:own]]
+            b[:own, 1:] = bb[fs[:own]]
+            sol.eliminate(i, a, b)
+        theta, decrease, s_inv = border_schur_solve(c - sol.ww, g - sol.wy)
+        x = sol.solve(n, theta).ravel()
+        np.testing.assert_allclose(np.r_[x, theta], want, rtol=1e-9, atol=1e-11)
+        np.testing.assert_allclose(s_inv, np.linalg.inv(full)[k * n:, k * n:], rtol=1e-9,
+                                   atol=1e-12)
+        np.testing.assert_allclose(sol.border_x(n).reshape(k * n, ng),
+                                   np.linalg.solve(ml, bb), rtol=1e-9, atol=1e-11)
+        # x'b of the solution = y'y + t'S^-1 t
+        assert sol.y_norm2 + decrease == pytest.approx(np.r_[d, g] @ want, rel=1e-10)
+        sol.close()

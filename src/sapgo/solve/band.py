@@ -450,6 +450,23 @@ def border_solve(factor_ds, y_ds, border_ds, cnn, ccg, n_st, band_width, step=25
         win[:rest * kb] = win[(stop - base) * kb:(loaded - base) * kb]
         win[rest * kb:] = 0.0
         base = stop
+    theta, decrease, s_inv = border_schur_solve(s_mat, t_vec, pivot_tol)
+    for a in range(0, n_st, step):
+        b = min(n_st, a + step)
+        w = np.asarray(border_ds[a:b], dtype=np.float64)
+        y_ds[a:b] = np.asarray(y_ds[a:b], dtype=np.float64) - w @ theta
+    return theta, float(yy[0]), decrease, s_inv
+
+
+def border_schur_solve(s_mat, t_vec, pivot_tol=PIVOT_TOLERANCE):
+    """``theta = S^-1 t`` for the border's Schur complement ``S = C - W'W`` (ng x ng) and
+    ``t = c - W'y``, by a dense Cholesky of ``S`` scaled to a unit diagonal (whichever
+    solver factored the stations: the band or the tree). Returns ``(theta, t'S^-1 t,
+    S^-1)``; raises :class:`BorderPivotError` when ``S`` is not positive definite at
+    ``pivot_tol``."""
+    import scipy.linalg
+
+    ng = s_mat.shape[0]
     s_mat = 0.5 * (s_mat + s_mat.T)
     dg = np.diag(s_mat).copy()
     if ng and not (dg > 0.0).all():
@@ -459,17 +476,11 @@ def border_solve(factor_ds, y_ds, border_ds, cnn, ccg, n_st, band_width, step=25
     fail = _dense_cholesky(lo, pivot_tol)
     if fail >= 0:
         raise BorderPivotError(int(fail))
-    import scipy.linalg
-
     inv = scipy.linalg.solve_triangular(lo, np.eye(ng), lower=True) if ng else lo
     s_inv = (inv.T @ inv) * scale[:, None] * scale[None, :]
     z = scipy.linalg.solve_triangular(lo, scale * t_vec, lower=True) if ng else t_vec
     theta = scale * scipy.linalg.solve_triangular(lo.T, z, lower=False) if ng else t_vec
-    for a in range(0, n_st, step):
-        b = min(n_st, a + step)
-        w = np.asarray(border_ds[a:b], dtype=np.float64)
-        y_ds[a:b] = np.asarray(y_ds[a:b], dtype=np.float64) - w @ theta
-    return theta, float(yy[0]), float(z @ z), s_inv
+    return theta, float(z @ z), s_inv
 
 
 # -- drivers ------------------------------------------------------------------------------

@@ -37,6 +37,7 @@ along one path from the root.
 from __future__ import annotations
 
 import os
+import threading
 
 import numpy as np
 import scipy.linalg
@@ -114,13 +115,15 @@ class FactorFile:
     """The factor's records, one per node (``L11``, ``L21``, ``y1``) at offsets fixed by the
     tree (``layout``: ``(m, f)`` per node), so that nodes may be written in any order and by
     several threads: in a work file (``os.pwrite`` / ``os.pread``), or in core
-    (``path`` None) when the factor fits the memory budget."""
+    (``path`` None) when the factor fits the memory budget. ``y1`` has ``n_rhs`` columns:
+    the right-hand side, then the border's (self-calibration) forward-substituted columns."""
 
-    def __init__(self, path, layout, mode="w"):
+    def __init__(self, path, layout, mode="w", n_rhs=1):
         self.path = path
         self.shape = np.asarray(layout, np.int64)
+        self.n_rhs = n_rhs
         m, f = self.shape[:, 0], self.shape[:, 1]
-        size = 8 * ((m + f) * m + m)
+        size = 8 * ((m + f) * m + m * n_rhs)
         self.offset = np.zeros(len(m), np.int64)
         self.offset[1:] = np.cumsum(size)[:-1]
         self.nbytes = int(size.sum())
@@ -145,24 +148,29 @@ class FactorFile:
 
     def write(self, i, col, y1):
         """Node ``i``'s factor columns ``[L11; L21]`` ((m + f) x m, F order, e.g. the first
-        columns of its front; the upper triangle of ``L11`` is not used) and ``y1``."""
+        columns of its front; the upper triangle of ``L11`` is not used) and ``y1`` (m, or
+        m x n_rhs in F order)."""
         if self._mem is not None:   # a copy: the front itself goes
             self._mem[i] = (np.array(col, order="F"), y1)
             return
         col = np.asfortranarray(col)   # (the front's first columns: contiguous already)
         os.pwrite(self._fd, memoryview(col.reshape(-1, order="F")), int(self.offset[i]))
-        os.pwrite(self._fd, memoryview(y1), int(self.offset[i]) + col.nbytes)
+        os.pwrite(self._fd, memoryview(np.asfortranarray(y1).reshape(-1, order="F")),
+                  int(self.offset[i]) + col.nbytes)
 
     def read(self, i):
         """``(col, y1)`` of node ``i`` (as :meth:`write`)."""
         if self._mem is not None:
             return self._mem[i]
         m, f = (int(x) for x in self.shape[i])
-        n = (m + f) * m + m
+        nr = self.n_rhs
+        n = (m + f) * m + m * nr
         buf = np.frombuffer(os.pread(self._fd, 8 * n, int(self.offset[i])), np.float64)
         if len(buf) != n:
             raise OSError(f"{self.path}: factor record {i} cut short")
-        return buf[:(m + f) * m].reshape((m + f, m), order="F"), buf[(m + f) * m:]
+        y1 = buf[(m + f) * m:]
+        return (buf[:(m + f) * m].reshape((m + f, m), order="F"),
+                y1 if nr == 1 else y1.reshape((m, nr), order="F"))
 
     def close(self):
         """Release the factor (in core) or close its file."""
@@ -210,17 +218,29 @@ class TreeSolver:
     node's own contributions into its lower triangle and ``b``, then ``solver.eliminate(i,
     A, b, damping)``. After the last node, ``solve()`` returns ``delta`` (stations x k) and
     ``y_norm2`` is ``y'y``. ``inverse(on_node)`` runs the selected inversion afterwards.
+
+    Self-calibration (``n_border`` columns ``B`` of the stations against the border's
+    unknowns): ``b`` is ``kf x (1 + n_border)``, the right-hand side and then the front's
+    rows of ``B``, forward-substituted together (``W = L^-1 B``), so that after the last node
+    ``ww = W'W`` and ``wy = W'y`` give the border's Schur complement ``S = C - W'W`` and
+    ``t = c - W'y`` (:func:`sapgo.solve.band.border_schur_solve`); ``solve(n, theta)``
+    then gives the stations and :meth:`border_x` ``X = M^-1 B`` for the precision pass.
     """
 
-    def __init__(self, tree, npar, factor_path, pivot_tol=PIVOT_TOLERANCE, file=None):
+    def __init__(self, tree, npar, factor_path, pivot_tol=PIVOT_TOLERANCE, file=None,
+                 n_border=0):
         self.tree = tree
         self.k = npar
         self.pivot_tol = pivot_tol
         self.children = tree.children()
-        self.file = file if file is not None else FactorFile(factor_path,
-                                                             factor_layout(tree, npar))
+        self.n_border = n_border
+        self.file = file if file is not None else FactorFile(
+            factor_path, factor_layout(tree, npar), n_rhs=1 + n_border)
         self.updates = {}
         self.yy = np.zeros(tree.n_nodes)
+        self.ww = np.zeros((n_border, n_border))
+        self.wy = np.zeros(n_border)
+        self._lock = threading.Lock()
         tune_malloc()
 
     @property
@@ -229,11 +249,11 @@ class TreeSolver:
         return float(self.yy.sum())
 
     @classmethod
-    def reopen(cls, tree, npar, factor_path):
+    def reopen(cls, tree, npar, factor_path, n_border=0):
         """The solver of a factor file written by an earlier factorisation of ``tree``
         (for :meth:`inverse` and :meth:`solve`)."""
-        return cls(tree, npar, None, file=FactorFile(factor_path, factor_layout(tree, npar),
-                                                     "r"))
+        return cls(tree, npar, None, n_border=n_border, file=FactorFile(
+            factor_path, factor_layout(tree, npar), "r", n_rhs=1 + n_border))
 
     def open(self, i):
         t = self.tree
@@ -241,7 +261,8 @@ class TreeSolver:
         kf = self.k * nf
         a = np.empty((kf, kf), order="F")   # (numpy's allocation: huge pages where large)
         _zero_block_lower(a, self.k)
-        return a, np.zeros(kf)
+        return a, (np.zeros(kf) if not self.n_border else
+                   np.zeros((kf, 1 + self.n_border), order="F"))
 
     def eliminate(self, i, a, b, damping=None):
         """Extend-add the children's updates into front ``a`` (F-order, lower triangle) and
@@ -261,31 +282,57 @@ class TreeSolver:
         if damping is not None:
             idx = np.arange(m)
             a[idx, idx] += damping
-        fail = _factor_front(FNS, a.reshape(-1, order="F"), a.shape[0], m, b, self.pivot_tol)
+        nr = 1 + self.n_border
+        fail = _factor_front(FNS, a.reshape(-1, order="F"), a.shape[0], m,
+                             b.reshape(-1, order="F"), nr, self.pivot_tol)
         if fail:
             raise PivotError(int(t.lo[i]) + (fail - 1) // k, (fail - 1) % k)
-        y1 = b[:m].copy()
-        self.yy[i] = float(y1 @ y1)
+        y1 = b[:m].copy(order="F")
+        if self.n_border:
+            w = y1[:, 1:]
+            self.yy[i] = float(y1[:, 0] @ y1[:, 0])
+            ww, wy = w.T @ w, w.T @ y1[:, 0]
+            with self._lock:
+                self.ww += ww
+                self.wy += wy
+        else:
+            self.yy[i] = float(y1 @ y1)
         self.file.write(i, a[:, :m], y1)
         if a.shape[0] > m and t.parent[i] >= 0:
             # the update, the front's trailing block, copied out (lower triangle) so that the
             # front goes: the stack holds f x f, not (m + f)^2, a child
-            self.updates[i] = (_trailing_lower(a, m), 0, b[m:].copy())
+            self.updates[i] = (_trailing_lower(a, m), 0, b[m:].copy(order="F"))
 
-    def solve(self, n_stations):
+    def solve(self, n_stations, theta=None):
         """``delta`` (n_stations x k; stations outside the tree 0) by back substitution
-        down the tree."""
+        down the tree (with a border: of ``y - W theta``)."""
         t, k = self.tree, self.k
         x = np.zeros(k * n_stations)
         for i in range(t.n_nodes - 1, -1, -1):
             col, y1 = self.file.read(i)
             m = col.shape[1]
-            r = y1
+            r = y1 if not self.n_border else y1[:, 0] - y1[:, 1:] @ theta
             if col.shape[0] > m:
-                r = y1 - col[m:].T @ x[_scalar(t.bnd(i), k)]
+                r = r - col[m:].T @ x[_scalar(t.bnd(i), k)]
             x[k * t.lo[i]:k * t.hi[i]] = scipy.linalg.solve_triangular(
                 col[:m], r, lower=True, trans="T", check_finite=False)
         return x.reshape(n_stations, k)
+
+    def border_x(self, n_stations):
+        """``X = M^-1 B`` (n_stations x k x n_border): the border's columns substituted
+        back down the tree from ``W`` (the stations' share of the border's covariances,
+        ``cov(delta) = M^-1 + X S^-1 X'``)."""
+        t, k, ng = self.tree, self.k, self.n_border
+        x = np.zeros((k * n_stations, ng))
+        for i in range(t.n_nodes - 1, -1, -1):
+            col, y1 = self.file.read(i)
+            m = col.shape[1]
+            r = y1[:, 1:]
+            if col.shape[0] > m:
+                r = r - col[m:].T @ x[_scalar(t.bnd(i), k)]
+            x[k * t.lo[i]:k * t.hi[i]] = scipy.linalg.solve_triangular(
+                col[:m], r, lower=True, trans="T", check_finite=False)
+        return x.reshape(n_stations, k, ng)
 
     def inverse(self, on_node, nodes=None, held=None):
         """Selected inversion top-down: ``on_node(i, z)`` with ``z`` (kf x kf, F order,
@@ -335,11 +382,12 @@ def _front_inverse(col, z22, k):
 
 
 @njit(cache=True, nogil=True)
-def _factor_front(fns, a, kf, m, b, tol):
+def _factor_front(fns, a, kf, m, b, nr, tol):
     """Partial Cholesky of a front in place (``a`` its F-order data, kf x kf): ``L11 =
     chol(A11)``, ``L21 = A21 L11'^-1``, ``A22 -= L21 L21'``, ``b1 = L11^-1 b1``, ``b2 -=
-    L21 b1``. Returns 0, or 1 + the first own column whose pivot is at or below ``tol``
-    times its diagonal before the factorisation (or where dpotrf failed)."""
+    L21 b1`` (``b`` kf x nr, F order: the right-hand side and a border's columns). Returns
+    0, or 1 + the first own column whose pivot is at or below ``tol`` times its diagonal
+    before the factorisation (or where dpotrf failed)."""
     f = kf - m
     orig = np.empty(m)
     for j in range(m):
@@ -355,9 +403,14 @@ def _factor_front(fns, a, kf, m, b, tol):
     if f > 0:
         trsm(fns.dtrsm, R, L, T, N, f, m, 1.0, a, kf, a[m:], kf)
         syrk(fns.dsyrk, L, N, f, m, -1.0, a[m:], kf, 1.0, a[m * kf + m:], kf)
-    trsv(fns.dtrsv, L, N, N, m, a, kf, b)
-    if f > 0:
-        gemv(fns.dgemv, N, f, m, -1.0, a[m:], kf, b, 1.0, b[m:])
+    if nr == 1:
+        trsv(fns.dtrsv, L, N, N, m, a, kf, b)
+        if f > 0:
+            gemv(fns.dgemv, N, f, m, -1.0, a[m:], kf, b, 1.0, b[m:])
+    else:
+        trsm(fns.dtrsm, L, L, N, N, m, nr, 1.0, a, kf, b, kf)
+        if f > 0:
+            gemm(fns.dgemm, N, N, f, nr, m, -1.0, a[m:], kf, b, kf, 1.0, b[m:], kf)
     return 0
 
 
