@@ -146,9 +146,9 @@ def child_cholmod(path, repeat=3):
             work.initialise(p, opts.chunk_points)
             sapgo_s = []
             for r in range(repeat):
-                delta, _, _, secs = tree_step(p, work, blk, opts, tree,
-                                              capture=capture if r == 0 else None)
-                sapgo_s.append(secs)
+                step = tree_step(p, work, blk, opts, tree,
+                                 capture=capture if r == 0 else None)
+                sapgo_s.append(step["seconds"])
         finally:
             work.close()
             shutil.rmtree(work_path(path), ignore_errors=True)
@@ -160,7 +160,7 @@ def child_cholmod(path, repeat=3):
     d = np.zeros(n)
     for idx, b in rhs.values():
         d[idx] += b
-    x_sapgo = delta[:tree.n_active].ravel()
+    x_sapgo = step["delta"][:tree.n_active].ravel()
     res_sapgo = float(np.abs(m @ x_sapgo - d).max() / np.abs(d).max())
     out = {"unknowns": n, "nonzeros_lower": int(low.nnz), "sapgo_factor_solve_s": sapgo_s,
            "sapgo_relative_residual": res_sapgo, "cholmod": {}}

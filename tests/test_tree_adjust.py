@@ -2,6 +2,7 @@
 observation quality as the band solver (and the dense reference), with Levenberg-Marquardt,
 9-parameter stations, snooping, robust estimation, a forest and kill-and-resume."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -212,12 +213,42 @@ def test_a_stale_tree_is_never_used(square, tmp_path):
     assert s.converged and s.timings_s["order"] > 0
 
 
-def test_self_calibration_asks_for_the_band(square, tmp_path):
-    path = tmp_path / "s.h5"
-    shutil.copy(square, path)
-    sapgo.order_project(path, solver="tree", leaf_stations=4)
-    with pytest.raises(sapgo.SapgoError, match="--solver band"):
-        sapgo.adjust(path, sapgo.Options(progress=False, calibrate=("f",)))
+@pytest.fixture(scope="module")
+def miscalibrated_square(tmp_path_factory):
+    """A 5 x 6 block whose images carry distortion while its camera says f + 0.03 mm and
+    no distortion."""
+    d = tmp_path_factory.mktemp("cal")
+    path = d / "cal.h5"
+    sapgo.generate_block(path, strips=5, photos_per_strip=6, control_points=8, seed=6,
+                         distortion=(-2.0e-8, 3.0e-13, 0.0, 1.5e-6, -1.0e-6))
+    rec = read_records(path)
+    rec["cameras"]["focal_length"] += 0.03
+    rec["cameras"][["k1", "k2", "p1", "p2"]] = (0.0, 0.0, 0.0, 0.0)
+    rewrite(path, rec)
+    return path
+
+
+@pytest.mark.parametrize("method", ["gauss-newton", "levenberg-marquardt"])
+def test_self_calibration_on_the_tree_equals_the_band(miscalibrated_square, tmp_path, method):
+    """Self-calibration's border on the tree: the same orientations, points, camera,
+    sigma0, precision (stations, points, camera parameters) and observation quality as on
+    the band (itself tested against the dense bordered inverse, tests/test_calibration.py),
+    with Gauss-Newton and with Levenberg-Marquardt's damping of the border."""
+    band, tree = ordered_pair(miscalibrated_square, tmp_path)
+    opts = dataclasses.replace(TIGHT, method=method,
+                               calibrate=("f", "x0", "y0", "k1", "k2", "p1", "p2"))
+    sb = sapgo.adjust(band, opts)
+    st = sapgo.adjust(tree, opts)
+    assert st.solver == "tree" and st.converged and st.iterations == sb.iterations
+    assert st.sigma0 == pytest.approx(sb.sigma0, rel=1e-10)
+    assert_same_solution(tree, band)
+    with Project(band) as pb, Project(tree) as pt:
+        np.testing.assert_allclose(pt.solution("camera_corr"), pb.solution("camera_corr"),
+                                   rtol=1e-9, atol=1e-15)
+    assert len(st.calibration) == len(sb.calibration) == 7
+    for a, b in zip(st.calibration, sb.calibration):
+        assert a["parameter"] == b["parameter"] and a["sigma"] > 0
+        assert a["sigma"] == pytest.approx(b["sigma"], rel=1e-8)
 
 
 def test_order_and_adjust_from_the_command_line(square, tmp_path, capsys):

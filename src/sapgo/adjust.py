@@ -815,11 +815,11 @@ def _factor_solve(p: Project, work: Work, blk: _Block, opts: Options, it=0, mu=0
         from .solve.tree import tree_step
 
         try:
-            delta, diag, yy, seconds = tree_step(p, work, blk, opts, blk.tree, mu, it)
+            return tree_step(p, work, blk, opts, blk.tree, mu, it)
         except PivotError as exc:
             raise _pivot_error(exc, blk, p) from None
-        return {"delta": delta, "diag": diag, "border": None, "theta": None,
-                "border_cov": None, "xb": yy, "seconds": seconds}
+        except BorderPivotError as exc:
+            raise _border_pivot_error(exc, blk, p) from None
     n = len(blk.station_ids)
     solver = BandSolver(n, blk.band_width, work.factor, work.y, opts.chunk_rows,
                         opts.pivot_tolerance, block=blk.npar)
@@ -1026,9 +1026,6 @@ def adjust(path, options: Options | None = None) -> Summary:
 
             check_tree_memory(blk.tree, blk.npar, opts, path)
         blk.held = _hold_records(p, blk, opts)
-        if blk.tree is not None and blk.border:
-            raise SapgoError(f"{path}: self-calibration (--calibrate) runs on the band solver "
-                             f"only so far: use --solver band")
         if blk.n_stations == 0:
             raise DatumDefectError(f"{path}: no station can be adjusted (every photo has fewer "
                                    f"than 3 determinable points)")

@@ -45,27 +45,40 @@ from numba import njit
 
 from .band import PIVOT_TOLERANCE, PivotError
 from ..blas import FNS, L, N, R, T, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
-from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _chol3, _point_system,
-                       _ray_terms, _solve3, _workspace)
+from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_point, _chol3,
+                       _point_system, _ray_terms, _solve3, _workspace)
 
 
 @njit(cache=True, nogil=True)
 def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                 pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
-                ctrl_mask, front, rhs, max_rays, npar, lam=0.0, behind_ok=False):
+                ctrl_mask, front, rhs, max_rays, npar, lam, behind_ok, cal, bord, cnn, ccg,
+                cdiag):
     """Add points ``j0 .. j1-1`` of a chunk into a dense front.
 
     ``obs_station`` holds each observation's station as its place in the front (-1: not in
     the front), ``eo`` and ``cam_of_station`` are indexed the same way; ``front``
     (kf x kf, lower triangle and the diagonal blocks filled) and ``rhs`` (kf) receive the
-    reduced normals ``M[s,t] -= Nbar_s Ndd^-1 Nbar_t'``, ``p A'A`` and ``d``. Returns
-    ``(status, point)``: OK, or SINGULAR_POINT / BEHIND_CAMERA / BAD_LAYOUT (a station of
-    the point outside the front) with the point."""
+    reduced normals ``M[s,t] -= Nbar_s Ndd^-1 Nbar_t'``, ``p A'A`` and ``d``.
+    Self-calibration (``ng = cnn.shape[0] > 0``; ``cal`` as in
+    :func:`sapgo.normals.build_points`): ``bord`` (front stations x npar x ng) receives the
+    front's rows of the border columns ``B``, ``cnn``, ``ccg`` and ``cdiag`` the border's
+    block, right-hand side and undamped diagonal, each point eliminated from them as on
+    the band (:func:`sapgo.normals._border_point`). Returns ``(status, point)``: OK, or
+    SINGULAR_POINT / BEHIND_CAMERA / BAD_LAYOUT (a station of the point outside the front)
+    with the point."""
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all = _workspace(max_rays, npar)
     g = np.empty((max_rays, npar, 3))
     h = np.empty(3)
     col = np.empty(3)
     tmp = np.empty(3)
+    ng = cnn.shape[0]
+    slot = np.full(ng, -1, np.int64)
+    tcols = np.empty(ng, np.int64)
+    ngp = np.empty((ng, 3))
+    ggp = np.empty((ng, 3))
+    e = np.empty((2, 8))
+    nf = bord.shape[0]
     for j in range(j0, j1):
         if pt_active[j] != 0:
             continue
@@ -103,6 +116,10 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
                             front[sq + u, sq + v] -= x
                             if t != q:
                                 front[sq + v, sq + u] -= x
+        if ng > 0:
+            _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal,
+                          xyz, a_all, l_all, w_all, st_all, g, lo, h, 0, nf, bord, bord, cnn,
+                          ccg, cdiag, slot, tcols, ngp, ggp, e, b_all)
     return OK, -1
 
 

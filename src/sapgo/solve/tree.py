@@ -151,11 +151,20 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     memory budget beside the fronts (:func:`tree_budget`), else in ``tree_factor.bin``;
     either way it stays with ``work.tree_factor`` for the precision pass.
 
-    Returns ``(delta, diag, y_norm2, seconds)``: the stations' corrections (n x k, zero
-    outside the tree), the stations' undamped diagonal (with ``lam > 0``, else None),
-    ``y'y`` (for the Levenberg-Marquardt gain ratio) and the seconds spent factoring and
+    Self-calibration (``blk.n_border`` columns): the border's columns are built into each
+    front beside its right-hand side and forward-substituted with it
+    (:class:`~sapgo.solve.fronts.TreeSolver`), the border's block and right-hand side summed
+    over the threads and damped as on the band, and the border solved densely
+    (:func:`~sapgo.solve.band.border_schur_solve`) before the stations.
+
+    Returns a dict as :func:`sapgo.adjust._factor_solve`'s: ``delta`` (the stations'
+    corrections, n x k, zero outside the tree), ``diag`` (the stations' undamped diagonal
+    with ``lam > 0``, else None), ``border`` (``(cnn, ccg, cdiag)`` or None), ``theta``,
+    ``border_cov`` (``S^-1``), ``xb`` (``x'b`` of the step: ``y'y`` plus the border's
+    share, for the Levenberg-Marquardt gain ratio) and ``seconds`` spent factoring and
     solving (the rest is the build). Raises :class:`~sapgo.solve.band.PivotError` (logical
-    station, parameter) when the normals are not positive definite. ``capture(i, front, rhs)``
+    station, parameter) when the normals are not positive definite and
+    :class:`~sapgo.solve.band.BorderPivotError` when the border's are not. ``capture(i, front, rhs)``
     (benchmarks) sees each node's front with its own points, priors and damping, before the
     children's updates are added: their sum over the nodes is the reduced normal matrix.
     """
@@ -163,10 +172,12 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
 
     from ..adjust import _progress
     from ..blas import blas_limits
+    from .band import border_schur_solve
     from .fronts import FactorFile, factor_layout
 
     k = blk.npar
     n = len(blk.station_ids)
+    ng = blk.n_border
     old = getattr(work, "tree_factor", None)
     if old is not None:
         old.close()
@@ -175,21 +186,23 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     factor_bytes = 8 * int((layout[:, 0] ** 2 + layout[:, 0] * layout[:, 1]).sum())
     per, top, need = work_plan(tree, k, opts, threads, blk.held)
     in_core = factor_bytes + need <= tree_budget(opts, blk.held)
-    file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout)
-    solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file)
+    file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
+    solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file, n_border=ng)
     diags = [np.zeros((n, k)) if lam > 0.0 else None for _ in per]
+    # the border's block, right-hand side and undamped diagonal, a set per thread
+    cb = [(np.zeros((ng, ng)), np.zeros(ng), np.zeros(ng)) for _ in range(len(per) + 1)]
     seconds = np.zeros(len(per) + 1)
     with _progress(opts.progress, p.n_points, "build") as bar:
         if len(per) > 1:
             with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
                 jobs = [pool.submit(_run_nodes, p, work, blk, opts, tree, solver, ranges,
-                                    lam, diags[w], seconds, w, iteration, bar, capture)
+                                    lam, diags[w], seconds, w, iteration, bar, capture, cb[w])
                         for w, ranges in enumerate(per)]
                 for j in jobs:
                     j.result()
         else:
             _run_nodes(p, work, blk, opts, tree, solver, per[0], lam, diags[0], seconds, 0,
-                       iteration, bar, capture)
+                       iteration, bar, capture, cb[0])
         diag = None
         if lam > 0.0:
             diag = diags[0]
@@ -197,40 +210,61 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
                 diag += d
         if top:
             _run_nodes(p, work, blk, opts, tree, solver, [(j, j + 1) for j in top], lam,
-                       diag, seconds, len(per), iteration, bar, capture)
+                       diag, seconds, len(per), iteration, bar, capture, cb[len(per)])
     t0 = time.perf_counter()
-    delta = solver.solve(n)
+    out = {"diag": diag, "border": None, "theta": None, "border_cov": None}
+    theta = None
+    decrease = 0.0
+    if ng:
+        cnn, ccg, cdiag = (sum(x[i] for x in cb) for i in range(3))
+        if lam > 0.0:
+            cnn[np.arange(ng), np.arange(ng)] += lam * np.clip(cdiag, 1e-6, 1e32)
+        theta, decrease, s_inv = border_schur_solve(cnn - solver.ww, ccg - solver.wy,
+                                                    opts.pivot_tolerance)
+        out.update(border=(cnn, ccg, cdiag), theta=theta, border_cov=s_inv)
+    out["delta"] = solver.solve(n, theta)
+    out["xb"] = solver.y_norm2 + decrease
     work.tree_factor = file
     # the threads' solver time overlaps: count the busiest thread's
-    solve_s = float(seconds[:len(per)].max() + seconds[len(per)]) + time.perf_counter() - t0
-    return delta, diag, solver.y_norm2, solve_s
+    out["seconds"] = (float(seconds[:len(per)].max() + seconds[len(per)])
+                      + time.perf_counter() - t0)
+    return out
 
 
 def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slot,
-               iteration, bar, capture=None):
+               iteration, bar, capture=None, border=None):
     """Build and eliminate the nodes of ``ranges`` (``(first, stop)`` node ranges, each in
     post-order) from their points, read chunk by chunk; ``diag`` receives the stations'
-    undamped diagonal of these points; the solver's seconds go to ``seconds[slot]``."""
+    undamped diagonal of these points, ``border`` (``(cnn, ccg, cdiag)``, this thread's) the
+    border's share; the solver's seconds go to ``seconds[slot]``."""
     from ..adjust import _PriorCursor, _point_error, _prior_residual
     from ..quality import reweight
     from ..work import _fault
 
     k = blk.npar
+    ng = blk.n_border
     fronts = _Fronts(tree, blk, k)
     priors = _PriorCursor(p, opts.chunk_points)
     pt = tree.pt_start
-    state = {"node": -1, "a": None, "b": None}
+    state = {"node": -1, "a": None, "b": None, "rhs": None, "bord": None}
+    cnn, ccg, cdiag = border if border is not None else (np.zeros((0, 0)), np.zeros(0),
+                                                         np.zeros(0))
+    cal = blk.cal if ng else np.full((0, 8), -1, np.int64)
 
     def open_node(i):
-        fronts.enter(i)
+        fr = fronts.enter(i)
         a, b = solver.open(i)
+        rhs = b if b.ndim == 1 else b[:, 0]
+        # the front's rows of the border's columns: a view of b (stations x k x ng)
+        bord = (b[:, 1:].reshape(len(fr), k, ng) if ng else np.zeros((len(fr), k, 0)))
+        assert not ng or np.shares_memory(bord, b)
         lo, hi = int(tree.lo[i]), int(tree.hi[i])
         for rec in priors.take(lo, hi):
             s = int(rec["station"]) - lo
             w = rec["weight"]
             a[k * s:k * s + 6, k * s:k * s + 6] += w
-            b[k * s:k * s + 6] += w @ (-_prior_residual(rec, blk.eo[lo + s]))
-        state["node"], state["a"], state["b"] = i, a, b
+            rhs[k * s:k * s + 6] += w @ (-_prior_residual(rec, blk.eo[lo + s]))
+        state.update(node=i, a=a, b=b, rhs=rhs, bord=bord)
 
     def close_node():
         i = state["node"]
@@ -272,8 +306,8 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
                 status, bad = build_front(
                     j - a0, j1 - a0, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start,
                     c.nobs, c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo,
-                    fronts.camera, blk.cams, CTRL_MASK, state["a"], state["b"], c.max_rays,
-                    k, lam, blk.behind_ok)
+                    fronts.camera, blk.cams, CTRL_MASK, state["a"], state["rhs"], c.max_rays,
+                    k, lam, blk.behind_ok, cal, state["bord"], cnn, ccg, cdiag)
                 if status != OK:
                     raise _point_error(p, c, bad, status, blk)
                 j = j1
@@ -291,15 +325,23 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
     """The precision pass on the tree: the selected inversion top-down and, node by node,
     the stations' cofactor blocks (``cov``), the points' standard deviations (``psig``) and
     their observations' quality (``quality``), as :func:`sapgo.quality.quality_sweep` does
-    along the band. Returns the stations' variances (n x k)."""
+    along the band. Self-calibration: the stations' cofactors gain the border's share
+    ``X S^-1 X'`` (``X = M^-1 B`` from :meth:`~sapgo.solve.fronts.TreeSolver.border_x`, in
+    core, ``S^-1`` the last step's ``blk.border_cov``) and the points' and observations'
+    kernel its terms, as on the band. Returns the stations' variances (n x k)."""
     from ..quality import points_quality
 
     k = blk.npar
     n = len(blk.station_ids)
+    ng = blk.n_border
     var = np.zeros((n, k))
     file = getattr(work, "tree_factor", None)
-    solver = (TreeSolver(tree, k, None, file=file) if file is not None else
-              TreeSolver.reopen(tree, k, work.dir / FACTOR_FILE))
+    solver = (TreeSolver(tree, k, None, file=file, n_border=ng) if file is not None else
+              TreeSolver.reopen(tree, k, work.dir / FACTOR_FILE, ng))
+    xb = cal = sig_b = None
+    if ng:
+        xb = solver.border_x(n)
+        cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
     lock = threading.Lock()
     fronts_of = {}   # one numbering of the front's stations per thread
 
@@ -314,19 +356,22 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
         blocks = np.empty((hi - lo, k, k))
         for s in range(hi - lo):
             blocks[s] = z[k * s:k * s + k, k * s:k * s + k]
+        if ng:
+            blocks += np.einsum("sag,gh,sbh->sab", xb[lo:hi], sig_b, xb[lo:hi])
         cov[lo:hi] = blocks
         var[lo:hi] = np.diagonal(blocks, axis1=1, axis2=2)
         p0, p1 = int(tree.pt_start[i]), int(tree.pt_start[i + 1])
         if p1 <= p0:
             return
         fronts = my_fronts()
-        fronts.enter(i)
+        fr = fronts.enter(i)
         zc = z.T   # C order: z is symmetric
+        xw = np.ascontiguousarray(xb[fr]) if ng else None   # by place in the front
         try:
             for a0 in range(p0, p1, opts.chunk_points):
                 points_quality(p, work, blk, opts, a0, min(p1, a0 + opts.chunk_points),
-                                sigma0, psig, quality, correlations, zc, 0, fronts.numbered,
-                                lock=lock)
+                               sigma0, psig, quality, correlations, zc, 0, fronts.numbered,
+                               xw, 0, cal, sig_b, lock=lock)
         finally:
             fronts.leave()
 
