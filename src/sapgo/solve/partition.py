@@ -253,6 +253,16 @@ def _separator(verts, side, es, et):
 
 
 @njit(cache=True)
+def _cut_edge(side, a, b):
+    """An edge ``(a, b)`` as (side-0 end, side-1 end), or (-1, -1) when it is not cut."""
+    if side[a] == side[b]:
+        return -1, -1
+    if side[a] != 0:
+        return b, a
+    return a, b
+
+
+@njit(cache=True)
 def _cut_cover(side, es, et):
     """A minimum vertex cover of the edges between side 0 and side 1 (positions): the cut's
     bipartite graph in compressed rows, left (side 0) vertices numbered as met, and König's
@@ -262,13 +272,12 @@ def _cut_cover(side, es, et):
     rid = np.full(n, -1, np.int64)
     lpos = np.empty(n, np.int64)
     rpos = np.empty(n, np.int64)
+    ptr = np.zeros(n + 1, np.int64)   # (first nl + 1 used) cut edges per left vertex
     nl = nr = nc = 0
-    for e in range(es.shape[0]):
-        a, b = es[e], et[e]
-        if side[a] == side[b]:
+    for e in range(es.shape[0]):      # number the cut's vertices, count its edges
+        a, b = _cut_edge(side, es[e], et[e])
+        if a < 0:
             continue
-        if side[a] != 0:
-            a, b = b, a
         if lid[a] < 0:
             lid[a] = nl
             lpos[nl] = a
@@ -277,27 +286,19 @@ def _cut_cover(side, es, et):
             rid[b] = nr
             rpos[nr] = b
             nr += 1
+        ptr[lid[a] + 1] += 1
         nc += 1
     if nc == 0:
         return np.zeros(0, np.int64)
-    ptr = np.zeros(nl + 1, np.int64)
-    for e in range(es.shape[0]):
-        a, b = es[e], et[e]
-        if side[a] == side[b]:
-            continue
-        if side[a] != 0:
-            a = b
-        ptr[lid[a] + 1] += 1
+    ptr = ptr[:nl + 1]
     for u in range(nl):
         ptr[u + 1] += ptr[u]
     fill = ptr[:-1].copy()
     adj = np.empty(nc, np.int64)
-    for e in range(es.shape[0]):
-        a, b = es[e], et[e]
-        if side[a] == side[b]:
+    for e in range(es.shape[0]):      # the right neighbours of each left vertex
+        a, b = _cut_edge(side, es[e], et[e])
+        if a < 0:
             continue
-        if side[a] != 0:
-            a, b = b, a
         adj[fill[lid[a]]] = rid[b]
         fill[lid[a]] += 1
     in_l, in_r = _konig_cover(nl, nr, ptr, adj)
