@@ -154,8 +154,9 @@ def one(photos, root, to_solution):
     return row
 
 
-def one_square(side, root):
-    """Generate, order and adjust (to convergence, with precision) a side x side block."""
+def one_square(side, root, memory=None):
+    """Generate, order and adjust (to convergence, with precision) a side x side block;
+    ``memory``: ``sapgo adjust --memory`` (default sapgo's own budget, 1 GiB)."""
     sapgo_cmd = SAPGO
     path = Path(root) / f"square-{side}.h5"
     row, (t_gen, rss_gen), (t_ord, rss_ord), out = generate_and_order(side, side, path)
@@ -166,10 +167,12 @@ def one_square(side, root):
                solver=info["solver"], tree=info["tree"])
     row["phases"] = {"generate": {"wall_s": t_gen, "peak_rss_mb": rss_gen},
                      "order": {"wall_s": t_ord, "peak_rss_mb": rss_ord}}
+    row["memory"] = memory
     report = Path(root) / f"square-{side}.json"
     try:
         t_adj, rss_adj, _ = run(sapgo_cmd + ["adjust", str(path), "--no-progress", "--quiet",
-                                             "--keep-scratch", "--json", str(report)])
+                                             "--keep-scratch", "--json", str(report)]
+                                + (["--memory", memory] if memory else []))
     except RuntimeError as exc:   # refused or failed: where it stops, and why
         lines = [x[x.index("sapgo: error:"):] for x in str(exc).splitlines()
                  if "sapgo: error:" in x]
@@ -193,10 +196,10 @@ def one_square(side, root):
 
 
 def square_markdown(rows):
-    out = ["| block | photos | solver | tree: nodes, largest front, factor GB, TFlop | "
-           "generate s | order s | adjust s (iterations) | s/iteration | precision s | "
+    out = ["| block | photos | --memory | solver | tree: nodes, largest front, factor GB, "
+           "TFlop | generate s | order s | adjust s (iterations) | s/iteration | precision s | "
            "peak RSS adjust MB | work dir GB | sigma0 | stopped |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         t = r.get("tree") or {}
         tree = (f"{t.get('nodes')}, {t.get('largest_front')}, "
@@ -205,7 +208,8 @@ def square_markdown(rows):
         ph = r["phases"]
         a = ph.get("adjust", {})
         out.append(
-            f"| {r['strips']} x {r['photos_per_strip']} | {r['photos']:,} | {r.get('solver')} | "
+            f"| {r['strips']} x {r['photos_per_strip']} | {r['photos']:,} | "
+            f"{r.get('memory') or '1G (default)'} | {r.get('solver')} | "
             f"{tree} | {ph['generate']['wall_s']:.1f} | {ph['order']['wall_s']:.1f} | "
             + (f"{a['wall_s']:.1f} ({r['iterations']}) | {r['seconds_per_iteration']:.2f} | "
                f"{a.get('precision_s', 0):.1f} | {a['peak_rss_mb']:.0f} | "
@@ -261,6 +265,8 @@ def main():
                     "temporary directory under data/generated)")
     ap.add_argument("--squares", default="", help="square blocks instead: sides, e.g. "
                     "200,500,1000 (results/scale_square.json)")
+    ap.add_argument("--memory", default=None, help="with --squares: sapgo adjust --memory "
+                    "SIZE (default: sapgo's budget, 1 GiB)")
     args = ap.parse_args()
     if args.squares:
         return squares(args)
@@ -304,7 +310,7 @@ def squares(args):
     warm.unlink()
     rows = []
     for side in (int(s) for s in args.squares.split(",") if s):
-        rows.append(one_square(side, root))
+        rows.append(one_square(side, root, args.memory))
         print(json.dumps(rows[-1]), file=sys.stderr)
     sys.path.insert(0, str(Path(__file__).parent))
     from colmap import git_state
@@ -316,10 +322,12 @@ def squares(args):
                     "load_at_end": os.getloadavg()},
         "sapgo_version": sapgo.__version__, "sapgo_source": git_state(), "rows": rows}
     out = Path(__file__).parent / "results" / "scale_square.json"
-    if out.exists():   # rows of other sides measured before are kept
-        done = {r["strips"] for r in rows}
-        old = [r for r in json.loads(out.read_text()).get("rows", []) if r["strips"] not in done]
-        result["rows"] = rows = sorted(old + rows, key=lambda r: r["photos"])
+    if out.exists():   # rows of other sides or budgets measured before are kept
+        done = {(r["strips"], r.get("memory")) for r in rows}
+        old = [r for r in json.loads(out.read_text()).get("rows", [])
+               if (r["strips"], r.get("memory")) not in done]
+        result["rows"] = rows = sorted(old + rows,
+                                       key=lambda r: (r["photos"], r.get("memory") or ""))
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(square_markdown(rows))
 
