@@ -985,8 +985,7 @@ def _hold_records(p, blk, opts):
     if blk.tree is None:
         return 0
     budget = tree_budget(opts)
-    size = sum(p.file[n].size * p.file[n].dtype.itemsize for n in ("points", "observations"))
-    if size + blk.tree.peak_front_bytes(blk.npar) > budget:
+    if p.record_bytes() + blk.tree.peak_front_bytes(blk.npar) > budget:
         return 0
     return p.hold(max_bytes=budget // 4)
 

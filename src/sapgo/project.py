@@ -485,6 +485,10 @@ class Project:
         self.file.attrs["history"] = append_history(self.attr("history", "[]"), entry)
 
     # -- record access ------------------------------------------------------------------
+    def record_bytes(self, names=("points", "observations")):
+        """Bytes of the records of datasets ``names``."""
+        return sum(self.file[n].size * self.file[n].dtype.itemsize for n in names)
+
     def hold(self, names=("points", "observations"), max_bytes=256 << 20):
         """Read the records of datasets ``names`` into core once, when together they take at
         most ``max_bytes``, so that the many passes of an adjustment slice memory instead of
@@ -492,7 +496,7 @@ class Project:
         Returns the bytes held (0: the records stay in the file)."""
         if self.file.mode != "r":
             return 0
-        size = sum(self.file[n].size * self.file[n].dtype.itemsize for n in names)
+        size = self.record_bytes(names)
         if size > max_bytes:
             return 0
         for n in names:

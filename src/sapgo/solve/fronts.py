@@ -139,9 +139,8 @@ class FactorFile:
         self.path = path
         self.shape = np.asarray(layout, np.int64)
         self.n_rhs = n_rhs
-        m, f = self.shape[:, 0], self.shape[:, 1]
-        size = 8 * ((m + f) * m + m * n_rhs)
-        self.offset = np.zeros(len(m), np.int64)
+        size = self.record_bytes(self.shape, n_rhs)
+        self.offset = np.zeros(len(size), np.int64)
         self.offset[1:] = np.cumsum(size)[:-1]
         self.nbytes = int(size.sum())
         self._mem = {} if path is None else None
@@ -162,6 +161,12 @@ class FactorFile:
                 self.close()
                 raise OSError(f"{path}: {actual} bytes, expected {self.nbytes} for the tree's "
                               f"factor")
+
+    @staticmethod
+    def record_bytes(layout, n_rhs=1):
+        """Bytes of each node's record: ``[L11; L21]`` and ``y1`` with ``n_rhs`` columns."""
+        m, f = layout[:, 0], layout[:, 1]
+        return 8 * ((m + f) * m + m * n_rhs)
 
     def write(self, i, col, y1):
         """Node ``i``'s factor columns ``[L11; L21]`` ((m + f) x m, F order, e.g. the first

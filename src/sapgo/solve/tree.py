@@ -183,9 +183,9 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
         old.close()
         work.tree_factor = None
     layout = factor_layout(tree, k)
-    factor_bytes = 8 * int((layout[:, 0] ** 2 + layout[:, 0] * layout[:, 1]).sum())
     per, top, need = work_plan(tree, k, opts, threads, blk.held)
-    in_core = factor_bytes + need <= tree_budget(opts, blk.held)
+    in_core = (FactorFile.record_bytes(layout, 1 + ng).sum() + need
+               <= tree_budget(opts, blk.held))
     file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
     solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file, n_border=ng)
     diags = [np.zeros((n, k)) if lam > 0.0 else None for _ in per]
