@@ -245,7 +245,8 @@ def test_extend_add_and_front_zeros_against_numpy():
     """The extend-add kernel (stretch by stretch) equals numpy's fancy-indexed add on the
     lower triangle, for scattered and contiguous places; a fresh front is zero on its block
     lower triangle (all that is read)."""
-    from sapgo.solve.fronts import _extend_add_kernel, _zero_block_lower
+    from sapgo.solve.fronts import _zero_block_lower
+    from sapgo.solve.tiles import extend_add
 
     rng = np.random.default_rng(7)
     k = 6
@@ -260,8 +261,19 @@ def test_extend_add_and_front_zeros_against_numpy():
         low = np.tril(u[m:, m:])
         r, c = np.nonzero(np.tril(np.ones((n, n))))
         np.add.at(want, (ix[r], ix[c]), low[r, c])
-        _extend_add_kernel(a, u, m, ix)
+        extend_add(a, 0, np.asfortranarray(u[m:, m:]), 0, ix, 0, n)
         assert np.array_equal(a, want)
+        # a panel of the front (rows and columns from c0 to c1): the child's columns that
+        # fall in it, read from the child's update by column range
+        c0 = k * int(rng.integers(0, nf))
+        c1 = min(k * nf, c0 + k * int(rng.integers(1, 4)))
+        ca, cb = np.searchsorted(ix, [c0, c1])
+        panel = np.asfortranarray(a[c0:, c0:c1])
+        s = np.asfortranarray(u[m + ca:, m + ca:m + cb])
+        extend_add(panel, c0, s, ca, ix, ca, cb)
+        sel = (c >= ca) & (c < cb)
+        np.add.at(want, (ix[r[sel]], ix[c[sel]]), low[r[sel], c[sel]])
+        assert np.array_equal(panel, want[c0:, c0:c1])
     z = np.asfortranarray(rng.normal(size=(5 * k, 5 * k)))
     _zero_block_lower(z, k)
     blocks = np.kron(np.tril(np.ones((5, 5))), np.ones((k, k))) > 0

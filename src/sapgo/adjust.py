@@ -119,8 +119,9 @@ class Options:
     #: Continue an interrupted run from its last completed iteration (if there is one).
     resume: bool = False
     #: Memory budget of the external sorts when the project has to be ordered first (default
-    #: 512 MiB), of the tree solver's fronts and in-core factor (default 1 GiB), and of the
-    #: point and observation records held in core for the run's passes (a quarter of it).
+    #: 512 MiB) and, on the tree, of the whole adjustment (default 1 GiB): the process's
+    #: baseline, the records held in core for the run's passes (at most a quarter), the
+    #: solver's fronts (tiled when they would not fit) and its factor when it fits.
     memory: int | str | None = None
     #: Progress bars: True, False, or None for "when stderr is a terminal".
     progress: bool | None = None
@@ -984,9 +985,9 @@ def _hold_records(p, blk, opts):
 
     if blk.tree is None:
         return 0
-    budget = tree_budget(opts)
+    budget = tree_budget(opts, 0, len(blk.station_ids))
     if p.record_bytes() + blk.tree.peak_front_bytes(blk.npar) > budget:
-        return 0
+        return 0   # (the fronts would be tiled for them: they stream instead)
     return p.hold(max_bytes=budget // 4)
 
 
@@ -1023,7 +1024,7 @@ def adjust(path, options: Options | None = None) -> Summary:
         if blk.tree is not None:
             from .solve.tree import check_tree_memory
 
-            check_tree_memory(blk.tree, blk.npar, opts, path)
+            check_tree_memory(blk.tree, blk.npar, opts, path, len(blk.station_ids))
         blk.held = _hold_records(p, blk, opts)
         if blk.n_stations == 0:
             raise DatumDefectError(f"{path}: no station can be adjusted (every photo has fewer "

@@ -146,15 +146,20 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
     stations' cofactors ``zb`` from ``base``). ``stations(obs_station, obs_active)`` gives
     the observations' stations as indices into ``zb``'s stations with their orientation
     and camera (the tree numbers them by their place in a front); default the logical
-    stations."""
+    stations. ``zb`` may instead be a function of the chunk's ``(obs_station,
+    obs_active)`` giving ``(zb, stations, orientations, cameras, xw)`` (a tiled front's
+    inverse gathered over the chunk's stations)."""
     c = PointChunk(p_read, a, b, work.xyz_current[a:b], blk.camera, blk.cam_sigma, blk.frame,
                    blk.rejected)
     weight = reweight(c, work, opts)
     out = np.empty((b - a, 6))
     out_r = np.empty((c.o1 - c.o0, 3))
     out_w = np.empty((c.o1 - c.o0, 3))
-    st, eo, camera = ((c.obs_station, blk.eo, blk.camera) if stations is None else
-                      stations(c.obs_station, c.obs_active))
+    if callable(zb):
+        zb, st, eo, camera, xw = zb(c.obs_station, c.obs_active)
+    else:
+        st, eo, camera = ((c.obs_station, blk.eo, blk.camera) if stations is None else
+                          stations(c.obs_station, c.obs_active))
     point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, st,
                  c.obs_xy, c.obs_sigma, c.obs_active, eo, camera, blk.cams, CTRL_MASK,
                  c.max_rays, zb, base, np.ascontiguousarray(work.res_current[c.o0:c.o1]), out,

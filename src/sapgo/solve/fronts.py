@@ -44,6 +44,8 @@ import scipy.linalg
 from numba import njit
 
 from .band import PIVOT_TOLERANCE, PivotError
+from .tiles import (Panels, _factor_panel, _left_update, extend_add, invert_tiled,
+                    node_bounds, update_bounds, write_dense_panels)
 from ..blas import FNS, L, N, R, T, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
 from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_point, _chol3,
                        _point_system, _ray_terms, _solve3, _workspace)
@@ -53,7 +55,7 @@ from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_po
 def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                 pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                 ctrl_mask, front, rhs, max_rays, npar, lam, behind_ok, cal, bord, cnn, ccg,
-                cdiag):
+                cdiag, c0=0, c1=-1):
     """Add points ``j0 .. j1-1`` of a chunk into a dense front.
 
     ``obs_station`` holds each observation's station as its place in the front (-1: not in
@@ -66,7 +68,12 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
     block, right-hand side and undamped diagonal, each point eliminated from them as on
     the band (:func:`sapgo.normals._border_point`). Returns ``(status, point)``: OK, or
     SINGULAR_POINT / BEHIND_CAMERA / BAD_LAYOUT (a station of the point outside the front)
-    with the point."""
+    with the point.
+
+    A panel of a tiled front (:mod:`sapgo.solve.tiles`): ``c0, c1`` the front's columns it
+    holds, ``front`` its rows ``c0 ..`` and columns ``c0 .. c1``; only the terms in these
+    columns are added, and ``rhs`` only in the rows of its stations (``c1 = -1``: the whole
+    front)."""
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all = _workspace(max_rays, npar)
     g = np.empty((max_rays, npar, 3))
     h = np.empty(3)
@@ -79,6 +86,10 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
     ggp = np.empty((ng, 3))
     e = np.empty((2, 8))
     nf = bord.shape[0]
+    if c1 < 0:
+        c1 = front.shape[1]
+    spare = np.zeros((npar, npar))   # out-of-panel rays' diagonal terms (not kept)
+    spare_rhs = np.zeros(npar)
     for j in range(j0, j1):
         if pt_active[j] != 0:
             continue
@@ -96,13 +107,20 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
         _solve3(lo, cc, h)
         for q in range(k):
             s0 = npar * st_all[q]
-            _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar,
-                       front[s0:s0 + npar, s0:s0 + npar], rhs[s0:s0 + npar], g, col, tmp)
+            if c0 <= s0 < c1:
+                _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar,
+                           front[s0 - c0:s0 - c0 + npar, s0 - c0:s0 - c0 + npar],
+                           rhs[s0:s0 + npar], g, col, tmp)
+            else:
+                _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, spare, spare_rhs, g,
+                           col, tmp)
         # Schur complement into the lower triangle: rays are in ascending station order, so
         # the later station's rows and the earlier's columns (a diagonal block in full;
         # two rays of one station add X and X')
         for q in range(k):
             sq = npar * st_all[q]
+            if sq < c0 or sq >= c1:
+                continue
             for t in range(q, k):
                 st = npar * st_all[t]
                 for u in range(npar):
@@ -111,11 +129,11 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
                         for c in range(3):
                             x += g[q, u, c] * nbar[t, v, c]
                         if st != sq:
-                            front[st + v, sq + u] -= x
+                            front[st + v - c0, sq + u - c0] -= x
                         else:
-                            front[sq + u, sq + v] -= x
+                            front[sq + u - c0, sq + v - c0] -= x
                             if t != q:
-                                front[sq + v, sq + u] -= x
+                                front[sq + v - c0, sq + u - c0] -= x
         if ng > 0:
             _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal,
                           xyz, a_all, l_all, w_all, st_all, g, lo, h, 0, nf, bord, bord, cnn,
@@ -179,6 +197,52 @@ class FactorFile:
         os.pwrite(self._fd, memoryview(col.reshape(-1, order="F")), int(self.offset[i]))
         os.pwrite(self._fd, memoryview(np.asfortranarray(y1).reshape(-1, order="F")),
                   int(self.offset[i]) + col.nbytes)
+
+    def write_cols(self, i, c0, a):
+        """A panel of node ``i``'s factor columns: ``a`` ((m + f - c0) x w, F order) is
+        rows ``c0 ..`` of columns ``c0 .. c0 + w`` (the rows above are not used)."""
+        m, f = (int(x) for x in self.shape[i])
+        kf, w = m + f, a.shape[1]
+        if self._mem is not None:
+            entry = self._mem.setdefault(i, [np.zeros((kf, m), order="F"), None])
+            entry[0][c0:, c0:c0 + w] = a
+            return
+        for c in range(w):
+            os.pwrite(self._fd, memoryview(np.ascontiguousarray(a[:, c])),
+                      int(self.offset[i]) + 8 * ((c0 + c) * kf + c0))
+
+    def write_y(self, i, y1):
+        """Node ``i``'s ``y1`` (after :meth:`write_cols`)."""
+        m, f = (int(x) for x in self.shape[i])
+        if self._mem is not None:
+            self._mem[i][1] = y1
+            return
+        os.pwrite(self._fd, memoryview(np.asfortranarray(y1).reshape(-1, order="F")),
+                  int(self.offset[i]) + 8 * (m + f) * m)
+
+    def read_cols(self, i, c0, c1):
+        """Columns ``c0 .. c1`` of node ``i``'s ``[L11; L21]`` ((m + f) x (c1 - c0))."""
+        if self._mem is not None:
+            return self._mem[i][0][:, c0:c1]
+        m, f = (int(x) for x in self.shape[i])
+        n = (m + f) * (c1 - c0)
+        buf = np.frombuffer(os.pread(self._fd, 8 * n, int(self.offset[i]) + 8 * (m + f) * c0),
+                            np.float64)
+        if len(buf) != n:
+            raise OSError(f"{self.path}: factor record {i} cut short")
+        return buf.reshape((m + f, c1 - c0), order="F")
+
+    def read_y(self, i):
+        """Node ``i``'s ``y1`` (m, or m x n_rhs)."""
+        if self._mem is not None:
+            return self._mem[i][1]
+        m, f = (int(x) for x in self.shape[i])
+        nr = self.n_rhs
+        buf = np.frombuffer(os.pread(self._fd, 8 * m * nr, int(self.offset[i]) + 8 * (m + f) * m),
+                            np.float64)
+        if len(buf) != m * nr:
+            raise OSError(f"{self.path}: factor record {i} cut short")
+        return buf if nr == 1 else buf.reshape((m, nr), order="F")
 
     def read(self, i):
         """``(col, y1)`` of node ``i`` (as :meth:`write`)."""
@@ -250,9 +314,19 @@ class TreeSolver:
     """
 
     def __init__(self, tree, npar, factor_path, pivot_tol=PIVOT_TOLERANCE, file=None,
-                 n_border=0):
+                 n_border=0, tile=None, scratch=None):
         self.tree = tree
         self.k = npar
+        # tiled fronts (tile: (front bytes beyond which a front is tiled, panel bytes)):
+        # their panels, and updates and inverses' parts larger than a panel, in scratch
+        # files of ``scratch``
+        m = npar * (tree.hi - tree.lo).astype(np.float64)
+        f = npar * np.diff(tree.bptr).astype(np.float64)
+        self.tile = tile
+        self.tiled = (np.zeros(tree.n_nodes, bool) if tile is None else
+                      8 * (m + f) ** 2 > tile[0])
+        self.panel_bytes = None if tile is None else tile[1]
+        self.scratch = scratch
         self.pivot_tol = pivot_tol
         self.children = tree.children()
         self.n_border = n_border
@@ -277,14 +351,57 @@ class TreeSolver:
         return cls(tree, npar, None, n_border=n_border, file=FactorFile(
             factor_path, factor_layout(tree, npar), "r", n_rhs=1 + n_border))
 
-    def open(self, i):
+    def open(self, i, tiled=False):
+        """``(A, b)`` of node ``i``: the zeroed front (None when ``tiled``: its panels come
+        one at a time, :meth:`eliminate_tiled`) and right-hand side(s)."""
         t = self.tree
         nf = t.own(i) + len(t.bnd(i))
         kf = self.k * nf
-        a = np.empty((kf, kf), order="F")   # (numpy's allocation: huge pages where large)
-        _zero_block_lower(a, self.k)
+        a = None
+        if not tiled:
+            a = np.empty((kf, kf), order="F")   # (numpy's allocation: huge pages if large)
+            _zero_block_lower(a, self.k)
         return a, (np.zeros(kf) if not self.n_border else
                    np.zeros((kf, 1 + self.n_border), order="F"))
+
+    def bounds(self, i):
+        """Panel boundaries of node ``i``'s front when tiled
+        (:func:`sapgo.solve.tiles.node_bounds`)."""
+        t, k = self.tree, self.k
+        return node_bounds(k * t.own(i), k * len(t.bnd(i)), k, self.panel_bytes)
+
+    def _big(self, f):
+        """Whether an f x f update or inverse's part goes to a scratch file."""
+        return self.tile is not None and 8 * f * f > self.panel_bytes
+
+    def _children_updates(self, i, b):
+        """The children's updates for node ``i`` as ``(u, ix)`` (``u`` in core or
+        :class:`~sapgo.solve.tiles.Panels`, ``ix`` its places in the front), their
+        right-hand sides added into ``b``."""
+        t, k = self.tree, self.k
+        out = []
+        if self.children[i]:
+            fr = t.front(i)
+            for c in self.children[i]:
+                if c not in self.updates:  # a child not adjacent to its parent's front
+                    continue
+                u, ub = self.updates.pop(c)
+                ix = _scalar(np.searchsorted(fr, t.bnd(c)), k)
+                b[ix] += ub
+                out.append((u, ix))
+        return out
+
+    def _keep_update(self, i, a, m, b):
+        """Keep node ``i``'s update (the trailing block of front ``a``) for its parent:
+        copied out (lower triangle) so that the front goes, or to a scratch file when
+        larger than a panel."""
+        f = a.shape[0] - m
+        if self._big(f):
+            u = write_dense_panels(a, update_bounds(m, f, self.k, self.panel_bytes),
+                                   self.scratch, shift=m)
+        else:
+            u = _trailing_lower(a, m)
+        self.updates[i] = (u, b[m:].copy(order="F"))
 
     def eliminate(self, i, a, b, damping=None):
         """Extend-add the children's updates into front ``a`` (F-order, lower triangle) and
@@ -292,15 +409,13 @@ class TreeSolver:
         part and keep the update for the parent."""
         t, k = self.tree, self.k
         m = k * t.own(i)
-        if self.children[i]:
-            fr = t.front(i)
-            for c in self.children[i]:
-                if c not in self.updates:  # a child not adjacent to its parent's front
-                    continue
-                u, mc, ub = self.updates.pop(c)
-                ix = _scalar(np.searchsorted(fr, t.bnd(c)), k)
-                _extend_add_kernel(a, u, mc, ix)
-                b[ix] += ub
+        for u, ix in self._children_updates(i, b):
+            if isinstance(u, Panels):
+                for j in range(u.n_panels):
+                    extend_add(a, 0, u.panel(j), u.b[j], ix, u.b[j], u.b[j + 1])
+                u.close()
+            else:
+                extend_add(a, 0, u, 0, ix, 0, len(ix))
         if damping is not None:
             idx = np.arange(m)
             a[idx, idx] += damping
@@ -309,6 +424,14 @@ class TreeSolver:
                              b.reshape(-1, order="F"), nr, self.pivot_tol)
         if fail:
             raise PivotError(int(t.lo[i]) + (fail - 1) // k, (fail - 1) % k)
+        y1 = self._forward_done(i, b, m)
+        self.file.write(i, a[:, :m], y1)
+        if a.shape[0] > m and t.parent[i] >= 0:
+            self._keep_update(i, a, m, b)
+
+    def _forward_done(self, i, b, m):
+        """``y1`` of node ``i`` from its forward-substituted ``b``; ``y'y`` and the
+        border's ``W'W``, ``W'y`` accumulated."""
         y1 = b[:m].copy(order="F")
         if self.n_border:
             w = y1[:, 1:]
@@ -319,11 +442,87 @@ class TreeSolver:
                 self.wy += wy
         else:
             self.yy[i] = float(y1 @ y1)
-        self.file.write(i, a[:, :m], y1)
-        if a.shape[0] > m and t.parent[i] >= 0:
-            # the update, the front's trailing block, copied out (lower triangle) so that the
-            # front goes: the stack holds f x f, not (m + f)^2, a child
-            self.updates[i] = (_trailing_lower(a, m), 0, b[m:].copy(order="F"))
+        return y1
+
+    def eliminate_tiled(self, i, assemble, b, damping=None):
+        """Node ``i``'s tiled front (:mod:`sapgo.solve.tiles`), a panel at a time:
+        ``assemble(c0, c1, a)`` adds the node's own contributions (points, priors) to the
+        panel ``a`` (rows ``c0 ..``, columns ``c0 .. c1``; ``c0 = 0`` the first, where the
+        border's terms go); then the children's updates, ``damping``, the earlier own
+        panels' updates; own panels are factored into the factor file, boundary panels
+        become the update for the parent (a scratch file). ``b`` as for
+        :meth:`eliminate`, complete but for the own points' terms that ``assemble`` adds."""
+        t, k = self.tree, self.k
+        m = k * t.own(i)
+        kf = k * (t.own(i) + len(t.bnd(i)))
+        bounds = self.bounds(i)
+        n_own = int(np.searchsorted(bounds, m))
+        kids = self._children_updates(i, b)
+        nr = 1 + self.n_border
+        b2 = b if b.ndim == 2 else b[:, None]
+        bflat = b2.reshape(-1, order="F")
+        assert np.shares_memory(bflat, b)
+        upd = (Panels(self.scratch, kf - m, bounds[n_own:] - m)
+               if kf > m and t.parent[i] >= 0 else None)
+        try:
+            for j in range(len(bounds) - 1):
+                c0, c1 = int(bounds[j]), int(bounds[j + 1])
+                w = c1 - c0
+                a = np.zeros((kf - c0, w), order="F")
+                assemble(c0, c1, a)
+                for u, ix in kids:
+                    ca, cb = (int(x) for x in np.searchsorted(ix, [c0, c1]))
+                    if ca < cb:
+                        if isinstance(u, Panels):
+                            extend_add(a, c0, u.cols(ca, cb), ca, ix, ca, cb)
+                        else:
+                            extend_add(a, c0, u, 0, ix, ca, cb)
+                if damping is not None and c0 < m:
+                    a[np.arange(w), np.arange(w)] += damping[c0:c1]
+                orig = a[np.arange(w), np.arange(w)].copy()
+                aflat = a.reshape(-1, order="F")
+                for q in range(min(j, n_own)):
+                    q0, q1 = int(bounds[q]), int(bounds[q + 1])
+                    lq = self.file.read_cols(i, q0, q1)
+                    _left_update(FNS, aflat, kf - c0, kf - c0, w, lq.reshape(-1, order="F"),
+                                 kf, c0, q1 - q0)
+                    del lq
+                if j < n_own:
+                    fail = _factor_panel(FNS, aflat, kf - c0, w, bflat, kf, c0, nr,
+                                         self.pivot_tol, orig)
+                    if fail:
+                        raise PivotError(int(t.lo[i]) + (c0 + fail - 1) // k,
+                                         (c0 + fail - 1) % k)
+                    self.file.write_cols(i, c0, a)
+                elif upd is not None:
+                    upd.write(j - n_own, a)
+                del a, aflat
+        except BaseException:
+            if upd is not None:
+                upd.close()
+            raise
+        finally:
+            for u, _ in kids:
+                if isinstance(u, Panels):
+                    u.close()
+        y1 = self._forward_done(i, b, m)
+        self.file.write_y(i, y1)
+        if upd is not None:
+            self.updates[i] = (upd, b[m:].copy(order="F"))
+
+    def _back_tiled(self, i, r, xb):
+        """Back substitution through tiled node ``i``'s factor a panel at a time: its own
+        unknowns (m x c) from ``r`` (m x c) and the boundary's solution ``xb`` (f x c)."""
+        m = r.shape[0]
+        bounds = self.bounds(i)
+        x = np.empty_like(r)
+        for q in range(int(np.searchsorted(bounds, m)) - 1, -1, -1):
+            q0, q1 = int(bounds[q]), int(bounds[q + 1])
+            lq = self.file.read_cols(i, q0, q1)
+            rq = r[q0:q1] - lq[q1:m].T @ x[q1:m] - lq[m:].T @ xb
+            x[q0:q1] = scipy.linalg.solve_triangular(lq[q0:q1], rq, lower=True, trans="T",
+                                                     check_finite=False)
+        return x
 
     def solve(self, n_stations, theta=None):
         """``delta`` (n_stations x k; stations outside the tree 0) by back substitution
@@ -331,6 +530,12 @@ class TreeSolver:
         t, k = self.tree, self.k
         x = np.zeros(k * n_stations)
         for i in range(t.n_nodes - 1, -1, -1):
+            if self.tiled[i]:
+                y1 = self.file.read_y(i)
+                r = y1 if not self.n_border else y1[:, 0] - y1[:, 1:] @ theta
+                x[k * t.lo[i]:k * t.hi[i]] = self._back_tiled(
+                    i, r[:, None], x[_scalar(t.bnd(i), k)][:, None])[:, 0]
+                continue
             col, y1 = self.file.read(i)
             m = col.shape[1]
             r = y1 if not self.n_border else y1[:, 0] - y1[:, 1:] @ theta
@@ -347,6 +552,10 @@ class TreeSolver:
         t, k, ng = self.tree, self.k, self.n_border
         x = np.zeros((k * n_stations, ng))
         for i in range(t.n_nodes - 1, -1, -1):
+            if self.tiled[i]:
+                x[k * t.lo[i]:k * t.hi[i]] = self._back_tiled(
+                    i, self.file.read_y(i)[:, 1:], x[_scalar(t.bnd(i), k)])
+                continue
             col, y1 = self.file.read(i)
             m = col.shape[1]
             r = y1[:, 1:]
@@ -374,19 +583,45 @@ class TreeSolver:
         parts = {}   # the inverses over the boundaries of the children still to visit
         keep = {}
         for i in sorted(inside, reverse=True):
-            col, _ = self.file.read(i)
             z22 = parts.pop(i, None)
             if z22 is None:
                 z22 = held[i] if len(t.bnd(i)) else np.zeros((0, 0), order="F")
-            z = _front_inverse(col, z22, k)
-            on_node(i, z)
-            fr = t.front(i)
-            for c in self.children[i]:   # each child's part now: z goes
-                if len(t.bnd(c)):
-                    zc = _gather(z, _scalar(np.searchsorted(fr, t.bnd(c)), k))
-                    (parts if c in inside else keep)[c] = zc
+            if self.tiled[i]:
+                z = invert_tiled(lambda c0, c1, i=i: self.file.read_cols(i, c0, c1),
+                                 k * t.own(i), k * (t.own(i) + len(t.bnd(i))),
+                                 self.bounds(i), z22, self.scratch)
+            else:
+                if isinstance(z22, Panels):
+                    z22 = z22.dense()
+                col, _ = self.file.read(i)
+                z = _front_inverse(col, z22, k)
+                del col
+            if isinstance(z22, Panels) and z22 is not (held or {}).get(i):
+                z22.close()
+            del z22
+            try:
+                on_node(i, z)
+                fr = t.front(i)
+                for c in self.children[i]:   # each child's part now: z goes
+                    if len(t.bnd(c)):
+                        idx = _scalar(np.searchsorted(fr, t.bnd(c)), k)
+                        (parts if c in inside else keep)[c] = self._part(z, idx, c)
+            finally:
+                if isinstance(z, Panels):
+                    z.close()
             del z
         return keep
+
+    def _part(self, z, idx, c):
+        """Child ``c``'s part of the inverse ``z`` over its boundary ``idx``: in core, or in
+        a scratch file laid out as the child's boundary panels when larger than a panel."""
+        t, k = self.tree, self.k
+        if not self._big(len(idx)):
+            return z.gather(idx) if isinstance(z, Panels) else _gather(z, idx)
+        ub = update_bounds(k * t.own(c), len(idx), k, self.panel_bytes)
+        if isinstance(z, Panels):
+            return z.gather_panels(idx, ub, self.scratch)
+        return write_dense_panels(_gather(z, idx), ub, self.scratch)
 
     def close(self):
         self.file.close()
@@ -495,39 +730,3 @@ def _zero_block_lower(a, k):
     never read (half the memory traffic of zeroing it all)."""
     for c in range(a.shape[1]):
         a[c - c % k:, c] = 0.0
-
-
-@njit(cache=True, nogil=True)
-def _symmetrize_block(z, m):
-    """Copy the lower triangle of ``z[:m, :m]`` into its upper one."""
-    for c in range(m):
-        for r in range(c + 1, m):
-            z[c, r] = z[r, c]
-
-
-@njit(cache=True, nogil=True)
-def _extend_add_kernel(a, u, m, ix):
-    """``a[ix, ix] += u[m:, m:]`` on the lower triangles (``u`` a child's front, its update
-    matrix the trailing block; ``ix`` ascending). ``ix`` runs in stretches of consecutive
-    places (a station's k unknowns at least), so each column is added stretch by stretch,
-    contiguous on both sides."""
-    n = ix.shape[0]
-    # the stretches of consecutive places: [start[s], start[s + 1])
-    start = np.empty(n + 1, np.int64)
-    ns = 0
-    for r in range(n):
-        if r == 0 or ix[r] != ix[r - 1] + 1:
-            start[ns] = r
-            ns += 1
-    start[ns] = n
-    s0 = 0
-    for c in range(n):
-        jc = ix[c]
-        while start[s0 + 1] <= c:
-            s0 += 1
-        for s in range(s0, ns):
-            r0 = max(start[s], c)
-            r1 = start[s + 1]
-            d = ix[r0] - r0
-            for r in range(r0, r1):
-                a[d + r, jc] += u[m + r, m + c]

@@ -126,7 +126,7 @@ class Tree:
             "method": self.method,
         }
 
-    def peak_front_bytes(self, k=6, plan=None):
+    def peak_front_bytes(self, k=6, plan=None, tile=None):
         """Bytes in core at the worst moment of the factorisation: the fronts being factored
         plus the update matrices (f x f each) waiting for their parents.
 
@@ -134,12 +134,26 @@ class Tree:
         subtrees (node ranges) factored side by side and the nodes above them factored after:
         the workers' peaks add up (each with the updates of its finished subtrees, which
         wait for the top), then the top runs with all of them. None: one worker, all nodes
-        in post-order."""
+        in post-order.
+
+        ``tile``: ``(front_bytes, panel_bytes)``, fronts larger than ``front_bytes`` tiled
+        (:mod:`sapgo.solve.tiles`: a panel being assembled, a factor panel read back and a
+        part of a child's update, a panel each at most) and updates larger than a panel in
+        scratch files (a panel of them in core while they are written or added)."""
         f = k * np.diff(self.bptr).astype(np.float64)
         upd = 8 * f * f
         m = k * (self.hi - self.lo).astype(np.float64)
         front = 8 * (m + f) ** 2
         parent = self.parent
+        if tile is not None:
+            big, panel = tile
+            tiled = front > big
+            spilled = tiled | (upd > panel)
+            # a spilled child or update: a panel of it in core beside the front
+            touches = spilled.copy()
+            np.logical_or.at(touches, parent[(parent >= 0) & spilled], True)
+            front = np.where(tiled, 3.0 * panel, front + np.where(touches, panel, 0.0))
+            upd = np.where(spilled, 0.0, upd)
         pending = np.zeros(self.n_nodes)   # bytes of the children's updates held per parent
 
         def run(nodes, held):

@@ -20,39 +20,79 @@ import numpy as np
 
 from ..normals import CTRL_MASK, OK, PointChunk, station_diagonal
 from .fronts import TreeSolver, build_front
+from .tiles import Panels
 
 #: File of the tree's factor in the work directory.
 FACTOR_FILE = "tree_factor.bin"
 
-#: The tree solver's memory budget when ``--memory`` is not given: its fronts and update
-#: matrices must fit it (checked before any work), and the factor stays in core when it fits
+#: The adjustment's memory budget on the tree when ``--memory`` is not given: the process's
+#: baseline (:data:`BASELINE`), the records held in core, the fronts and update matrices
+#: (tiled when they would not fit, checked before any work) and the factor when it fits
 #: beside them.
 DEFAULT_TREE_MEMORY = 1 << 30
 
+#: What the adjusting process holds besides the solver, counted against the budget: the
+#: interpreter, numpy, SciPy, h5py and the compiled kernels (about 250 MiB measured after
+#: a first small run), and per station its vectors (orientation, corrections, diagonal,
+#: variances, numbering: 400 bytes a station).
+BASELINE = 256 << 20
+BASELINE_PER_STATION = 400
 
-def tree_budget(opts, held=0):
+#: The smallest tiles tried: fronts beyond budget / 2**j in core are tiled, j up to this.
+_TILE_STEPS = 10
+
+
+def tree_budget(opts, held=0, n_stations=0):
     """Bytes the tree solver may hold in core: ``opts.memory`` or the default, less the
-    ``held`` bytes of records that the run keeps in core (:func:`sapgo.adjust._hold_records`)."""
+    process's baseline for ``n_stations`` stations and the ``held`` bytes of records that
+    the run keeps in core (:func:`sapgo.adjust._hold_records`)."""
     from ..extsort import parse_memory
 
-    return (DEFAULT_TREE_MEMORY if opts.memory is None else parse_memory(opts.memory)) - held
+    total = DEFAULT_TREE_MEMORY if opts.memory is None else parse_memory(opts.memory)
+    return total - BASELINE - BASELINE_PER_STATION * n_stations - held
 
 
-def check_tree_memory(tree, k, opts, path):
-    """Refuse, before any work, a tree whose fronts do not fit the memory budget: one line
-    with the figures and the advice."""
+def tile_plan(tree, k, budget):
+    """The tiling that fits ``budget``: None when every front fits in core (one worker),
+    else ``(front_bytes, panel_bytes)`` for
+    :meth:`~sapgo.solve.partition.Tree.peak_front_bytes` and the solver, fronts beyond a
+    quarter of the budget tiled in panels of a quarter of that, halved until the peak fits
+    (or the smallest tried). Returns ``(tile, peak bytes)``."""
+    need = tree.peak_front_bytes(k)
+    if need <= budget:
+        return None, need
+    big = max(budget, 1 << 20) / 4.0
+    for _ in range(_TILE_STEPS):
+        tile = (big, big / 4.0)
+        need = tree.peak_front_bytes(k, None, tile)
+        if need <= budget:
+            break
+        big /= 2.0
+    return tile, need
+
+
+def check_tree_memory(tree, k, opts, path, n_stations=0):
+    """Refuse, before any work, a tree whose fronts do not fit the memory budget even
+    tiled: one line with the figures and the advice."""
     from ..errors import SapgoError
 
-    need = tree.peak_front_bytes(k)   # one worker: the least the tree needs
-    budget = tree_budget(opts)
+    budget = tree_budget(opts, 0, n_stations)
+    _, need = tile_plan(tree, k, budget)
     if need > budget:
         f = tree.figures(k)
         raise SapgoError(
-            f"{path}: the partition tree's fronts need {need / 2**20:.0f} MiB in core (largest "
-            f"front {f['largest_front']} stations, {f['largest_front_bytes'] / 2**20:.0f} MiB), "
-            f"more than the memory budget of {budget / 2**20:.0f} MiB: give --memory "
-            f"{-(-need // 2**20) + 64}M or more (the tiled out-of-core factorisation of large "
-            f"fronts is not there yet), or --solver band")
+            f"{path}: the partition tree's fronts need {need / 2**20:.0f} MiB in core even "
+            f"tiled (largest front {f['largest_front']} stations, "
+            f"{f['largest_front_bytes'] / 2**20:.0f} MiB), more than the memory budget "
+            f"leaves them ({budget / 2**20:.0f} MiB of --memory after the process's "
+            f"baseline): give --memory {-(-(need - budget) // 2**20) + 64 + _total(opts)}M "
+            f"or more, or --solver band")
+
+
+def _total(opts):
+    from ..extsort import parse_memory
+
+    return (DEFAULT_TREE_MEMORY if opts.memory is None else parse_memory(opts.memory)) >> 20
 
 
 class _Fronts:
@@ -124,21 +164,25 @@ def parallel_plan(tree, k, workers, share=0.5):
     return [sorted(x) for x in per], sorted(top)
 
 
-def work_plan(tree, k, opts, threads=None, held=0):
+def work_plan(tree, k, opts, threads=None, held=0, n_stations=0):
     """The plan of :func:`parallel_plan` for ``threads`` workers (default numba's thread
     count) whose fronts fit the memory budget side by side (subtrees split smaller, the
-    large fronts near the root left to the top, until they do), else one worker. Returns
-    ``(per_worker, top, bytes)`` with the bytes of fronts and updates it holds at its
+    large fronts near the root left to the top, until they do), else one worker, with the
+    large fronts tiled if they do not fit in core (:func:`tile_plan`). Returns
+    ``(per_worker, top, bytes, tile)`` with the bytes of fronts and updates it holds at its
     peak (:meth:`~sapgo.solve.partition.Tree.peak_front_bytes`)."""
     import numba
 
-    budget = tree_budget(opts, held)
+    budget = tree_budget(opts, held, n_stations)
     for share in (0.5, 0.25, 0.125, 0.0625):   # smaller subtrees, more nodes on top
         per, top = parallel_plan(tree, k, threads or numba.get_num_threads(), share)
+        if len(per) < 2:
+            break
         need = tree.peak_front_bytes(k, (per, top))
-        if len(per) < 2 or need <= budget:
-            return per, top, need
-    return [[(0, tree.n_nodes)]], [], tree.peak_front_bytes(k)
+        if need <= budget:
+            return per, top, need, None
+    tile, need = tile_plan(tree, k, budget)
+    return [[(0, tree.n_nodes)]], [], need, tile
 
 
 def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capture=None):
@@ -183,11 +227,14 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
         old.close()
         work.tree_factor = None
     layout = factor_layout(tree, k)
-    per, top, need = work_plan(tree, k, opts, threads, blk.held)
+    per, top, need, tile = work_plan(tree, k, opts, threads, blk.held, n)
     in_core = (FactorFile.record_bytes(layout, 1 + ng).sum() + need
-               <= tree_budget(opts, blk.held))
+               <= tree_budget(opts, blk.held, n))
     file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
-    solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file, n_border=ng)
+    solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file, n_border=ng,
+                        tile=tile, scratch=work.dir)
+    if capture is not None and solver.tiled.any():
+        raise ValueError("capture needs every front in core: give a larger --memory")
     diags = [np.zeros((n, k)) if lam > 0.0 else None for _ in per]
     # the border's block, right-hand side and undamped diagonal, a set per thread
     cb = [(np.zeros((ng, ng)), np.zeros(ng), np.zeros(ng)) for _ in range(len(per) + 1)]
@@ -253,29 +300,62 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
 
     def open_node(i):
         fr = fronts.enter(i)
-        a, b = solver.open(i)
+        tiled = bool(solver.tiled[i])
+        a, b = solver.open(i, tiled)
         rhs = b if b.ndim == 1 else b[:, 0]
         # the front's rows of the border's columns: a view of b (stations x k x ng)
         bord = (b[:, 1:].reshape(len(fr), k, ng) if ng else np.zeros((len(fr), k, 0)))
         assert not ng or np.shares_memory(bord, b)
         lo, hi = int(tree.lo[i]), int(tree.hi[i])
+        held = []   # a tiled front's priors: added panel by panel
         for rec in priors.take(lo, hi):
             s = int(rec["station"]) - lo
             w = rec["weight"]
-            a[k * s:k * s + 6, k * s:k * s + 6] += w
+            if tiled:
+                held.append((k * s, w))
+            else:
+                a[k * s:k * s + 6, k * s:k * s + 6] += w
             rhs[k * s:k * s + 6] += w @ (-_prior_residual(rec, blk.eo[lo + s]))
-        state.update(node=i, a=a, b=b, rhs=rhs, bord=bord)
+        state.update(node=i, a=a, b=b, rhs=rhs, bord=bord, tiled=tiled, priors=held)
+
+    def assemble(c0, c1, a):
+        """A panel of the tiled front at hand: its own points again, chunk by chunk (the
+        border's terms with the first panel), and its priors."""
+        i = state["node"]
+        for r0, w in state["priors"]:
+            if c0 <= r0 < c1:
+                a[r0 - c0:r0 - c0 + 6, r0 - c0:r0 - c0 + 6] += w
+        first = c0 == 0
+        bord = state["bord"] if first else np.zeros((state["bord"].shape[0], k, 0))
+        nb = (cnn, ccg, cdiag) if first else (np.zeros((0, 0)), np.zeros(0), np.zeros(0))
+        q0, q1 = int(pt[i]), int(pt[i + 1])
+        for a0 in range(q0, q1, opts.chunk_points):
+            b0 = min(q1, a0 + opts.chunk_points)
+            c = PointChunk(p, a0, b0, work.xyz_current[a0:b0], blk.camera, blk.cam_sigma,
+                           blk.frame, blk.rejected, blk.rejected_points)
+            reweight(c, work, opts)
+            st = fronts.local(c.obs_station, c.obs_active)
+            status, bad = build_front(
+                0, b0 - a0, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
+                c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo, fronts.camera,
+                blk.cams, CTRL_MASK, a, state["rhs"], c.max_rays, k, lam, blk.behind_ok, cal,
+                bord, *nb, c0, c1)
+            if status != OK:
+                raise _point_error(p, c, bad, status, blk)
 
     def close_node():
         i = state["node"]
-        fronts.leave()
         damping = None
         if lam > 0.0:
             damping = lam * np.clip(diag[tree.lo[i]:tree.hi[i]], 1e-6, 1e32).ravel()
         if capture is not None:
             capture(i, state["a"], state["b"])
         t0 = time.perf_counter()
-        solver.eliminate(i, state["a"], state["b"], damping)
+        if state["tiled"]:
+            solver.eliminate_tiled(i, assemble, state["b"], damping)
+        else:
+            solver.eliminate(i, state["a"], state["b"], damping)
+        fronts.leave()
         seconds[slot] += time.perf_counter() - t0
         state["node"] = -1
 
@@ -299,6 +379,9 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
                     node += 1
                     open_node(node)
                 j1 = min(b0, int(pt[node + 1]))
+                if state["tiled"]:   # built panel by panel when the node is closed
+                    j = j1
+                    continue
                 if j1 > j:   # the places of these points' observations only
                     o0 = int(c.pt_start[j - a0])
                     o1 = int(c.pt_start[j1 - 1 - a0] + c.nobs[j1 - 1 - a0])
@@ -321,6 +404,28 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
             close_node()
 
 
+#: Points a tiled front's quality takes at a time (the inverse over their stations is
+#: gathered from its panels).
+TILED_QUALITY_POINTS = 512
+
+
+def _gathered(z, fronts, k, xw):
+    """For :func:`sapgo.quality.points_quality` on a tiled front's inverse ``z``
+    (:class:`~sapgo.solve.tiles.Panels`): a function of the chunk's observations giving the
+    inverse over the stations they see (gathered), their places in it, orientations,
+    cameras and border rows."""
+    def take(obs_station, obs_active):
+        st, eo, camera = fronts.numbered(obs_station, obs_active)
+        places = np.unique(st[obs_active]) if obs_active.any() else np.zeros(1, np.int64)
+        zs = z.gather((k * places[:, None] + np.arange(k)).ravel())
+        st = np.ascontiguousarray(np.searchsorted(places, st), dtype=np.int64)
+        st[~obs_active] = 0
+        return (zs.T, st, np.ascontiguousarray(eo[places]),
+                np.ascontiguousarray(camera[places]),
+                None if xw is None else np.ascontiguousarray(xw[places]))
+    return take
+
+
 def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlations):
     """The precision pass on the tree: the selected inversion top-down and, node by node,
     the stations' cofactor blocks (``cov``), the points' standard deviations (``psig``) and
@@ -335,9 +440,11 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
     n = len(blk.station_ids)
     ng = blk.n_border
     var = np.zeros((n, k))
+    per, top, _, tile = work_plan(tree, k, opts, held=blk.held, n_stations=n)
     file = getattr(work, "tree_factor", None)
-    solver = (TreeSolver(tree, k, None, file=file, n_border=ng) if file is not None else
-              TreeSolver.reopen(tree, k, work.dir / FACTOR_FILE, ng))
+    if file is None:   # (a resumed run: the factor file of the last step)
+        file = TreeSolver.reopen(tree, k, work.dir / FACTOR_FILE, ng).file
+    solver = TreeSolver(tree, k, None, file=file, n_border=ng, tile=tile, scratch=work.dir)
     xb = cal = sig_b = None
     if ng:
         xb = solver.border_x(n)
@@ -353,9 +460,13 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
 
     def on_node(i, z):
         lo, hi = int(tree.lo[i]), int(tree.hi[i])
-        blocks = np.empty((hi - lo, k, k))
-        for s in range(hi - lo):
-            blocks[s] = z[k * s:k * s + k, k * s:k * s + k]
+        tiled = isinstance(z, Panels)
+        if tiled:
+            blocks = z.diag_blocks(k, 0, hi - lo)
+        else:
+            blocks = np.empty((hi - lo, k, k))
+            for s in range(hi - lo):
+                blocks[s] = z[k * s:k * s + k, k * s:k * s + k]
         if ng:
             blocks += np.einsum("sag,gh,sbh->sab", xb[lo:hi], sig_b, xb[lo:hi])
         cov[lo:hi] = blocks
@@ -365,13 +476,20 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
             return
         fronts = my_fronts()
         fr = fronts.enter(i)
-        zc = z.T   # C order: z is symmetric
         xw = np.ascontiguousarray(xb[fr]) if ng else None   # by place in the front
         try:
-            for a0 in range(p0, p1, opts.chunk_points):
-                points_quality(p, work, blk, opts, a0, min(p1, a0 + opts.chunk_points),
-                               sigma0, psig, quality, correlations, zc, 0, fronts.numbered,
-                               xw, 0, cal, sig_b, lock=lock)
+            if tiled:   # a few points at a time, the inverse over their stations gathered
+                for a0 in range(p0, p1, TILED_QUALITY_POINTS):
+                    a1 = min(p1, a0 + TILED_QUALITY_POINTS)
+                    points_quality(p, work, blk, opts, a0, a1, sigma0, psig, quality,
+                                   correlations, _gathered(z, fronts, k, xw), 0, None, None,
+                                   0, cal, sig_b, lock=lock)
+            else:
+                zc = z.T   # C order: z is symmetric
+                for a0 in range(p0, p1, opts.chunk_points):
+                    points_quality(p, work, blk, opts, a0, min(p1, a0 + opts.chunk_points),
+                                   sigma0, psig, quality, correlations, zc, 0,
+                                   fronts.numbered, xw, 0, cal, sig_b, lock=lock)
         finally:
             fronts.leave()
 
@@ -379,7 +497,6 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
 
     from ..blas import blas_limits
 
-    per, top, _ = work_plan(tree, k, opts, held=blk.held)
     if len(per) < 2:
         solver.inverse(on_node)
         return var
