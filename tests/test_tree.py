@@ -1,5 +1,7 @@
 """The partition tree and the multifrontal solver against dense references."""
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -42,28 +44,55 @@ def spd_on_graph(n, edges, k, seed):
     return m
 
 
-def _solve_tree(tree, perm, m, rhs, k, tmp_path):
+#: Tiles for the tests: fronts beyond 5 stations tiled, panels of 12 to 2 columns.
+SMALL_TILES = (8 * 30.0 ** 2, 8 * 60 * 12.0)
+
+
+def _fill(sol, tree, i, ml, k, rhs=None, border=None):
+    """Node ``i`` of the matrix ``ml`` (logical order): its own columns into the front (or,
+    tiled, panel by panel), ``rhs`` and the ``border``'s rows into its right-hand sides."""
+    fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
+    own = k * tree.own(i)
+    tiled = bool(sol.tiled[i])
+    a, b = sol.open(i, tiled)
+    if b.ndim == 1:
+        b[:own] = rhs[fs[:own]]
+    else:
+        b[:own, 0] = rhs[fs[:own]]
+        b[:own, 1:] = border[fs[:own]]
+    cols = np.tril(ml[np.ix_(fs, fs[:own])])
+    if not tiled:
+        a[:, :own] = cols
+        sol.eliminate(i, a, b)
+        return
+
+    def assemble(c0, c1, panel):
+        hi = min(c1, own)
+        if c0 < hi:
+            panel[:, :hi - c0] += cols[c0:, c0:hi]
+    sol.eliminate_tiled(i, assemble, b)
+
+
+def _solve_tree(tree, perm, m, rhs, k, tmp_path, tile=None):
     inv = np.empty_like(perm)
     inv[perm] = np.arange(len(perm))
     sc = (k * perm[:, None] + np.arange(k)).ravel()
     ml = m[np.ix_(sc, sc)]          # logical order
     bl = rhs[sc]
-    sol = TreeSolver(tree, k, tmp_path / "factor.bin")
+    sol = TreeSolver(tree, k, tmp_path / "factor.bin", tile=tile, scratch=tmp_path)
     for i in range(tree.n_nodes):
-        a, b = sol.open(i)
-        fr = tree.front(i)
-        fs = (k * fr[:, None] + np.arange(k)).ravel()
-        own = k * tree.own(i)
-        a[:, :own] = np.tril(ml[np.ix_(fs, fs[:own])])
-        b[:own] = bl[fs[:own]]
-        sol.eliminate(i, a, b)
+        _fill(sol, tree, i, ml, k, bl)
     x = sol.solve(len(perm)).ravel()
     return sol, ml, bl, x
 
 
-@pytest.mark.parametrize("method", ["geometric", "graph"])
+@pytest.mark.parametrize("method,tile", [("geometric", None), ("graph", None),
+                                         ("geometric", SMALL_TILES)])
 @pytest.mark.parametrize("shape", [(12, 9), (40, 3), (7, 7)])
-def test_tree_solve_equals_dense(tmp_path, method, shape):
+def test_tree_solve_equals_dense(tmp_path, method, shape, tile):
+    """The solve, y'y and the selected inversion over every front against dense numpy,
+    with every front in core and with the fronts beyond 5 stations tiled (panels of 2
+    stations, updates and the inverse's parts in scratch files)."""
     pos, edges = grid_graph(*shape)
     n = len(pos)
     active = np.ones(n, bool)
@@ -76,7 +105,8 @@ def test_tree_solve_equals_dense(tmp_path, method, shape):
     k = 6
     m = spd_on_graph(n, edges, k, 1)
     rhs = np.random.default_rng(2).normal(size=k * n)
-    sol, ml, bl, x = _solve_tree(tree, perm, m, rhs, k, tmp_path)
+    sol, ml, bl, x = _solve_tree(tree, perm, m, rhs, k, tmp_path, tile)
+    assert sol.tiled.any() == (tile is not None)
     np.testing.assert_allclose(x, np.linalg.solve(ml, bl), rtol=1e-9, atol=1e-12)
     # y'y = b' M^-1 b
     assert sol.y_norm2 == pytest.approx(bl @ np.linalg.solve(ml, bl), rel=1e-10)
@@ -86,11 +116,25 @@ def test_tree_solve_equals_dense(tmp_path, method, shape):
 
     def check(i, zf):
         fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
+        if not isinstance(zf, np.ndarray):   # a tiled front's inverse, by panels
+            assert sol.tiled[i]
+            own = tree.own(i)
+            np.testing.assert_allclose(zf.diag_blocks(k, 0, own),
+                                       [z[np.ix_(fs[k * s:k * s + k], fs[k * s:k * s + k])]
+                                        for s in range(own)], rtol=1e-8, atol=1e-12)
+            pick = np.arange(0, len(fs), 5)
+            np.testing.assert_allclose(zf.gather(pick), z[np.ix_(fs[pick], fs[pick])],
+                                       rtol=1e-8, atol=1e-12)
+            zf = zf.dense()
         np.testing.assert_allclose(zf, z[np.ix_(fs, fs)], rtol=1e-8, atol=1e-12)
         seen.append(i)
 
     sol.inverse(check)
     assert sorted(seen) == list(range(tree.n_nodes))
+    # no scratch file is left behind (updates and inverse parts are removed when used)
+    assert not list(tmp_path.glob("panels-*"))
+    if tile is not None:
+        return
     # as the precision pass runs it on two threads: the top first, then each worker's
     # subtrees from the inverses over their roots' boundaries alone
     from sapgo.solve.tree import parallel_plan
@@ -175,9 +219,10 @@ def test_pivot_names_the_station(tmp_path):
     s = k * bad + 2
     m[s, :] = 0.0
     m[:, s] = 0.0
-    with pytest.raises(PivotError) as e:
-        _solve_tree(tree, perm, m, np.ones(k * n), k, tmp_path)
-    assert e.value.row == inv[bad] and e.value.parameter == 2
+    for tile in (None, SMALL_TILES):
+        with pytest.raises(PivotError) as e:
+            _solve_tree(tree, perm, m, np.ones(k * n), k, tmp_path, tile)
+        assert e.value.row == inv[bad] and e.value.parameter == 2
 
 
 def test_best_tree_prefers_the_smaller_predicted_time():
@@ -327,17 +372,12 @@ def test_bordered_tree_solve_equals_dense(tmp_path):
     d, g = rng.normal(size=k * n), rng.normal(size=ng)
     full = np.block([[ml, bb], [bb.T, c]])
     want = np.linalg.solve(full, np.r_[d, g])
-    for path in (None, tmp_path / "f.bin"):
+    for path, tile in itertools.product((None, tmp_path / "f.bin"), (None, SMALL_TILES)):
         file = FactorFile(path, factor_layout(tree, k), n_rhs=1 + ng)
-        sol = TreeSolver(tree, k, None, file=file, n_border=ng)
+        sol = TreeSolver(tree, k, None, file=file, n_border=ng, tile=tile, scratch=tmp_path)
+        assert sol.tiled.any() == (tile is not None)
         for i in range(tree.n_nodes):
-            a, b = sol.open(i)
-            fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
-            own = k * tree.own(i)
-            a[:, :own] = np.tril(ml[np.ix_(fs, fs[:own])])
-            b[:own, 0] = d[fs[:own]]
-            b[:own, 1:] = bb[fs[:own]]
-            sol.eliminate(i, a, b)
+            _fill(sol, tree, i, ml, k, d, bb)
         theta, decrease, s_inv = border_schur_solve(c - sol.ww, g - sol.wy)
         x = sol.solve(n, theta).ravel()
         np.testing.assert_allclose(np.r_[x, theta], want, rtol=1e-9, atol=1e-11)

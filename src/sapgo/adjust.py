@@ -991,6 +991,17 @@ def _hold_records(p, blk, opts):
     return p.hold(max_bytes=budget // 4)
 
 
+def _tree_figures(blk, opts):
+    """The tree's figures for the summary, with the tiling the run's budget gave
+    (:func:`sapgo.solve.tree.tiling`)."""
+    from .solve.tree import tiling
+
+    if blk.tree is None:
+        return None
+    return {**blk.tree.figures(blk.npar),
+            **tiling(blk.tree, blk.npar, opts, blk.held, len(blk.station_ids))}
+
+
 def _work_band(blk: _Block):
     """The band width of the work files' band rows: none for the tree (its factor has a
     file of its own)."""
@@ -1371,7 +1382,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         image_rms_y_um=last["image_rms_y_um"],
         band_width=blk.band_width,
         solver=blk.solver,
-        tree=blk.tree.figures(blk.npar) if blk.tree is not None else None,
+        tree=_tree_figures(blk, opts),
         ordering=p_read.attr("ordering"),
         band_width_before=order_info.band_width_before if order_info else None,
         n_stations=blk.n_stations,

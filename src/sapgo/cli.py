@@ -80,7 +80,8 @@ def cmd_order(args):
         t = r.tree
         print(f"solver: tree ({t['method']} bisection): {t['nodes']} nodes, {t['leaves']} "
               f"leaves, depth {t['depth']}, largest front {t['largest_front']} stations "
-              f"({t['largest_front_bytes'] / 2**20:.1f} MiB), factor "
+              f"({t['largest_front_bytes'] / 2**20:.1f} MiB), fronts in core "
+              f"{t['fronts_bytes'] / 2**20:.1f} MiB (tiled beyond adjust's --memory), factor "
               f"{t['factor_bytes'] / 2**20:.1f} MiB, {t['flops'] / 1e9:.2f} GFlop")
     else:
         print(f"band width after:  {r.band_width}  ({r.ordering}; candidates: {cands})")
@@ -344,7 +345,7 @@ def _tree_info(p):
     k = 9 if p.attr("station_intrinsics", "") == "adjusted" else 6
     f = t.figures(k)
     return {key: f[key] for key in ("method", "nodes", "leaves", "depth", "largest_front",
-                                    "factor_bytes", "flops")}
+                                    "fronts_bytes", "factor_bytes", "flops")}
 
 
 def _fraction(text, option):
@@ -458,7 +459,8 @@ def cmd_plan(args):
     tr = result.get("tree")
     if tr:
         print(f"partition tree ({tr['method']}): {tr['nodes']} nodes, depth {tr['depth']}, "
-              f"largest front {tr['largest_front']} units, factor "
+              f"largest front {tr['largest_front']} units, fronts in core "
+              f"{tr['fronts_bytes'] / 2**20:.1f} MiB (tiled beyond adjust's --memory), factor "
               f"{tr['factor_bytes'] / 2**20:.1f} MiB, {tr['flops']:.3g} flops, predicted "
               f"solve {tr['predicted_solve_s']:.3f} s")
     print(f"recommended: {result['recommended']} (the least work: a band ordering, or the "
@@ -646,8 +648,9 @@ def build_parser():
     a.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its last completed iteration")
     a.add_argument("--memory", default=None, metavar="SIZE",
-                   help="memory budget of the external sorts when the project is ordered "
-                        "first, e.g. 256M (default 512M)")
+                   help="memory budget, e.g. 2G: of the external sorts when the project is "
+                        "ordered first (default 512M) and, on the partition tree, of the whole "
+                        "adjustment (default 1G; larger fronts are tiled)")
     a.add_argument("--keep-scratch", action="store_true",
                    help="keep the work directory NAME.h5.work (band and factor rows)")
     a.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -413,6 +413,10 @@ class Summary:
                      f"leaves, depth {t['depth']}), largest front {t['largest_front']} "
                      f"stations ({t['largest_front_bytes'] / 2**20:.1f} MiB), factor "
                      f"{t['factor_bytes'] / 2**20:.1f} MiB, {t['flops'] / 1e9:.2f} GFlop")
+            if t.get("tiled_fronts"):
+                L.append(f"  {t['tiled_fronts']} fronts tiled for the memory budget (panels "
+                         f"of at most {t['panel_bytes'] / 2**20:.1f} MiB; all fronts in core "
+                         f"would need {t['fronts_bytes'] / 2**20:.0f} MiB)")
         else:
             L.append(f"  order: {self.ordering}, band width {self.band_width} stations{before}")
         if self.excluded_stations:

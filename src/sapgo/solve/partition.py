@@ -122,6 +122,8 @@ class Tree:
             "largest_separator": int(((self.hi - self.lo)[~self.leaf]).max())
             if (~self.leaf).any() else 0,
             "factor_bytes": int(8 * doubles.sum()),
+            # the fronts and updates in core at once with every front in core, one worker
+            "fronts_bytes": self.peak_front_bytes(k) if self.n_nodes else 0,
             "flops": float(flops.sum()),
             "method": self.method,
         }

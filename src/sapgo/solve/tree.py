@@ -71,11 +71,26 @@ def tile_plan(tree, k, budget):
     return tile, need
 
 
+def tiling(tree, k, opts, held=0, n_stations=0):
+    """The tiling of the run's plan (:func:`work_plan`) as figures: ``tiled_fronts`` (how
+    many fronts are factored a panel at a time), ``panel_bytes`` (at most; 0 when none)."""
+    _, _, _, tile = work_plan(tree, k, opts, held=held, n_stations=n_stations)
+    if tile is None:
+        return {"tiled_fronts": 0, "panel_bytes": 0}
+    m = k * (tree.hi - tree.lo).astype(np.float64)
+    f = k * np.diff(tree.bptr).astype(np.float64)
+    return {"tiled_fronts": int((8 * (m + f) ** 2 > tile[0]).sum()),
+            "panel_bytes": int(tile[1])}
+
+
 def check_tree_memory(tree, k, opts, path, n_stations=0):
     """Refuse, before any work, a tree whose fronts do not fit the memory budget even
     tiled: one line with the figures and the advice."""
     from ..errors import SapgoError
 
+    from ..extsort import parse_memory
+
+    total = DEFAULT_TREE_MEMORY if opts.memory is None else parse_memory(opts.memory)
     budget = tree_budget(opts, 0, n_stations)
     _, need = tile_plan(tree, k, budget)
     if need > budget:
@@ -85,14 +100,8 @@ def check_tree_memory(tree, k, opts, path, n_stations=0):
             f"tiled (largest front {f['largest_front']} stations, "
             f"{f['largest_front_bytes'] / 2**20:.0f} MiB), more than the memory budget "
             f"leaves them ({budget / 2**20:.0f} MiB of --memory after the process's "
-            f"baseline): give --memory {-(-(need - budget) // 2**20) + 64 + _total(opts)}M "
-            f"or more, or --solver band")
-
-
-def _total(opts):
-    from ..extsort import parse_memory
-
-    return (DEFAULT_TREE_MEMORY if opts.memory is None else parse_memory(opts.memory)) >> 20
+            f"baseline): give --memory {-(-(need + total - budget) // 2**20) + 64}M or more, "
+            f"or --solver band")
 
 
 class _Fronts:
