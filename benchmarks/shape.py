@@ -79,9 +79,10 @@ def peak_rss_mb():
 
 # -- the child runs ---------------------------------------------------------------------------
 
-def child_sapgo(path, solver):
+def child_sapgo(path, solver, memory=""):
     t0 = time.perf_counter()
-    s = sapgo.adjust(path, sapgo.Options(progress=False, solver=solver))
+    s = sapgo.adjust(path, sapgo.Options(progress=False, solver=solver,
+                                         memory=memory or None))
     wall = time.perf_counter() - t0
     t = s.timings_s
     its = max(s.iterations, 1)
@@ -125,7 +126,8 @@ def child_cholmod(path, repeat=3):
     from sapgo.solve.tree import tree_step
 
     order_project(path, solver="tree")
-    opts = sapgo.Options(progress=False)
+    # (every front in core: the capture sees whole fronts; sapgo's factorisation as in core)
+    opts = sapgo.Options(progress=False, memory="16G")
     parts = []   # (rows, cols, values) per node: one append, as threads call capture
     rhs = {}
 
@@ -190,7 +192,7 @@ def child_main(argv):
     kind, path = argv[0], argv[1]
     t0 = time.perf_counter()
     if kind == "sapgo":
-        r = child_sapgo(path, argv[2])
+        r = child_sapgo(path, argv[2], argv[3] if len(argv) > 3 else "")
     elif kind == "colmap":
         r = child_colmap(path, argv[2])
     else:
@@ -237,7 +239,7 @@ def spread(values):
     return {"median": statistics.median(v), "min": min(v), "max": max(v), "n": len(v)}
 
 
-def bench_block(name, workdir, rounds, band_max, tools, band_all=10000):
+def bench_block(name, workdir, rounds, band_max, tools, band_all=10000, memory=""):
     spec = block_spec(name)
     gen = workdir / f"{name}.h5"
     info = sapgo.generate_block(gen, progress=False, control_sigma=0.0, **spec)
@@ -254,7 +256,7 @@ def bench_block(name, workdir, rounds, band_max, tools, band_all=10000):
             if tool.startswith("sapgo"):
                 path = workdir / f"{name}-run.h5"
                 shutil.copy(gen, path)
-                res = run_child("sapgo", path, tool.split()[1])
+                res = run_child("sapgo", path, tool.split()[1], memory or "")
                 shutil.rmtree(path.with_name(path.name + ".work"), ignore_errors=True)
                 path.unlink(missing_ok=True)
             elif tool == "cholmod":
@@ -378,6 +380,8 @@ def main(argv=None):
                     help="the band solver only up to this many photos")
     ap.add_argument("--tools", default="sapgo tree,colmap best,colmap default,sapgo band,cholmod")
     ap.add_argument("--dir", default=None)
+    ap.add_argument("--memory", default="", help="sapgo adjust --memory for sapgo's runs "
+                    "(default: sapgo's own, 1 GiB for the whole adjustment on the tree)")
     ap.add_argument("--output", default=str(RESULTS))
     args = ap.parse_args(argv)
     from colmap import git_state
@@ -394,7 +398,8 @@ def main(argv=None):
             sapgo.adjust(workdir / "w2.h5", sapgo.Options(progress=False, solver=solver))
         rows = []
         for name in args.blocks.split(","):
-            rows.append(bench_block(name, workdir, args.rounds, args.band_max, tools))
+            rows.append(bench_block(name, workdir, args.rounds, args.band_max, tools,
+                                    memory=args.memory))
             partial = {"blocks": {r["block"]: r for r in rows}}
             Path(args.output).with_suffix(".partial.json").write_text(
                 json.dumps(partial, indent=1, default=float))
@@ -403,7 +408,8 @@ def main(argv=None):
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                     "platform": platform.platform(), "load_at_end": load()},
         "sapgo_version": sapgo.__version__, "sapgo_source": git_state(),
-        "rounds": args.rounds, "blocks": {r["block"]: r for r in rows},
+        "rounds": args.rounds, "sapgo_memory": args.memory or "default (1G)",
+        "blocks": {r["block"]: r for r in rows},
         "speedup_per_iteration_vs_colmap_best": {
             r["block"]: r.get("speedup_per_iteration_vs_colmap_best") for r in rows},
         "wall_s": time.perf_counter() - t_all,

@@ -338,6 +338,39 @@ def test_a_killed_tree_run_resumes_to_the_same_result(square, tmp_path, fault):
     assert not work_path(path).exists()
 
 
+RUN_CAL = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "
+           "chunk_points=40, max_iterations=10, calibrate=('f', 'x0', 'y0', 'k1', 'p1'){}))")
+
+
+@pytest.mark.parametrize("fault,method", [("build:2", ""), ("update:3", ""),
+                                          ("solve:2", ", method='levenberg-marquardt'")])
+def test_a_killed_self_calibrating_tree_run_resumes_to_the_same_result(
+        miscalibrated_square, tmp_path, fault, method):
+    """Self-calibration on the tree (the border, its damping with Levenberg-Marquardt)
+    killed at a moment of an iteration and resumed: the same stations, points, residuals
+    and camera as the uninterrupted run, bit for bit."""
+    _, ref = ordered_pair(miscalibrated_square, tmp_path, name="ref")
+    path = tmp_path / "k.h5"
+    shutil.copy(ref, path)
+    run = RUN_CAL.format(method)
+    r = subprocess.run([sys.executable, "-c", run, str(ref)], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([sys.executable, "-c", run, str(path)], capture_output=True, text=True,
+                       env=dict(os.environ, SAPGO_FAULT=fault), timeout=300)
+    assert r.returncode == -signal.SIGKILL, r.stderr
+    r = subprocess.run([sys.executable, "-c", run.replace("chunk_points=40",
+                                                          "chunk_points=40, resume=True"),
+                        str(path)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    a, b = by_id(path), by_id(ref)
+    for k in ("station_corr", "point_corr", "residuals"):
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    with Project(path) as pa, Project(ref) as pb:
+        np.testing.assert_array_equal(pa.solution("camera_corr"), pb.solution("camera_corr"))
+    assert not work_path(path).exists()
+
+
 def test_fronts_larger_than_the_memory_budget_are_refused_before_any_work(square, tmp_path,
                                                                          monkeypatch, capsys):
     from sapgo.solve.partition import Tree

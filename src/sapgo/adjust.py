@@ -978,17 +978,14 @@ def _needs_order(p: Project, opts: Options):
 def _hold_records(p, blk, opts):
     """On the tree, read the point and observation records into core once for the run's
     passes (which visit them node by node, many small reads), when they take at most a
-    quarter of the memory budget (``--memory``, default 1 GiB) and leave the fronts their
-    share of it. Returns the bytes held, which the tree solver's budget then lacks. The band
-    streams them in large chunks and holds nothing proportional to them."""
+    quarter of the solver's memory budget (:func:`sapgo.solve.tree.tree_budget`). Returns
+    the bytes held, which the solver's budget then lacks (its fronts are tiled sooner).
+    The band streams them in large chunks and holds nothing proportional to them."""
     from .solve.tree import tree_budget
 
     if blk.tree is None:
         return 0
-    budget = tree_budget(opts, 0, len(blk.station_ids))
-    if p.record_bytes() + blk.tree.peak_front_bytes(blk.npar) > budget:
-        return 0   # (the fronts would be tiled for them: they stream instead)
-    return p.hold(max_bytes=budget // 4)
+    return p.hold(max_bytes=tree_budget(opts, 0, len(blk.station_ids)) // 4)
 
 
 def _tree_figures(blk, opts):

@@ -37,7 +37,6 @@ along one path from the root.
 from __future__ import annotations
 
 import os
-import threading
 
 import numpy as np
 import scipy.linalg
@@ -334,10 +333,34 @@ class TreeSolver:
             factor_path, factor_layout(tree, npar), n_rhs=1 + n_border)
         self.updates = {}
         self.yy = np.zeros(tree.n_nodes)
-        self.ww = np.zeros((n_border, n_border))
-        self.wy = np.zeros(n_border)
-        self._lock = threading.Lock()
+        # the border's W'W and W'y summed per part of the work (:meth:`set_parts`): each
+        # part's nodes in their fixed order, then the parts in theirs, so that the sums do
+        # not depend on which thread finished first (a resumed run repeats them bit for bit)
+        self.part = np.zeros(tree.n_nodes, np.int64)
+        self._ww = np.zeros((1, n_border, n_border))
+        self._wy = np.zeros((1, n_border))
         tune_malloc()
+
+    def set_parts(self, per, top):
+        """The parts of a plan (:func:`sapgo.solve.tree.parallel_plan`): each worker's
+        subtrees, then the top nodes; each part run by one thread at a time."""
+        for w, ranges in enumerate(per):
+            for a, b in ranges:
+                self.part[a:b] = w
+        self.part[np.asarray(top, np.int64)] = len(per)
+        ng = self.n_border
+        self._ww = np.zeros((len(per) + 1, ng, ng))
+        self._wy = np.zeros((len(per) + 1, ng))
+
+    @property
+    def ww(self):
+        """``W'W`` of the border (self-calibration) over the nodes eliminated."""
+        return self._ww.sum(axis=0)
+
+    @property
+    def wy(self):
+        """``W'y`` of the border over the nodes eliminated."""
+        return self._wy.sum(axis=0)
 
     @property
     def y_norm2(self):
@@ -437,9 +460,8 @@ class TreeSolver:
             w = y1[:, 1:]
             self.yy[i] = float(y1[:, 0] @ y1[:, 0])
             ww, wy = w.T @ w, w.T @ y1[:, 0]
-            with self._lock:
-                self.ww += ww
-                self.wy += wy
+            self._ww[self.part[i]] += ww
+            self._wy[self.part[i]] += wy
         else:
             self.yy[i] = float(y1 @ y1)
         return y1

@@ -52,19 +52,19 @@ def tree_budget(opts, held=0, n_stations=0):
     return total - BASELINE - BASELINE_PER_STATION * n_stations - held
 
 
-def tile_plan(tree, k, budget):
-    """The tiling that fits ``budget``: None when every front fits in core (one worker),
-    else ``(front_bytes, panel_bytes)`` for
-    :meth:`~sapgo.solve.partition.Tree.peak_front_bytes` and the solver, fronts beyond a
-    quarter of the budget tiled in panels of a quarter of that, halved until the peak fits
-    (or the smallest tried). Returns ``(tile, peak bytes)``."""
-    need = tree.peak_front_bytes(k)
+def tile_plan(tree, k, budget, plan=None):
+    """The tiling that fits ``budget`` (with ``plan``, workers side by side, or one worker):
+    None when every front fits in core, else ``(front_bytes, panel_bytes)`` for
+    :meth:`~sapgo.solve.partition.Tree.peak_front_bytes` and the solver, fronts beyond half
+    the budget tiled in panels of half that, halved until the peak fits (or the smallest
+    tried). Returns ``(tile, peak bytes)``."""
+    need = tree.peak_front_bytes(k, plan)
     if need <= budget:
         return None, need
-    big = max(budget, 1 << 20) / 4.0
+    big = max(budget, 1 << 20) / 2.0
     for _ in range(_TILE_STEPS):
-        tile = (big, big / 4.0)
-        need = tree.peak_front_bytes(k, None, tile)
+        tile = (big, big / 2.0)
+        need = tree.peak_front_bytes(k, plan, tile)
         if need <= budget:
             break
         big /= 2.0
@@ -190,6 +190,10 @@ def work_plan(tree, k, opts, threads=None, held=0, n_stations=0):
         need = tree.peak_front_bytes(k, (per, top))
         if need <= budget:
             return per, top, need, None
+    if len(per) > 1:   # the workers' subtrees side by side with the large fronts tiled
+        tile, need = tile_plan(tree, k, budget, (per, top))
+        if need <= budget:
+            return per, top, need, tile
     tile, need = tile_plan(tree, k, budget)
     return [[(0, tree.n_nodes)]], [], need, tile
 
@@ -242,6 +246,7 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
     solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file, n_border=ng,
                         tile=tile, scratch=work.dir)
+    solver.set_parts(per, top)
     if capture is not None and solver.tiled.any():
         raise ValueError("capture needs every front in core: give a larger --memory")
     diags = [np.zeros((n, k)) if lam > 0.0 else None for _ in per]
