@@ -44,8 +44,8 @@ from numba import njit
 
 from .band import PIVOT_TOLERANCE, PivotError
 from .tiles import (Panels, _factor_panel, _left_update, extend_add, invert_tiled,
-                    node_bounds, update_bounds, write_dense_panels)
-from ..blas import FNS, L, N, R, T, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
+                    node_bounds, potrf_tested, update_bounds, write_dense_panels)
+from ..blas import FNS, L, N, R, T, gemm, gemv, syrk, trmm, trsm, trsv, trtri
 from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_point, _chol3,
                        _point_system, _ray_terms, _solve3, _workspace)
 
@@ -671,14 +671,9 @@ def _factor_front(fns, a, kf, m, b, nr, tol):
     orig = np.empty(m)
     for j in range(m):
         orig[j] = a[j * kf + j]
-    info = potrf(fns.dpotrf, L, m, a, kf)
-    good = m if info == 0 else info - 1
-    for j in range(good):
-        d = a[j * kf + j]
-        if not (d * d > tol * orig[j]):
-            return j + 1
-    if info != 0:
-        return info
+    fail = potrf_tested(fns, a, kf, m, tol, orig)
+    if fail:
+        return fail
     if f > 0:
         trsm(fns.dtrsm, R, L, T, N, f, m, 1.0, a, kf, a[m:], kf)
         syrk(fns.dsyrk, L, N, f, m, -1.0, a[m:], kf, 1.0, a[m * kf + m:], kf)

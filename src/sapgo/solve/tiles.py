@@ -220,20 +220,30 @@ def _left_update(fns, a, lda, rows, w, lq, kf, r0, wq):
 
 
 @njit(cache=True, nogil=True)
-def _factor_panel(fns, a, lda, w, b, ldb, c0, nr, tol, orig):
-    """Factor an own panel in place (``a``: rows c0 .. kf of its w columns): ``L_jj =
-    chol(A_jj)``, ``L_Rj = A_Rj L_jj'^-1``; forward-substitute the right-hand sides
-    (``b``: kf x nr, Fortran order) through it. Returns 0 or 1 + the panel's first column
-    whose pivot is at or below ``tol`` times its diagonal before the factorisation
-    (``orig``, as assembled)."""
+def potrf_tested(fns, a, lda, w, tol, orig):
+    """``dpotrf`` of the leading ``w x w`` block of ``a`` with the band solver's pivot test:
+    0, or 1 + the first column whose pivot (squared diagonal of the factor) is at or below
+    ``tol`` times ``orig`` (its diagonal before the factorisation), or where dpotrf
+    failed."""
     info = potrf(fns.dpotrf, L, w, a, lda)
     good = w if info == 0 else info - 1
     for j in range(good):
         d = a[j * lda + j]
         if not (d * d > tol * orig[j]):
             return j + 1
-    if info != 0:
-        return info
+    return info
+
+
+@njit(cache=True, nogil=True)
+def _factor_panel(fns, a, lda, w, b, ldb, c0, nr, tol, orig):
+    """Factor an own panel in place (``a``: rows c0 .. kf of its w columns): ``L_jj =
+    chol(A_jj)``, ``L_Rj = A_Rj L_jj'^-1``; forward-substitute the right-hand sides
+    (``b``: kf x nr, Fortran order) through it. Returns 0 or 1 + the panel's first column
+    whose pivot is at or below ``tol`` times its diagonal before the factorisation
+    (``orig``, as assembled)."""
+    fail = potrf_tested(fns, a, lda, w, tol, orig)
+    if fail:
+        return fail
     below = lda - w
     if below > 0:
         trsm(fns.dtrsm, R, L, T, N, below, w, 1.0, a, lda, a[w:], lda)
