@@ -198,8 +198,8 @@ def one_square(side, root, memory=None):
 def square_markdown(rows):
     out = ["| block | photos | --memory | solver | tree: nodes, largest front, factor GB, "
            "TFlop | generate s | order s | adjust s (iterations) | s/iteration | precision s | "
-           "peak RSS adjust MB | work dir GB | sigma0 | stopped |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "peak RSS adjust MB | work dir GB | sigma0 | stopped | code |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         t = r.get("tree") or {}
         tree = (f"{t.get('nodes')}, {t.get('largest_front')}, "
@@ -214,8 +214,15 @@ def square_markdown(rows):
             + (f"{a['wall_s']:.1f} ({r['iterations']}) | {r['seconds_per_iteration']:.2f} | "
                f"{a.get('precision_s', 0):.1f} | {a['peak_rss_mb']:.0f} | "
                f"{r['work_bytes'] / 1e9:.2f} | {r['sigma0']:.3f} | |" if a else
-               f" | | | | | | {r.get('stopped', '')} |"))
+               f" | | | | | | {r.get('stopped', '')} |")
+            + f" {_code(r)} |")
     return "\n".join(out)
+
+
+def _code(row):
+    """The commit a row was measured at (``+`` with uncommitted source changes)."""
+    src = row.get("sapgo_source") or {}
+    return (src.get("commit") or "?")[:7] + ("+" if src.get("uncommitted") else "")
 
 
 def growth(rows, a, b):
@@ -308,12 +315,14 @@ def squares(args):
     sapgo.order_project(warm, solver="tree")
     sapgo.adjust(warm, sapgo.Options(progress=False))
     warm.unlink()
+    sys.path.insert(0, str(Path(__file__).parent))
+    from colmap import git_state
+
     rows = []
     for side in (int(s) for s in args.squares.split(",") if s):
         rows.append(one_square(side, root, args.memory))
+        rows[-1]["sapgo_source"] = git_state()   # (rows of other runs are kept: each its own)
         print(json.dumps(rows[-1]), file=sys.stderr)
-    sys.path.insert(0, str(Path(__file__).parent))
-    from colmap import git_state
 
     result = {
         "machine": {"python": sys.version.split()[0], "platform": platform.platform(),

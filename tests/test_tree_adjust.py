@@ -286,6 +286,8 @@ def test_tiled_fronts_give_the_in_core_result(miscalibrated_square, tmp_path, mo
                         ([[(0, tree.n_nodes)]], [], need, SMALL_TILES))
     st = sapgo.adjust(path, opts)
     assert seen["tiled"] > 0 and seen["inverted"] > 0
+    assert st.tree["tiled_fronts"] > 0 and sr.tree["tiled_fronts"] == 0
+    assert "fronts tiled for the memory budget" in st.full_report()
     assert st.converged and st.iterations == sr.iterations
     assert st.sigma0 == pytest.approx(sr.sigma0, rel=1e-10)
     assert_same_solution(path, ref)

@@ -219,17 +219,27 @@ class FactorFile:
         os.pwrite(self._fd, memoryview(np.asfortranarray(y1).reshape(-1, order="F")),
                   int(self.offset[i]) + 8 * (m + f) * m)
 
-    def read_cols(self, i, c0, c1):
-        """Columns ``c0 .. c1`` of node ``i``'s ``[L11; L21]`` ((m + f) x (c1 - c0))."""
+    def read_cols(self, i, c0, c1, r0=0):
+        """Rows ``r0 ..`` of columns ``c0 .. c1`` of node ``i``'s ``[L11; L21]`` ((m + f -
+        r0) x (c1 - c0), F order): one read, or with ``r0 > 0`` a read a column."""
         if self._mem is not None:
-            return self._mem[i][0][:, c0:c1]
+            return self._mem[i][0][r0:, c0:c1]
         m, f = (int(x) for x in self.shape[i])
-        n = (m + f) * (c1 - c0)
-        buf = np.frombuffer(os.pread(self._fd, 8 * n, int(self.offset[i]) + 8 * (m + f) * c0),
-                            np.float64)
-        if len(buf) != n:
-            raise OSError(f"{self.path}: factor record {i} cut short")
-        return buf.reshape((m + f, c1 - c0), order="F")
+        kf = m + f
+        if r0 == 0:
+            n = kf * (c1 - c0)
+            buf = np.frombuffer(os.pread(self._fd, 8 * n, int(self.offset[i]) + 8 * kf * c0),
+                                np.float64)
+            if len(buf) != n:
+                raise OSError(f"{self.path}: factor record {i} cut short")
+            return buf.reshape((kf, c1 - c0), order="F")
+        out = np.empty((kf - r0, c1 - c0), order="F")
+        for c in range(c0, c1):
+            view = memoryview(out[:, c - c0])
+            if os.preadv(self._fd, [view], int(self.offset[i]) + 8 * (c * kf + r0)) != \
+                    view.nbytes:
+                raise OSError(f"{self.path}: factor record {i} cut short")
+        return out
 
     def read_y(self, i):
         """Node ``i``'s ``y1`` (m, or m x n_rhs)."""
@@ -503,11 +513,11 @@ class TreeSolver:
                     a[np.arange(w), np.arange(w)] += damping[c0:c1]
                 orig = a[np.arange(w), np.arange(w)].copy()
                 aflat = a.reshape(-1, order="F")
-                for q in range(min(j, n_own)):
+                for q in range(min(j, n_own)):   # (the rows from c0 of earlier panels)
                     q0, q1 = int(bounds[q]), int(bounds[q + 1])
-                    lq = self.file.read_cols(i, q0, q1)
+                    lq = np.asfortranarray(self.file.read_cols(i, q0, q1, c0))
                     _left_update(FNS, aflat, kf - c0, kf - c0, w, lq.reshape(-1, order="F"),
-                                 kf, c0, q1 - q0)
+                                 kf - c0, 0, q1 - q0)
                     del lq
                 if j < n_own:
                     fail = _factor_panel(FNS, aflat, kf - c0, w, bflat, kf, c0, nr,
@@ -540,9 +550,10 @@ class TreeSolver:
         x = np.empty_like(r)
         for q in range(int(np.searchsorted(bounds, m)) - 1, -1, -1):
             q0, q1 = int(bounds[q]), int(bounds[q + 1])
-            lq = self.file.read_cols(i, q0, q1)
-            rq = r[q0:q1] - lq[q1:m].T @ x[q1:m] - lq[m:].T @ xb
-            x[q0:q1] = scipy.linalg.solve_triangular(lq[q0:q1], rq, lower=True, trans="T",
+            lq = self.file.read_cols(i, q0, q1, q0)   # (rows from q0)
+            w = q1 - q0
+            rq = r[q0:q1] - lq[w:m - q0].T @ x[q1:m] - lq[m - q0:].T @ xb
+            x[q0:q1] = scipy.linalg.solve_triangular(lq[:w], rq, lower=True, trans="T",
                                                      check_finite=False)
         return x
 
@@ -609,7 +620,7 @@ class TreeSolver:
             if z22 is None:
                 z22 = held[i] if len(t.bnd(i)) else np.zeros((0, 0), order="F")
             if self.tiled[i]:
-                z = invert_tiled(lambda c0, c1, i=i: self.file.read_cols(i, c0, c1),
+                z = invert_tiled(lambda c0, c1, i=i: self.file.read_cols(i, c0, c1, c0),
                                  k * t.own(i), k * (t.own(i) + len(t.bnd(i))),
                                  self.bounds(i), z22, self.scratch)
             else:

@@ -255,17 +255,17 @@ def _factor_panel(fns, a, lda, w, b, ldb, c0, nr, tol, orig):
 
 
 @njit(cache=True, nogil=True)
-def _inverse_panel_start(fns, lq, kf, c0, w, x, linv):
-    """From own factor panel ``lq`` (kf x w, Fortran order, columns c0 .. c0+w):
-    ``linv = L_qq^-1`` (w x w) and ``x = L_Rq L_qq^-1`` ((kf - c0 - w) x w)."""
-    rows = kf - c0 - w
+def _inverse_panel_start(fns, lq, ld, w, x, linv):
+    """From own factor panel ``lq`` (its rows from its first column: ``ld`` x w, Fortran
+    order): ``linv = L_qq^-1`` (w x w) and ``x = L_Rq L_qq^-1`` ((ld - w) x w)."""
+    rows = ld - w
     for c in range(w):
         for r in range(w):
-            linv[c * w + r] = lq[c * kf + c0 + r] if r >= c else 0.0
+            linv[c * w + r] = lq[c * ld + r] if r >= c else 0.0
     trtri(fns.dtrtri, L, N, w, linv, w)
     for c in range(w):
         for r in range(rows):
-            x[c * rows + r] = lq[c * kf + c0 + w + r]
+            x[c * rows + r] = lq[c * ld + w + r]
     if rows > 0:
         trmm(fns.dtrmm, R, L, N, N, rows, w, 1.0, linv, w, x, rows)
 
@@ -304,7 +304,7 @@ def _inverse_panel_finish(fns, linv, x, y, rows, w, out):
 def invert_tiled(lcols, m, kf, bounds, z22, directory):
     """Selected inversion of a tiled front: the inverse over it as :class:`Panels`
     (``bounds``: :func:`node_bounds`). ``lcols(c0, c1)`` reads the factor's columns
-    ``c0 .. c1`` (kf rows, Fortran order); ``z22``: the inverse over the boundary, dense
+    ``c0 .. c1`` from row ``c0`` (Fortran order); ``z22``: the inverse over the boundary, dense
     (full, Fortran order) or :class:`Panels` laid out as the boundary panels of ``bounds``."""
     z = Panels(directory, kf, bounds)
     try:
@@ -319,10 +319,10 @@ def invert_tiled(lcols, m, kf, bounds, z22, directory):
             c0, c1 = int(bounds[q]), int(bounds[q + 1])
             w = c1 - c0
             rows = kf - c1
-            lq = lcols(c0, c1)
+            lq = np.asfortranarray(lcols(c0, c1))
             linv = np.empty(w * w)
             x = np.empty(rows * w)
-            _inverse_panel_start(FNS, lq.reshape(-1, order="F"), kf, c0, w, x, linv)
+            _inverse_panel_start(FNS, lq.reshape(-1, order="F"), kf - c0, w, x, linv)
             del lq
             y = np.zeros(rows * w)
             for p in range(q + 1, len(bounds) - 1):
