@@ -123,20 +123,23 @@ class Panels:
             c, p = e, p + 1
         return out
 
-    def column(self, c, r0):
-        """Rows ``r0 .. n`` of column ``c`` (``r0 >= `` the first column of ``c``'s panel)."""
+    def column(self, c, r0, r1=None):
+        """Rows ``r0 .. r1`` (default ``n``) of column ``c`` (``r0 >=`` the first column of
+        ``c``'s panel)."""
         p = int(np.searchsorted(self.b, c, side="right")) - 1
         b0 = int(self.b[p])
         rows = self.n - b0
-        return self._read(8 * (self.n - r0), int(self.off[p]) + 8 * ((c - b0) * rows + r0 - b0))
+        r1 = self.n if r1 is None else r1
+        return self._read(8 * (r1 - r0), int(self.off[p]) + 8 * ((c - b0) * rows + r0 - b0))
 
     def gather(self, idx):
         """The full symmetric matrix over the ascending indices ``idx`` (Fortran order)."""
         idx = np.asarray(idx, np.int64)
         n = len(idx)
         out = np.empty((n, n), order="F")
-        for c in range(n):
-            col = self.column(int(idx[c]), int(idx[c]))
+        last = int(idx[-1]) + 1 if n else 0
+        for c in range(n):   # (each column read from its diagonal to the last row wanted)
+            col = self.column(int(idx[c]), int(idx[c]), last)
             out[c:, c] = col[idx[c:] - idx[c]]
         _upper_from_lower(out)
         return out
@@ -151,7 +154,7 @@ class Panels:
                 o0, o1 = int(bounds[j]), int(bounds[j + 1])
                 a = np.empty((len(idx) - o0, o1 - o0), order="F")
                 for c in range(o0, o1):
-                    col = self.column(int(idx[c]), int(idx[c]))
+                    col = self.column(int(idx[c]), int(idx[c]), int(idx[-1]) + 1)
                     a[c - o0:, c - o0] = col[idx[c:] - idx[c]]
                 _upper_from_lower(a)
                 out.write(j, a)
