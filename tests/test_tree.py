@@ -62,7 +62,7 @@ def _fill(sol, tree, i, ml, k, rhs=None, border=None):
         b[:own, 1:] = border[fs[:own]]
     cols = np.tril(ml[np.ix_(fs, fs[:own])])
     if not tiled:
-        a[:, :own] = cols
+        a[0][:] = cols   # (the own columns; the update block starts empty)
         sol.eliminate(i, a, b)
         return
 
@@ -151,8 +151,8 @@ def test_tree_solve_equals_dense(tmp_path, method, shape, tile):
 
 def test_front_memory_model_is_what_the_solver_holds(tmp_path):
     """The fronts' peak of ``Tree.peak_front_bytes`` is, to the byte, the most the solver
-    holds at once (the front being built plus the updates waiting for their parents); the
-    plan of two workers needs at least as much."""
+    holds at once (the front being built, its own columns and its update block, plus the
+    updates waiting for their parents); the plan of two workers needs at least as much."""
     from sapgo.solve.tree import parallel_plan
 
     pos, edges = grid_graph(30, 12)
@@ -168,10 +168,11 @@ def test_front_memory_model_is_what_the_solver_holds(tmp_path):
     peak = 0
     for i in range(tree.n_nodes):
         a, b = sol.open(i)
-        peak = max(peak, a.nbytes + sum(u[0].nbytes for u in sol.updates.values()))
+        peak = max(peak, a[0].nbytes + a[1].nbytes
+                   + sum(u[0].nbytes for u in sol.updates.values()))
         fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
         own = k * tree.own(i)
-        a[:, :own] = np.tril(ml[np.ix_(fs, fs[:own])])
+        a[0][:] = np.tril(ml[np.ix_(fs, fs[:own])])
         sol.eliminate(i, a, b)
     assert peak == tree.peak_front_bytes(k)
     assert tree.peak_front_bytes(k, parallel_plan(tree, k, 2)) >= peak
@@ -198,7 +199,7 @@ def test_disconnected_block_is_a_forest(tmp_path):
         a, b = sol.open(i)
         fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
         own = k * tree.own(i)
-        a[:, :own] = np.tril(sub[np.ix_(fs, fs[:own])])
+        a[0][:] = np.tril(sub[np.ix_(fs, fs[:own])])
         b[:own] = rhs[sc_act][fs[:own]]
         sol.eliminate(i, a, b)
     x = sol.solve(2 * n1)

@@ -2,7 +2,8 @@
 
 Node ``i`` of a :class:`~sapgo.solve.partition.Tree` has a dense *front* over its own
 stations (``m = k |own|`` unknowns, ``k`` parameters a station) followed by its boundary
-(``f = k |boundary|``). In post-order, the front is assembled from
+(``f = k |boundary|``), held as two arrays: its own columns ``[A11; A21]`` and its update
+block ``A22``. In post-order, the front is assembled from
 
 - the node's own points, each eliminated on the spot as in the band build
   (:func:`build_front`: ``M[s,t] -= Nbar_s Ndd^-1 Nbar_t'``, Brown's reduction), its own
@@ -17,8 +18,9 @@ and then partially factored with BLAS-3 (Duff & Reid's multifrontal method):
     U   = A22 - L21 L21'            dsyrk: the update matrix, passed to the parent
     y1  = L11^-1 b1,  b2 -= L21 y1  forward substitution, passed up with U
 
-``L11``, ``L21`` and ``y1`` go to the factor file (one record per node, written in
-post-order); the back substitution reads them top-down, ``x1 = L11'^-1 (y1 - L21' x2)``.
+``L11``, ``L21`` (the own columns, as they are) and ``y1`` go to the factor file (one record
+per node, written in post-order), ``U`` (the update block, as it is) to the parent; the back
+substitution reads them top-down, ``x1 = L11'^-1 (y1 - L21' x2)``.
 
 Selected inversion (Takahashi's recurrences on supernodes, as Erisman & Tinney): top-down,
 with ``Z22`` the inverse's block over the boundary, gathered from the parent's front,
@@ -53,14 +55,17 @@ from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_po
 @njit(cache=True, nogil=True)
 def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                 pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
-                ctrl_mask, front, rhs, max_rays, npar, lam, behind_ok, cal, bord, cnn, ccg,
-                cdiag, c0=0, c1=-1):
-    """Add points ``j0 .. j1-1`` of a chunk into a dense front.
+                ctrl_mask, front, upd, rhs, max_rays, npar, lam, behind_ok, cal, bord, cnn,
+                ccg, cdiag, c0, c1):
+    """Add points ``j0 .. j1-1`` of a chunk into a front.
 
     ``obs_station`` holds each observation's station as its place in the front (-1: not in
-    the front), ``eo`` and ``cam_of_station`` are indexed the same way; ``front``
-    (kf x kf, lower triangle and the diagonal blocks filled) and ``rhs`` (kf) receive the
-    reduced normals ``M[s,t] -= Nbar_s Ndd^-1 Nbar_t'``, ``p A'A`` and ``d``.
+    the front), ``eo`` and ``cam_of_station`` are indexed the same way; the front's lower
+    triangle (and its diagonal blocks in full) and ``rhs`` (kf) receive the reduced normals
+    ``M[s,t] -= Nbar_s Ndd^-1 Nbar_t'``, ``p A'A`` and ``d``: its columns ``c0 .. c1`` (rows
+    from ``c0``) in ``front`` and those from ``c1`` on in ``upd`` (rows from ``c1``; a front
+    in core: ``c0 = 0``, ``c1 = m``, ``front`` its own columns ``[A11; A21]`` and ``upd``
+    its update block ``A22``).
     Self-calibration (``ng = cnn.shape[0] > 0``; ``cal`` as in
     :func:`sapgo.normals.build_points`): ``bord`` (front stations x npar x ng) receives the
     front's rows of the border columns ``B``, ``cnn``, ``ccg`` and ``cdiag`` the border's
@@ -70,9 +75,8 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
     with the point.
 
     A panel of a tiled front (:mod:`sapgo.solve.tiles`): ``c0, c1`` the front's columns it
-    holds, ``front`` its rows ``c0 ..`` and columns ``c0 .. c1``; only the terms in these
-    columns are added, and ``rhs`` only in the rows of its stations (``c1 = -1``: the whole
-    front)."""
+    holds and ``upd`` empty (0 x 0): only the terms in these columns are added, and ``rhs``
+    only in the rows of its stations."""
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all = _workspace(max_rays, npar)
     g = np.empty((max_rays, npar, 3))
     h = np.empty(3)
@@ -85,8 +89,7 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
     ggp = np.empty((ng, 3))
     e = np.empty((2, 8))
     nf = bord.shape[0]
-    if c1 < 0:
-        c1 = front.shape[1]
+    c2 = c1 + upd.shape[0]   # the columns held: c0 .. c2
     spare = np.zeros((npar, npar))   # out-of-panel rays' diagonal terms (not kept)
     spare_rhs = np.zeros(npar)
     for j in range(j0, j1):
@@ -110,6 +113,10 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
                 _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar,
                            front[s0 - c0:s0 - c0 + npar, s0 - c0:s0 - c0 + npar],
                            rhs[s0:s0 + npar], g, col, tmp)
+            elif c1 <= s0 < c2:
+                _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar,
+                           upd[s0 - c1:s0 - c1 + npar, s0 - c1:s0 - c1 + npar],
+                           rhs[s0:s0 + npar], g, col, tmp)
             else:
                 _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, spare, spare_rhs, g,
                            col, tmp)
@@ -118,26 +125,36 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
         # two rays of one station add X and X')
         for q in range(k):
             sq = npar * st_all[q]
-            if sq < c0 or sq >= c1:
-                continue
-            for t in range(q, k):
-                st = npar * st_all[t]
-                for u in range(npar):
-                    for v in range(npar):
-                        x = 0.0
-                        for c in range(3):
-                            x += g[q, u, c] * nbar[t, v, c]
-                        if st != sq:
-                            front[st + v - c0, sq + u - c0] -= x
-                        else:
-                            front[sq + u - c0, sq + v - c0] -= x
-                            if t != q:
-                                front[sq + v - c0, sq + u - c0] -= x
+            if c0 <= sq < c1:
+                _schur_blocks(front, c0, g, nbar, q, k, st_all, npar)
+            elif c1 <= sq < c2:
+                _schur_blocks(upd, c1, g, nbar, q, k, st_all, npar)
         if ng > 0:
             _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal,
                           xyz, a_all, l_all, w_all, st_all, g, lo, h, 0, nf, bord, bord, cnn,
                           ccg, cdiag, slot, tcols, ngp, ggp, e, b_all)
     return OK, -1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _schur_blocks(a, off, g, nbar, q, k, st_all, npar):
+    """``a[s - off, t - off] -= G_q Nbar_t'`` for ray ``q``'s station (column) and the
+    point's later rays' stations ``t`` (rows; a diagonal block in full, two rays of one
+    station adding X and X')."""
+    sq = npar * st_all[q] - off
+    for t in range(q, k):
+        st = npar * st_all[t] - off
+        for u in range(npar):
+            for v in range(npar):
+                x = 0.0
+                for c in range(3):
+                    x += g[q, u, c] * nbar[t, v, c]
+                if st != sq:
+                    a[st + v, sq + u] -= x
+                else:
+                    a[sq + u, sq + v] -= x
+                    if t != q:
+                        a[sq + v, sq + u] -= x
 
 
 def factor_layout(tree, k):
@@ -189,8 +206,8 @@ class FactorFile:
         """Node ``i``'s factor columns ``[L11; L21]`` ((m + f) x m, F order, e.g. the first
         columns of its front; the upper triangle of ``L11`` is not used) and ``y1`` (m, or
         m x n_rhs in F order)."""
-        if self._mem is not None:   # a copy: the front itself goes
-            self._mem[i] = (np.array(col, order="F"), y1)
+        if self._mem is not None:   # (the front's own columns: kept as they are)
+            self._mem[i] = (np.asfortranarray(col), y1)
             return
         col = np.asfortranarray(col)   # (the front's first columns: contiguous already)
         os.pwrite(self._fd, memoryview(col.reshape(-1, order="F")), int(self.offset[i]))
@@ -309,9 +326,10 @@ class TreeSolver:
     """The numeric multifrontal factorisation, solve and selected inversion on a tree.
 
     Use: for each node in post-order, ``A, b = solver.open(i)`` gives the zeroed front (own
-    stations, then boundary; scalar order ``k`` parameters a station), the caller adds the
-    node's own contributions into its lower triangle and ``b``, then ``solver.eliminate(i,
-    A, b, damping)``. After the last node, ``solve()`` returns ``delta`` (stations x k) and
+    stations, then boundary; scalar order ``k`` parameters a station) as ``A = (own,
+    upd)``, its own columns and its update block; the caller adds the node's own
+    contributions into their lower triangles and ``b``, then ``solver.eliminate(i, A, b,
+    damping)`` (a tiled front: :meth:`eliminate_tiled`). After the last node, ``solve()`` returns ``delta`` (stations x k) and
     ``y_norm2`` is ``y'y``. ``inverse(on_node)`` runs the selected inversion afterwards.
 
     Self-calibration (``n_border`` columns ``B`` of the stations against the border's
@@ -329,11 +347,9 @@ class TreeSolver:
         # tiled fronts (tile: (front bytes beyond which a front is tiled, panel bytes)):
         # their panels, and updates and inverses' parts larger than a panel, in scratch
         # files of ``scratch``
-        m = npar * (tree.hi - tree.lo).astype(np.float64)
-        f = npar * np.diff(tree.bptr).astype(np.float64)
         self.tile = tile
         self.tiled = (np.zeros(tree.n_nodes, bool) if tile is None else
-                      8 * (m + f) ** 2 > tile[0])
+                      tree.front_bytes(npar) > tile[0])
         self.panel_bytes = None if tile is None else tile[1]
         self.scratch = scratch
         self.pivot_tol = pivot_tol
@@ -385,17 +401,22 @@ class TreeSolver:
             factor_path, factor_layout(tree, npar), "r", n_rhs=1 + n_border))
 
     def open(self, i, tiled=False):
-        """``(A, b)`` of node ``i``: the zeroed front (None when ``tiled``: its panels come
-        one at a time, :meth:`eliminate_tiled`) and right-hand side(s)."""
-        t = self.tree
-        nf = t.own(i) + len(t.bnd(i))
-        kf = self.k * nf
+        """``(A, b)`` of node ``i``: the zeroed front as ``(own, upd)``, its own columns
+        ``[A11; A21]`` (kf x m) and its update block ``A22`` (f x f), both F order and
+        zeroed on their block lower triangles (None when ``tiled``: its panels come one at
+        a time, :meth:`eliminate_tiled`), and the right-hand side(s)."""
+        t, k = self.tree, self.k
+        m = k * t.own(i)
+        f = k * len(t.bnd(i))
         a = None
-        if not tiled:
-            a = np.empty((kf, kf), order="F")   # (numpy's allocation: huge pages if large)
-            _zero_block_lower(a, self.k)
-        return a, (np.zeros(kf) if not self.n_border else
-                   np.zeros((kf, 1 + self.n_border), order="F"))
+        if not tiled:   # (numpy's allocation: huge pages where large)
+            own = np.empty((m + f, m), order="F")
+            upd = np.empty((f, f), order="F")
+            _zero_block_lower(own, k)
+            _zero_block_lower(upd, k)
+            a = (own, upd)
+        return a, (np.zeros(m + f) if not self.n_border else
+                   np.zeros((m + f, 1 + self.n_border), order="F"))
 
     def bounds(self, i):
         """Panel boundaries of node ``i``'s front when tiled
@@ -424,43 +445,51 @@ class TreeSolver:
                 out.append((u, ix))
         return out
 
-    def _keep_update(self, i, a, m, b):
-        """Keep node ``i``'s update (the trailing block of front ``a``) for its parent:
-        copied out (lower triangle) so that the front goes, or to a scratch file when
-        larger than a panel."""
-        f = a.shape[0] - m
+    def _keep_update(self, i, upd, m, b):
+        """Keep node ``i``'s update ``upd`` for its parent: in core, or in a scratch file
+        when larger than a panel."""
+        f = upd.shape[0]
         if self._big(f):
-            u = write_dense_panels(a, update_bounds(m, f, self.k, self.panel_bytes),
-                                   self.scratch, shift=m)
-        else:
-            u = _trailing_lower(a, m)
-        self.updates[i] = (u, b[m:].copy(order="F"))
+            upd = write_dense_panels(upd, update_bounds(m, f, self.k, self.panel_bytes),
+                                     self.scratch)
+        self.updates[i] = (upd, b[m:].copy(order="F"))
 
     def eliminate(self, i, a, b, damping=None):
-        """Extend-add the children's updates into front ``a`` (F-order, lower triangle) and
-        ``b``, add ``damping`` (own scalar unknowns) to the own diagonal, factor the own
-        part and keep the update for the parent."""
+        """Extend-add the children's updates into front ``a = (own, upd)`` (:meth:`open`)
+        and ``b``, add ``damping`` (own scalar unknowns) to the own diagonal, factor the
+        own columns (they are the factor's record, kept as they are) and keep the update
+        block for the parent."""
         t, k = self.tree, self.k
         m = k * t.own(i)
+        own, upd = a
         for u, ix in self._children_updates(i, b):
+            cm = int(np.searchsorted(ix, m))   # the child's columns in own / in upd
             if isinstance(u, Panels):
                 for j in range(u.n_panels):
-                    extend_add(a, 0, u.panel(j), u.b[j], ix, u.b[j], u.b[j + 1])
+                    b0, b1 = int(u.b[j]), int(u.b[j + 1])
+                    s = u.panel(j)
+                    if b0 < cm:
+                        extend_add(own, 0, s, b0, ix, b0, min(b1, cm))
+                    if b1 > cm:
+                        extend_add(upd, m, s, b0, ix, max(b0, cm), b1)
                 u.close()
             else:
-                extend_add(a, 0, u, 0, ix, 0, len(ix))
+                extend_add(own, 0, u, 0, ix, 0, cm)
+                extend_add(upd, m, u, 0, ix, cm, len(ix))
         if damping is not None:
             idx = np.arange(m)
-            a[idx, idx] += damping
+            own[idx, idx] += damping
         nr = 1 + self.n_border
-        fail = _factor_front(FNS, a.reshape(-1, order="F"), a.shape[0], m,
-                             b.reshape(-1, order="F"), nr, self.pivot_tol)
+        f = upd.shape[0]
+        fail = _factor_front(FNS, own.reshape(-1, order="F"), m + f, m,
+                             upd.reshape(-1, order="F"), b.reshape(-1, order="F"), nr,
+                             self.pivot_tol)
         if fail:
             raise PivotError(int(t.lo[i]) + (fail - 1) // k, (fail - 1) % k)
         y1 = self._forward_done(i, b, m)
-        self.file.write(i, a[:, :m], y1)
-        if a.shape[0] > m and t.parent[i] >= 0:
-            self._keep_update(i, a, m, b)
+        self.file.write(i, own, y1)
+        if f > 0 and t.parent[i] >= 0:
+            self._keep_update(i, upd, m, b)
 
     def _forward_done(self, i, b, m):
         """``y1`` of node ``i`` from its forward-substituted ``b``; ``y'y`` and the
@@ -672,12 +701,13 @@ def _front_inverse(col, z22, k):
 
 
 @njit(cache=True, nogil=True)
-def _factor_front(fns, a, kf, m, b, nr, tol):
-    """Partial Cholesky of a front in place (``a`` its F-order data, kf x kf): ``L11 =
-    chol(A11)``, ``L21 = A21 L11'^-1``, ``A22 -= L21 L21'``, ``b1 = L11^-1 b1``, ``b2 -=
-    L21 b1`` (``b`` kf x nr, F order: the right-hand side and a border's columns). Returns
-    0, or 1 + the first own column whose pivot is at or below ``tol`` times its diagonal
-    before the factorisation (or where dpotrf failed)."""
+def _factor_front(fns, a, kf, m, a22, b, nr, tol):
+    """Partial Cholesky of a front in place (``a`` the F-order data of its own columns,
+    kf x m, ``a22`` of its update block, f x f): ``L11 = chol(A11)``, ``L21 = A21
+    L11'^-1``, ``A22 -= L21 L21'``, ``b1 = L11^-1 b1``, ``b2 -= L21 b1`` (``b`` kf x nr, F
+    order: the right-hand side and a border's columns). Returns 0, or 1 + the first own
+    column whose pivot is at or below ``tol`` times its diagonal before the factorisation
+    (or where dpotrf failed)."""
     f = kf - m
     orig = np.empty(m)
     for j in range(m):
@@ -687,7 +717,7 @@ def _factor_front(fns, a, kf, m, b, nr, tol):
         return fail
     if f > 0:
         trsm(fns.dtrsm, R, L, T, N, f, m, 1.0, a, kf, a[m:], kf)
-        syrk(fns.dsyrk, L, N, f, m, -1.0, a[m:], kf, 1.0, a[m * kf + m:], kf)
+        syrk(fns.dsyrk, L, N, f, m, -1.0, a[m:], kf, 1.0, a22, f)
     if nr == 1:
         trsv(fns.dtrsv, L, N, N, m, a, kf, b)
         if f > 0:
@@ -742,19 +772,10 @@ def _gather(zp, ix):
 
 
 @njit(cache=True, nogil=True)
-def _trailing_lower(a, m):
-    """The lower triangle of ``a[m:, m:]`` in a new F-order matrix (the upper one unset)."""
-    f = a.shape[0] - m
-    u = np.empty((f, f)).T
-    for c in range(f):
-        u[c:, c] = a[m + c:, m + c]
-    return u
-
-
-@njit(cache=True, nogil=True)
 def _zero_block_lower(a, k):
-    """Zero the block lower triangle (blocks k x k) of a square F-order matrix: all that a
-    front uses, its lower triangle and its stations' diagonal blocks in full; the rest is
-    never read (half the memory traffic of zeroing it all)."""
+    """Zero the block lower triangle (blocks k x k) of an F-order matrix (a front's own
+    columns, or its update block): all that a front uses, its lower triangle and its
+    stations' diagonal blocks in full; the rest is never read (half the memory traffic of
+    zeroing it all)."""
     for c in range(a.shape[1]):
         a[c - c % k:, c] = 0.0

@@ -128,6 +128,13 @@ class Tree:
             "method": self.method,
         }
 
+    def front_bytes(self, k=6):
+        """Bytes of each node's front in core: its own columns ``[A11; A21]`` ((m + f) x m)
+        and its update block ``A22`` (f x f), which goes on to the parent."""
+        m = k * (self.hi - self.lo).astype(np.float64)
+        f = k * np.diff(self.bptr).astype(np.float64)
+        return 8 * ((m + f) * m + f * f)
+
     def peak_front_bytes(self, k=6, plan=None, tile=None):
         """Bytes in core at the worst moment of the factorisation: the fronts being factored
         plus the update matrices (f x f each) waiting for their parents.
@@ -144,8 +151,7 @@ class Tree:
         scratch files (a panel of them in core while they are written or added)."""
         f = k * np.diff(self.bptr).astype(np.float64)
         upd = 8 * f * f
-        m = k * (self.hi - self.lo).astype(np.float64)
-        front = 8 * (m + f) ** 2
+        front = self.front_bytes(k)
         parent = self.parent
         if tile is not None:
             big, panel = tile

@@ -38,6 +38,8 @@ DEFAULT_TREE_MEMORY = 1 << 30
 BASELINE = 256 << 20
 BASELINE_PER_STATION = 400
 
+_EMPTY = np.zeros((0, 0), order="F")   # (no update block: a tiled front's panel)
+
 #: The smallest tiles tried: fronts beyond budget / 2**j in core are tiled, j up to this.
 _TILE_STEPS = 10
 
@@ -77,9 +79,7 @@ def tiling(tree, k, opts, held=0, n_stations=0):
     _, _, _, tile = work_plan(tree, k, opts, held=held, n_stations=n_stations)
     if tile is None:
         return {"tiled_fronts": 0, "panel_bytes": 0}
-    m = k * (tree.hi - tree.lo).astype(np.float64)
-    f = k * np.diff(tree.bptr).astype(np.float64)
-    return {"tiled_fronts": int((8 * (m + f) ** 2 > tile[0]).sum()),
+    return {"tiled_fronts": int((tree.front_bytes(k) > tile[0]).sum()),
             "panel_bytes": int(tile[1])}
 
 
@@ -327,8 +327,8 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
             w = rec["weight"]
             if tiled:
                 held.append((k * s, w))
-            else:
-                a[k * s:k * s + 6, k * s:k * s + 6] += w
+            else:   # (own stations: own columns)
+                a[0][k * s:k * s + 6, k * s:k * s + 6] += w
             rhs[k * s:k * s + 6] += w @ (-_prior_residual(rec, blk.eo[lo + s]))
         state.update(node=i, a=a, b=b, rhs=rhs, bord=bord, tiled=tiled, priors=held)
 
@@ -352,8 +352,8 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
             status, bad = build_front(
                 0, b0 - a0, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
                 c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo, fronts.camera,
-                blk.cams, CTRL_MASK, a, state["rhs"], c.max_rays, k, lam, blk.behind_ok, cal,
-                bord, *nb, c0, c1)
+                blk.cams, CTRL_MASK, a, _EMPTY, state["rhs"], c.max_rays, k, lam,
+                blk.behind_ok, cal, bord, *nb, c0, c1)
             if status != OK:
                 raise _point_error(p, c, bad, status, blk)
 
@@ -362,8 +362,13 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
         damping = None
         if lam > 0.0:
             damping = lam * np.clip(diag[tree.lo[i]:tree.hi[i]], 1e-6, 1e32).ravel()
-        if capture is not None:
-            capture(i, state["a"], state["b"])
+        if capture is not None:   # (the front in full, a copy)
+            own, upd = state["a"]
+            m = own.shape[1]
+            full = np.zeros((own.shape[0], own.shape[0]), order="F")
+            full[:, :m] = own
+            full[m:, m:] = upd
+            capture(i, full, state["b"])
         t0 = time.perf_counter()
         if state["tiled"]:
             solver.eliminate_tiled(i, assemble, state["b"], damping)
@@ -403,8 +408,9 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
                 status, bad = build_front(
                     j - a0, j1 - a0, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start,
                     c.nobs, c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo,
-                    fronts.camera, blk.cams, CTRL_MASK, state["a"], state["rhs"], c.max_rays,
-                    k, lam, blk.behind_ok, cal, state["bord"], cnn, ccg, cdiag)
+                    fronts.camera, blk.cams, CTRL_MASK, *state["a"], state["rhs"],
+                    c.max_rays, k, lam, blk.behind_ok, cal, state["bord"], cnn, ccg, cdiag,
+                    0, state["a"][0].shape[1])
                 if status != OK:
                     raise _point_error(p, c, bad, status, blk)
                 j = j1
