@@ -390,6 +390,18 @@ def test_fronts_larger_than_the_memory_budget_are_refused_before_any_work(square
     assert open(path, "rb").read() == before and not work_path(path).exists()
 
 
+def test_a_budget_below_the_baseline_is_refused_before_any_work(square, tmp_path, capsys):
+    path = tmp_path / "s.h5"
+    shutil.copy(square, path)
+    sapgo.order_project(path, solver="tree", leaf_stations=4)
+    before = open(path, "rb").read()
+    code, _, err = run_cli(capsys, "adjust", path, "--no-progress", "--memory", "200M")
+    # 256 MiB and 400 bytes a station (42)
+    assert_one_line_error(code, err, "--memory 200M is less than the adjustment's baseline",
+                          "(256 MiB", "--memory 385M")
+    assert open(path, "rb").read() == before and not work_path(path).exists()
+
+
 def test_a_point_the_tree_cannot_place_is_named(square, tmp_path, capsys):
     """An observation moved to a station outside its point's front (records changed after
     ordering): one line naming the point, the project untouched."""

@@ -87,11 +87,17 @@ def check_tree_memory(tree, k, opts, path, n_stations=0):
     """Refuse, before any work, a tree whose fronts do not fit the memory budget even
     tiled: one line with the figures and the advice."""
     from ..errors import SapgoError
-
     from ..extsort import parse_memory
 
     total = DEFAULT_TREE_MEMORY if opts.memory is None else parse_memory(opts.memory)
     budget = tree_budget(opts, 0, n_stations)
+    if budget <= 0:
+        base = total - budget
+        raise SapgoError(
+            f"{path}: --memory {total / 2**20:.0f}M is less than the adjustment's baseline "
+            f"on the partition tree ({base / 2**20:.0f} MiB: 256 MiB and "
+            f"{BASELINE_PER_STATION} bytes a photo): give --memory "
+            f"{-(-base // 2**20) + 128}M or more")
     _, need = tile_plan(tree, k, budget)
     if need > budget:
         f = tree.figures(k)
