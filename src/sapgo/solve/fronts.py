@@ -393,13 +393,6 @@ class TreeSolver:
         """``y'y`` of the forward substitution (``x'b`` of the solution)."""
         return float(self.yy.sum())
 
-    @classmethod
-    def reopen(cls, tree, npar, factor_path, n_border=0):
-        """The solver of a factor file written by an earlier factorisation of ``tree``
-        (for :meth:`inverse` and :meth:`solve`)."""
-        return cls(tree, npar, None, n_border=n_border, file=FactorFile(
-            factor_path, factor_layout(tree, npar), "r", n_rhs=1 + n_border))
-
     def open(self, i, tiled=False):
         """``(A, b)`` of node ``i``: the zeroed front as ``(own, upd)``, its own columns
         ``[A11; A21]`` (kf x m) and its update block ``A22`` (f x f), both F order and

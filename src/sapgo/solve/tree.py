@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from ..normals import CTRL_MASK, OK, PointChunk, station_diagonal
-from .fronts import TreeSolver, build_front
+from .fronts import FactorFile, TreeSolver, build_front, factor_layout
 from .tiles import Panels
 
 #: File of the tree's factor in the work directory.
@@ -236,7 +236,6 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     from ..adjust import _progress
     from ..blas import blas_limits
     from .band import border_schur_solve
-    from .fronts import FactorFile, factor_layout
 
     k = blk.npar
     n = len(blk.station_ids)
@@ -336,27 +335,36 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
             else:   # (own stations: own columns)
                 a[0][k * s:k * s + 6, k * s:k * s + 6] += w
             rhs[k * s:k * s + 6] += w @ (-_prior_residual(rec, blk.eo[lo + s]))
-        state.update(node=i, a=a, b=b, rhs=rhs, bord=bord, tiled=tiled, priors=held)
+        state.update(node=i, a=a, b=b, rhs=rhs, bord=bord, tiled=tiled, priors=held,
+                     chunks=None)
+
+    def node_chunks():
+        """The tiled front's own points, read (and reweighted) once for all its panels:
+        a separator's points, a few thousand."""
+        if state["chunks"] is None:
+            i = state["node"]
+            q0, q1 = int(pt[i]), int(pt[i + 1])
+            state["chunks"] = []
+            for a0 in range(q0, q1, opts.chunk_points):
+                b0 = min(q1, a0 + opts.chunk_points)
+                c = PointChunk(p, a0, b0, work.xyz_current[a0:b0], blk.camera,
+                               blk.cam_sigma, blk.frame, blk.rejected, blk.rejected_points)
+                reweight(c, work, opts)
+                state["chunks"].append((c, fronts.local(c.obs_station, c.obs_active)))
+        return state["chunks"]
 
     def assemble(c0, c1, a):
-        """A panel of the tiled front at hand: its own points again, chunk by chunk (the
-        border's terms with the first panel), and its priors."""
-        i = state["node"]
+        """A panel of the tiled front at hand: its own points (the border's terms with the
+        first panel) and its priors."""
         for r0, w in state["priors"]:
             if c0 <= r0 < c1:
                 a[r0 - c0:r0 - c0 + 6, r0 - c0:r0 - c0 + 6] += w
         first = c0 == 0
         bord = state["bord"] if first else np.zeros((state["bord"].shape[0], k, 0))
         nb = (cnn, ccg, cdiag) if first else (np.zeros((0, 0)), np.zeros(0), np.zeros(0))
-        q0, q1 = int(pt[i]), int(pt[i + 1])
-        for a0 in range(q0, q1, opts.chunk_points):
-            b0 = min(q1, a0 + opts.chunk_points)
-            c = PointChunk(p, a0, b0, work.xyz_current[a0:b0], blk.camera, blk.cam_sigma,
-                           blk.frame, blk.rejected, blk.rejected_points)
-            reweight(c, work, opts)
-            st = fronts.local(c.obs_station, c.obs_active)
+        for c, st in node_chunks():
             status, bad = build_front(
-                0, b0 - a0, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
+                0, len(c.active), c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
                 c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo, fronts.camera,
                 blk.cams, CTRL_MASK, a, _EMPTY, state["rhs"], c.max_rays, k, lam,
                 blk.behind_ok, cal, bord, *nb, c0, c1)
@@ -382,7 +390,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
             solver.eliminate(i, state["a"], state["b"], damping)
         fronts.leave()
         seconds[slot] += time.perf_counter() - t0
-        state["node"] = -1
+        state.update(node=-1, chunks=None)
 
     for first, stop in ranges:
         p0, p1 = int(pt[first]), int(pt[stop])
@@ -469,7 +477,7 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
     per, top, _, tile = work_plan(tree, k, opts, held=blk.held, n_stations=n)
     file = getattr(work, "tree_factor", None)
     if file is None:   # (a resumed run: the factor file of the last step)
-        file = TreeSolver.reopen(tree, k, work.dir / FACTOR_FILE, ng).file
+        file = FactorFile(work.dir / FACTOR_FILE, factor_layout(tree, k), "r", n_rhs=1 + ng)
     solver = TreeSolver(tree, k, None, file=file, n_border=ng, tile=tile, scratch=work.dir)
     xb = cal = sig_b = None
     if ng:
