@@ -73,13 +73,23 @@ def _fill(sol, tree, i, ml, k, rhs=None, border=None):
     sol.eliminate_tiled(i, assemble, b)
 
 
-def _solve_tree(tree, perm, m, rhs, k, tmp_path, tile=None):
+def _solve_tree(tree, perm, m, rhs, k, tmp_path, tile=None, where="file"):
+    """The tree's solve of ``m x = rhs``; the factor on file, or (``where="core"``) in core
+    in a reused buffer full of NaN: whatever the solver does not write, it never reads."""
+    from sapgo.solve.fronts import FactorFile, factor_layout
+
     inv = np.empty_like(perm)
     inv[perm] = np.arange(len(perm))
     sc = (k * perm[:, None] + np.arange(k)).ravel()
     ml = m[np.ix_(sc, sc)]          # logical order
     bl = rhs[sc]
-    sol = TreeSolver(tree, k, tmp_path / "factor.bin", tile=tile, scratch=tmp_path)
+    file = None
+    if where == "core":
+        layout = factor_layout(tree, k)
+        arena = np.full(FactorFile.record_bytes(layout).sum() // 8 + 5, np.nan)
+        file = FactorFile(None, layout, arena=arena)
+        assert file.arena is arena
+    sol = TreeSolver(tree, k, tmp_path / "factor.bin", tile=tile, scratch=tmp_path, file=file)
     for i in range(tree.n_nodes):
         _fill(sol, tree, i, ml, k, bl)
     x = sol.solve(len(perm)).ravel()
@@ -89,10 +99,12 @@ def _solve_tree(tree, perm, m, rhs, k, tmp_path, tile=None):
 @pytest.mark.parametrize("method,tile", [("geometric", None), ("graph", None),
                                          ("geometric", SMALL_TILES)])
 @pytest.mark.parametrize("shape", [(12, 9), (40, 3), (7, 7)])
-def test_tree_solve_equals_dense(tmp_path, method, shape, tile):
+@pytest.mark.parametrize("where", ["file", "core"])
+def test_tree_solve_equals_dense(tmp_path, method, shape, tile, where):
     """The solve, y'y and the selected inversion over every front against dense numpy,
     with every front in core and with the fronts beyond 5 stations tiled (panels of 2
-    stations, updates and the inverse's parts in scratch files)."""
+    stations, updates and the inverse's parts in scratch files); the factor on file and in
+    core (a reused buffer)."""
     pos, edges = grid_graph(*shape)
     n = len(pos)
     active = np.ones(n, bool)
@@ -105,8 +117,9 @@ def test_tree_solve_equals_dense(tmp_path, method, shape, tile):
     k = 6
     m = spd_on_graph(n, edges, k, 1)
     rhs = np.random.default_rng(2).normal(size=k * n)
-    sol, ml, bl, x = _solve_tree(tree, perm, m, rhs, k, tmp_path, tile)
+    sol, ml, bl, x = _solve_tree(tree, perm, m, rhs, k, tmp_path, tile, where)
     assert sol.tiled.any() == (tile is not None)
+    assert sol.file.in_core == (where == "core")
     np.testing.assert_allclose(x, np.linalg.solve(ml, bl), rtol=1e-9, atol=1e-12)
     # y'y = b' M^-1 b
     assert sol.y_norm2 == pytest.approx(bl @ np.linalg.solve(ml, bl), rel=1e-10)

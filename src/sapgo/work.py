@@ -78,6 +78,8 @@ class Work:
         #: the partition tree's factor of the last factorisation
         #: (:class:`sapgo.solve.fronts.FactorFile`, in core or in ``tree_factor.bin``)
         self.tree_factor = None
+        #: the in-core factor's buffer, kept from one step to the next
+        self.tree_arena = None
         # robust estimation: the observations' redundancy (r_x, r_y, r_xy) of the
         # least-squares solution, once that phase is over
         self.robust_r = None
@@ -163,6 +165,7 @@ class Work:
         if self.tree_factor is not None:
             self.tree_factor.close()
             self.tree_factor = None
+        self.tree_arena = None
 
 
 def _identity(p: Project, band_width):

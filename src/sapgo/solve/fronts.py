@@ -169,7 +169,7 @@ class FactorFile:
     (``path`` None) when the factor fits the memory budget. ``y1`` has ``n_rhs`` columns:
     the right-hand side, then the border's (self-calibration) forward-substituted columns."""
 
-    def __init__(self, path, layout, mode="w", n_rhs=1):
+    def __init__(self, path, layout, mode="w", n_rhs=1, arena=None):
         self.path = path
         self.shape = np.asarray(layout, np.int64)
         self.n_rhs = n_rhs
@@ -177,9 +177,17 @@ class FactorFile:
         self.offset = np.zeros(len(size), np.int64)
         self.offset[1:] = np.cumsum(size)[:-1]
         self.nbytes = int(size.sum())
-        self._mem = {} if path is None else None
+        self._buf = None
         self._fd = None
+        self.arena = None
         if path is None:
+            # in core: one buffer for all records, ``arena`` (the last factorisation's) when
+            # large enough, so that an iteration's fronts reuse pages already faulted in
+            n = self.nbytes // 8
+            if arena is None or arena.size < n:
+                arena = np.empty(n)
+            self.arena = arena
+            self._buf = arena[:n]
             return
         if mode == "w":
             # the last factorisation's file is overwritten in place, not truncated: every
@@ -202,12 +210,36 @@ class FactorFile:
         m, f = layout[:, 0], layout[:, 1]
         return 8 * ((m + f) * m + m * n_rhs)
 
+    @property
+    def in_core(self):
+        return self._buf is not None
+
+    def _cols(self, i):
+        m, f = (int(x) for x in self.shape[i])
+        o = int(self.offset[i]) // 8
+        return self._buf[o:o + (m + f) * m].reshape((m + f, m), order="F")
+
+    def _y(self, i):
+        m, f = (int(x) for x in self.shape[i])
+        o = int(self.offset[i]) // 8 + (m + f) * m
+        y = self._buf[o:o + m * self.n_rhs]
+        return y if self.n_rhs == 1 else y.reshape((m, self.n_rhs), order="F")
+
+    def own(self, i):
+        """In core, the place of node ``i``'s factor columns ((m + f) x m, F order, not
+        zeroed): a front's own columns assembled and factored there are written by
+        :meth:`write` without a copy. None when the factor is on file."""
+        return self._cols(i) if self._buf is not None else None
+
     def write(self, i, col, y1):
         """Node ``i``'s factor columns ``[L11; L21]`` ((m + f) x m, F order, e.g. the first
         columns of its front; the upper triangle of ``L11`` is not used) and ``y1`` (m, or
         m x n_rhs in F order)."""
-        if self._mem is not None:   # (the front's own columns: kept as they are)
-            self._mem[i] = (np.asfortranarray(col), y1)
+        if self._buf is not None:
+            dst = self._cols(i)
+            if col.ctypes.data != dst.ctypes.data or col.strides != dst.strides:
+                dst[...] = col   # (not the open front's own columns)
+            self._y(i)[...] = y1
             return
         col = np.asfortranarray(col)   # (the front's first columns: contiguous already)
         os.pwrite(self._fd, memoryview(col.reshape(-1, order="F")), int(self.offset[i]))
@@ -219,9 +251,8 @@ class FactorFile:
         rows ``c0 ..`` of columns ``c0 .. c0 + w`` (the rows above are not used)."""
         m, f = (int(x) for x in self.shape[i])
         kf, w = m + f, a.shape[1]
-        if self._mem is not None:
-            entry = self._mem.setdefault(i, [np.zeros((kf, m), order="F"), None])
-            entry[0][c0:, c0:c0 + w] = a
+        if self._buf is not None:
+            self._cols(i)[c0:, c0:c0 + w] = a
             return
         for c in range(w):
             os.pwrite(self._fd, memoryview(np.ascontiguousarray(a[:, c])),
@@ -230,8 +261,8 @@ class FactorFile:
     def write_y(self, i, y1):
         """Node ``i``'s ``y1`` (after :meth:`write_cols`)."""
         m, f = (int(x) for x in self.shape[i])
-        if self._mem is not None:
-            self._mem[i][1] = y1
+        if self._buf is not None:
+            self._y(i)[...] = y1
             return
         os.pwrite(self._fd, memoryview(np.asfortranarray(y1).reshape(-1, order="F")),
                   int(self.offset[i]) + 8 * (m + f) * m)
@@ -239,8 +270,8 @@ class FactorFile:
     def read_cols(self, i, c0, c1, r0=0):
         """Rows ``r0 ..`` of columns ``c0 .. c1`` of node ``i``'s ``[L11; L21]`` ((m + f -
         r0) x (c1 - c0), F order): one read, or with ``r0 > 0`` a read a column."""
-        if self._mem is not None:
-            return self._mem[i][0][r0:, c0:c1]
+        if self._buf is not None:
+            return self._cols(i)[r0:, c0:c1]
         m, f = (int(x) for x in self.shape[i])
         kf = m + f
         if r0 == 0:
@@ -260,8 +291,8 @@ class FactorFile:
 
     def read_y(self, i):
         """Node ``i``'s ``y1`` (m, or m x n_rhs)."""
-        if self._mem is not None:
-            return self._mem[i][1]
+        if self._buf is not None:
+            return self._y(i)
         m, f = (int(x) for x in self.shape[i])
         nr = self.n_rhs
         buf = np.frombuffer(os.pread(self._fd, 8 * m * nr, int(self.offset[i]) + 8 * (m + f) * m),
@@ -272,8 +303,8 @@ class FactorFile:
 
     def read(self, i):
         """``(col, y1)`` of node ``i`` (as :meth:`write`)."""
-        if self._mem is not None:
-            return self._mem[i]
+        if self._buf is not None:
+            return self._cols(i), self._y(i)
         m, f = (int(x) for x in self.shape[i])
         nr = self.n_rhs
         n = (m + f) * m + m * nr
@@ -286,8 +317,7 @@ class FactorFile:
 
     def close(self):
         """Release the factor (in core) or close its file."""
-        if self._mem is not None:
-            self._mem.clear()
+        self._buf = None   # (the arena stays with whoever keeps it for the next one)
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
@@ -403,7 +433,9 @@ class TreeSolver:
         f = k * len(t.bnd(i))
         a = None
         if not tiled:   # (numpy's allocation: huge pages where large)
-            own = np.empty((m + f, m), order="F")
+            own = self.file.own(i)
+            if own is None:
+                own = np.empty((m + f, m), order="F")
             upd = np.empty((f, f), order="F")
             _zero_block_lower(own, k)
             _zero_block_lower(upd, k)

@@ -248,7 +248,10 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     per, top, need, tile = work_plan(tree, k, opts, threads, blk.held, n)
     in_core = (FactorFile.record_bytes(layout, 1 + ng).sum() + need
                <= tree_budget(opts, blk.held, n))
-    file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
+    # in core, the last step's buffer again (its pages are faulted in already)
+    file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout, n_rhs=1 + ng,
+                      arena=getattr(work, "tree_arena", None))
+    work.tree_arena = file.arena if in_core else None
     solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file, n_border=ng,
                         tile=tile, scratch=work.dir)
     solver.set_parts(per, top)
