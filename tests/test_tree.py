@@ -300,6 +300,35 @@ def test_metis_supernodal_tree_solves_exactly(tmp_path, shape):
     np.testing.assert_allclose(x, np.linalg.solve(ml, bl), rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("w,rows", [(20, 50), (75, 75), (130, 300)])
+def test_recursive_column_cholesky_against_numpy(w, rows):
+    """chol_columns (recursive halves above CHOL_LEAF columns) gives numpy's Cholesky
+    columns, and names the first failing pivot wherever it lies (in the first leaf or in a
+    later one) as dpotrf with the band's pivot test would."""
+    from sapgo.blas import FNS
+    from sapgo.solve.tiles import CHOL_LEAF, chol_columns
+
+    assert CHOL_LEAF < 75   # (w = 20: one leaf; 75, 130: several)
+    rng = np.random.default_rng(w)
+    g = rng.normal(size=(rows, rows))
+    a = g @ g.T + rows * np.eye(rows)
+    panel = np.asfortranarray(np.tril(a[:, :w]))
+    orig = np.diag(a)[:w].copy()
+    assert chol_columns(FNS, panel.reshape(-1, order="F"), rows, rows, w, 1e-12, orig) == 0
+    np.testing.assert_allclose(np.tril(panel), np.linalg.cholesky(a)[:, :w], rtol=1e-11,
+                               atol=1e-11)
+    for bad in sorted({0, w // 2, w - 1}):   # column ``bad`` a combination of the earlier
+        b = a.copy()
+        c = b[:, :bad] @ rng.normal(size=bad)
+        b[:, bad] = c
+        b[bad, :] = c
+        b[bad, bad] = c[:bad] @ np.linalg.solve(b[:bad, :bad], c[:bad]) if bad else 0.0
+        panel = np.asfortranarray(np.tril(b[:, :w]))
+        orig = np.abs(np.diag(b)[:w]) + 1.0
+        got = chol_columns(FNS, panel.reshape(-1, order="F"), rows, rows, w, 1e-10, orig)
+        assert got == bad + 1, (bad, got)
+
+
 def test_extend_add_and_front_zeros_against_numpy():
     """The extend-add kernel (stretch by stretch) equals numpy's fancy-indexed add on the
     lower triangle, for scattered and contiguous places; a fresh front is zero on its block

@@ -23,11 +23,11 @@ from numba.extending import get_cython_function_address
 
 _VP = ctypes.c_void_p
 _NARGS = {"dgemm": 13, "dsyrk": 10, "dtrsm": 11, "dtrmm": 11, "dgemv": 11, "dtrsv": 8,
-          "dpotrf": 5, "dtrtri": 6}
+          "dpotrf": 5, "dtrtri": 6, "dlauum": 5}
 
 
 def _pointer(name):
-    module = "scipy.linalg.cython_lapack" if name in ("dpotrf", "dtrtri") else \
+    module = "scipy.linalg.cython_lapack" if name in ("dpotrf", "dtrtri", "dlauum") else \
         "scipy.linalg.cython_blas"
     proto = ctypes.CFUNCTYPE(None, *([_VP] * _NARGS[name]))
     return proto(get_cython_function_address(module, name))
@@ -181,4 +181,18 @@ def trtri(fn, uplo, diag, n, a, lda):
     ch[0] = uplo
     ch[1] = diag
     fn(ch[0:].ctypes, ch[1:].ctypes, iv[0:].ctypes, a.ctypes, iv[1:].ctypes, iv[2:].ctypes)
+    return iv[2]
+
+
+@njit(cache=True, nogil=True)
+def lauum(fn, uplo, n, a, lda):
+    """``L'L`` (``uplo`` L) or ``UU'`` of a triangular matrix, in place on its triangle;
+    returns LAPACK's ``info``."""
+    iv = np.empty(3, np.int32)
+    iv[0] = n
+    iv[1] = lda
+    iv[2] = 0
+    ch = np.empty(1, np.uint8)
+    ch[0] = uplo
+    fn(ch[0:].ctypes, iv[0:].ctypes, a.ctypes, iv[1:].ctypes, iv[2:].ctypes)
     return iv[2]

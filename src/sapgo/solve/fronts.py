@@ -45,9 +45,9 @@ import scipy.linalg
 from numba import njit
 
 from .band import PIVOT_TOLERANCE, PivotError
-from .tiles import (Panels, _factor_panel, _left_update, extend_add, invert_tiled,
-                    node_bounds, potrf_tested, update_bounds, write_dense_panels)
-from ..blas import FNS, L, N, R, T, gemm, gemv, syrk, trmm, trsm, trsv, trtri
+from .tiles import (Panels, _factor_panel, _left_update, chol_columns, extend_add,
+                    invert_tiled, node_bounds, update_bounds, write_dense_panels)
+from ..blas import FNS, L, N, R, T, gemm, gemv, lauum, syrk, trmm, trsm, trsv, trtri
 from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_point, _chol3,
                        _point_system, _ray_terms, _solve3, _workspace)
 
@@ -314,6 +314,20 @@ class FactorFile:
         y1 = buf[(m + f) * m:]
         return (buf[:(m + f) * m].reshape((m + f, m), order="F"),
                 y1 if nr == 1 else y1.reshape((m, nr), order="F"))
+
+    def records(self, a, b, out=None):
+        """The records of nodes ``a .. b - 1`` (consecutive at their offsets) as one flat
+        float64 array and the offset (in doubles) of its first element: the buffer itself in
+        core, one read on file (into ``out`` when given, large enough)."""
+        o0, o1 = int(self.offset[a]), (int(self.offset[b]) if b < len(self.offset)
+                                       else self.nbytes)
+        if self._buf is not None:
+            return self._buf, 0
+        n = (o1 - o0) // 8
+        buf = out[:n] if out is not None and len(out) >= n else np.empty(n)
+        if os.preadv(self._fd, [memoryview(buf)], o0) != o1 - o0:
+            raise OSError(f"{self.path}: factor records {a}..{b - 1} cut short")
+        return buf, o0 // 8
 
     def close(self):
         """Release the factor (in core) or close its file."""
@@ -611,25 +625,55 @@ class TreeSolver:
                                                      check_finite=False)
         return x
 
-    def solve(self, n_stations, theta=None):
+    def solve(self, n_stations, theta=None, plan=None):
         """``delta`` (n_stations x k; stations outside the tree 0) by back substitution
-        down the tree (with a border: of ``y - W theta``)."""
+        down the tree (with a border: of ``y - W theta``). ``plan``: ``(per_worker, top)``
+        of :func:`sapgo.solve.tree.parallel_plan`: the top nodes first, then the workers'
+        subtrees side by side (each writes its own stations and reads its ancestors')."""
         t, k = self.tree, self.k
         x = np.zeros(k * n_stations)
-        for i in range(t.n_nodes - 1, -1, -1):
-            if self.tiled[i]:
-                y1 = self.file.read_y(i)
-                r = y1 if not self.n_border else y1[:, 0] - y1[:, 1:] @ theta
-                x[k * t.lo[i]:k * t.hi[i]] = self._back_tiled(
-                    i, r[:, None], x[_scalar(t.bnd(i), k)][:, None])[:, 0]
-                continue
-            col, y1 = self.file.read(i)
-            m = col.shape[1]
-            r = y1 if not self.n_border else y1[:, 0] - y1[:, 1:] @ theta
-            if col.shape[0] > m:
-                r = r - col[m:].T @ x[_scalar(t.bnd(i), k)]
-            x[k * t.lo[i]:k * t.hi[i]] = scipy.linalg.solve_triangular(
-                col[:m], r, lower=True, trans="T", check_finite=False)
+
+        size = self.file.record_bytes(self.file.shape, self.file.n_rhs)
+        th = np.zeros(0) if theta is None else np.ascontiguousarray(theta, dtype=np.float64)
+
+        def run(nodes):
+            nodes = list(nodes)
+            out = None if self.file.in_core else np.empty(BACK_BYTES // 8)
+            j = 0
+            while j < len(nodes):
+                i = nodes[j]
+                if self.tiled[i]:
+                    y1 = self.file.read_y(i)
+                    r = y1 if not self.n_border else y1[:, 0] - y1[:, 1:] @ theta
+                    x[k * t.lo[i]:k * t.hi[i]] = self._back_tiled(
+                        i, r[:, None], x[_scalar(t.bnd(i), k)][:, None])[:, 0]
+                    j += 1
+                    continue
+                # a run of consecutive nodes i, i - 1, ..: their records in one piece
+                e, total = j + 1, size[i]
+                while (e < len(nodes) and nodes[e] == nodes[e - 1] - 1
+                       and not self.tiled[nodes[e]] and total + size[nodes[e]] <= BACK_BYTES):
+                    total += size[nodes[e]]
+                    e += 1
+                buf, base = self.file.records(nodes[e - 1], i + 1, out)
+                _back_nodes(FNS, buf, base, self.file.offset // 8, self.file.shape,
+                            self.file.n_rhs, th, t.lo, t.bptr, t.boundary, k, x, i,
+                            nodes[e - 1])
+                j = e
+
+        if plan is None or len(plan[0]) < 2:
+            run(range(t.n_nodes - 1, -1, -1))
+            return x.reshape(n_stations, k)
+        from concurrent.futures import ThreadPoolExecutor
+
+        from ..blas import blas_limits
+
+        per, top = plan
+        run(sorted(top, reverse=True))
+        with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
+            for job in [pool.submit(run, sorted((i for a, b in ranges for i in range(a, b)),
+                                                reverse=True)) for ranges in per]:
+                job.result()
         return x.reshape(n_stations, k)
 
     def border_x(self, n_stations):
@@ -737,11 +781,10 @@ def _factor_front(fns, a, kf, m, a22, b, nr, tol):
     orig = np.empty(m)
     for j in range(m):
         orig[j] = a[j * kf + j]
-    fail = potrf_tested(fns, a, kf, m, tol, orig)
+    fail = chol_columns(fns, a, kf, kf, m, tol, orig)
     if fail:
         return fail
     if f > 0:
-        trsm(fns.dtrsm, R, L, T, N, f, m, 1.0, a, kf, a[m:], kf)
         syrk(fns.dsyrk, L, N, f, m, -1.0, a[m:], kf, 1.0, a22, f)
     if nr == 1:
         trsv(fns.dtrsv, L, N, N, m, a, kf, b)
@@ -754,35 +797,84 @@ def _factor_front(fns, a, kf, m, a22, b, nr, tol):
     return 0
 
 
+#: Bytes of factor records read at once by the back substitution (from the factor file).
+BACK_BYTES = 32 << 20
+
+
+@njit(cache=True, nogil=True)
+def _back_nodes(fns, buf, base, offset, shape, nr, theta, lo, bptr, boundary, k, x, hi_node,
+                lo_node):
+    """Back substitution of nodes ``hi_node`` down to ``lo_node`` (their records in ``buf``,
+    which starts at double ``base`` of the factor): ``x_own = L11'^-1 (r - L21' x_bnd)``,
+    ``r = y1[:, 0] - y1[:, 1:] theta`` (``theta`` the border's solution, or empty)."""
+    for i in range(hi_node, lo_node - 1, -1):
+        m, f = shape[i, 0], shape[i, 1]
+        kf = m + f
+        o = offset[i] - base
+        col = buf[o:o + kf * m]
+        yo = o + kf * m
+        y = buf[yo:yo + m].copy()
+        for g in range(theta.shape[0]):
+            for j in range(m):
+                y[j] -= buf[yo + (g + 1) * m + j] * theta[g]
+        if f > 0:
+            xb = np.empty(f)
+            b0 = bptr[i]
+            for s in range(f // k):
+                st = boundary[b0 + s]
+                for c in range(k):
+                    xb[k * s + c] = x[k * st + c]
+            gemv(fns.dgemv, T, f, m, -1.0, col[m:], kf, xb, 1.0, y)
+        trsv(fns.dtrsv, L, T, N, m, col, kf, y)
+        x0 = k * lo[i]
+        for j in range(m):
+            x[x0 + j] = y[j]
+
+
+#: Columns a block of the lower half of ``X' Z21`` in :func:`_inverse_front`.
+INVERSE_BLOCK = 96
+
+
 @njit(cache=True, nogil=True)
 def _inverse_front(fns, col, m, f, z22, z):
-    """``z`` ((m+f) x (m+f), F order, zeros) <- the inverse over a front from its factor
-    columns ``col`` ([L11; L21], (m+f) x m, F order) and ``Z22`` (f x f, F order):
-    ``X = L21 L11^-1``, ``Z21 = -Z22 X``, ``Z11 = L11'^-1 L11^-1 - X' Z21``."""
+    """``z`` ((m+f) x (m+f), F order) <- the inverse over a front from its factor columns
+    ``col`` ([L11; L21], (m+f) x m, F order) and ``Z22`` (f x f, F order): ``X = L21
+    L11^-1``, ``Z21 = -Z22 X``, ``Z11 = L11^-T L11^-1 - X' Z21`` (``dtrtri`` and ``dlauum``,
+    as ``dpotri``; the symmetric ``X' Z21`` by blocks of columns, its lower half only)."""
     kf = m + f
-    linv = np.zeros(m * m)
     for c in range(m):
         for r in range(c, m):
-            linv[c * m + r] = col[c * kf + r]
-    trtri(fns.dtrtri, L, N, m, linv, m)
-    syrk(fns.dsyrk, L, T, m, m, 1.0, linv, m, 0.0, z, kf)
+            z[c * kf + r] = col[c * kf + r]
+    trtri(fns.dtrtri, L, N, m, z, kf)
     if f > 0:
         x = np.empty(f * m)
         for c in range(m):
             for r in range(f):
                 x[c * f + r] = col[c * kf + m + r]
-        trmm(fns.dtrmm, R, L, N, N, f, m, 1.0, linv, m, x, f)
+        trmm(fns.dtrmm, R, L, N, N, f, m, 1.0, z, kf, x, f)
+    lauum(fns.dlauum, L, m, z, kf)
+    if f > 0:
         gemm(fns.dgemm, N, N, f, m, f, -1.0, z22, f, x, f, 0.0, z[m:], kf)
-        gemm(fns.dgemm, T, N, m, m, f, -1.0, x, f, z[m:], kf, 1.0, z, kf)
+        for c0 in range(0, m, INVERSE_BLOCK):
+            w = min(INVERSE_BLOCK, m - c0)
+            gemm(fns.dgemm, T, N, m - c0, w, f, -1.0, x[c0 * f:], f, z[c0 * kf + m:], kf,
+                 1.0, z[c0 * kf + c0:], kf)
         for c in range(f):
-            for r in range(f):
+            for r in range(c, f):
                 z[(m + c) * kf + m + r] = z22[c * f + r]
-        for c in range(m):
-            for r in range(f):
-                z[(m + r) * kf + c] = z[c * kf + m + r]
-    for c in range(m):              # the upper triangle of Z11 from its lower one
-        for r in range(c + 1, m):
-            z[r * kf + c] = z[c * kf + r]
+    _mirror_lower(z, kf)
+
+
+@njit(cache=True, nogil=True)
+def _mirror_lower(z, n):
+    """The upper triangle of an n x n F-order matrix (flat) from its lower one, by tiles
+    (the strided writes stay in cache)."""
+    b = 32
+    for cb in range(0, n, b):
+        for rb in range(cb, n, b):
+            for c in range(cb, min(cb + b, n)):
+                for r in range(max(rb, c + 1), min(rb + b, n)):
+                    z[r * n + c] = z[c * n + r]
 
 
 @njit(cache=True, nogil=True)

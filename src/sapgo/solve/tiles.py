@@ -237,6 +237,41 @@ def potrf_tested(fns, a, lda, w, tol, orig):
     return info
 
 
+#: Columns below which :func:`chol_columns` leaves the work to LAPACK's ``dpotrf`` and
+#: BLAS' ``dtrsm`` (above it, halves: the bulk in ``dgemm`` and ``dsyrk``, which run near
+#: the machine's peak where OpenBLAS' ``dtrsm`` and ``dpotrf`` do not on fronts of a few
+#: hundred columns).
+CHOL_LEAF = 32
+
+
+@njit(cache=True, nogil=True)
+def chol_columns(fns, a, lda, rows, w, tol, orig):
+    """Cholesky factor of a column panel in place: ``a`` (F order, leading dimension
+    ``lda``) holds ``rows x w`` with its leading ``w x w`` block symmetric (lower triangle
+    used); on return ``[L11; L21]``, ``L11 = chol(A11)`` and ``L21 = A21 L11'^-1``. By
+    recursive halves of the columns (Gustavson's recursive Cholesky): the left half, its
+    update of the right half (``dsyrk``, ``dgemm``), the right half. Returns 0, or 1 + the
+    first column whose pivot fails :func:`potrf_tested`'s test (``orig``: the diagonal
+    before the factorisation)."""
+    if w <= CHOL_LEAF:
+        fail = potrf_tested(fns, a, lda, w, tol, orig)
+        if fail:
+            return fail
+        if rows > w:
+            trsm(fns.dtrsm, R, L, T, N, rows - w, w, 1.0, a, lda, a[w:], lda)
+        return 0
+    h = w // 2
+    fail = chol_columns(fns, a, lda, rows, h, tol, orig)
+    if fail:
+        return fail
+    syrk(fns.dsyrk, L, N, w - h, h, -1.0, a[h:], lda, 1.0, a[h * lda + h:], lda)
+    if rows > w:
+        gemm(fns.dgemm, N, T, rows - w, w - h, h, -1.0, a[w:], lda, a[h:], lda, 1.0,
+             a[h * lda + w:], lda)
+    fail = chol_columns(fns, a[h * lda + h:], lda, rows - h, w - h, tol, orig[h:])
+    return fail + h if fail else 0
+
+
 @njit(cache=True, nogil=True)
 def _factor_panel(fns, a, lda, w, b, ldb, c0, nr, tol, orig):
     """Factor an own panel in place (``a``: rows c0 .. kf of its w columns): ``L_jj =
@@ -244,12 +279,10 @@ def _factor_panel(fns, a, lda, w, b, ldb, c0, nr, tol, orig):
     (``b``: kf x nr, Fortran order) through it. Returns 0 or 1 + the panel's first column
     whose pivot is at or below ``tol`` times its diagonal before the factorisation
     (``orig``, as assembled)."""
-    fail = potrf_tested(fns, a, lda, w, tol, orig)
+    fail = chol_columns(fns, a, lda, lda, w, tol, orig)
     if fail:
         return fail
     below = lda - w
-    if below > 0:
-        trsm(fns.dtrsm, R, L, T, N, below, w, 1.0, a, lda, a[w:], lda)
     trsm(fns.dtrsm, L, L, N, N, w, nr, 1.0, a, lda, b[c0:], ldb)
     if below > 0:
         gemm(fns.dgemm, N, N, below, nr, w, -1.0, a[w:], lda, b[c0:], ldb, 1.0, b[c0 + w:],
