@@ -185,7 +185,7 @@ class FactorFile:
             # large enough, so that an iteration's fronts reuse pages already faulted in
             n = self.nbytes // 8
             if arena is None or arena.size < n:
-                arena = np.empty(n)
+                arena = _anonymous(n)
             self.arena = arena
             self._buf = arena[:n]
             return
@@ -335,6 +335,22 @@ class FactorFile:
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
+
+
+def _anonymous(n):
+    """``n`` float64 in fresh anonymous memory, its pages mapped at once where the system
+    can (``MAP_POPULATE``): numpy's own large arrays ask for transparent huge pages, whose
+    first faults can stall for compaction (0.1 to 0.4 s for 200 MB on a fragmented
+    machine), and two threads faulting in ordinary pages contend (0.2 s); populated: 0.06 s."""
+    import mmap
+
+    if n == 0:
+        return np.empty(0)
+    try:
+        flags = (mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | getattr(mmap, "MAP_POPULATE", 0))
+        return np.frombuffer(mmap.mmap(-1, 8 * n, flags=flags), np.float64)
+    except (AttributeError, OSError, ValueError, TypeError):   # (not a POSIX system)
+        return np.empty(n)
 
 
 _MALLOC_TUNED = []
