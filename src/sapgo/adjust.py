@@ -162,6 +162,11 @@ class Options:
     #: order as ``sapgo order`` chose it by predicted cost; an unordered project is ordered
     #: for the cheaper). A project ordered for the other solver is ordered again first.
     solver: str = "auto"
+    #: A Dask distributed ``Client``: the partition tree's subtrees are built and factored
+    #: on its workers, a part a worker for the whole run (they must see the project and its
+    #: work directory on a shared filesystem; :mod:`sapgo.solve.distributed`). None: threads
+    #: of this process.
+    client: object = None
 
     def check(self):
         if self.max_iterations < 1:

@@ -204,8 +204,20 @@ def cmd_adjust(args):
         check_matplotlib()
     with Project(args.project) as p:
         ordered = p.ordered
+    from .solve.distributed import cluster
+
+    if (args.workers or args.scheduler) and args.solver == "band":
+        raise SapgoError("--workers and --scheduler distribute the partition tree: not with "
+                         "--solver band")
+    if args.workers is not None and args.workers < 1:
+        raise SapgoError(f"--workers {args.workers}: give 1 or more worker processes")
     try:
-        summary = adjust(args.project, opts)
+        with cluster(args.workers, args.scheduler) as client:
+            if client is not None:
+                opts.client = client
+                if opts.solver == "auto":
+                    opts.solver = "tree"
+            summary = adjust(args.project, opts)
     except KeyboardInterrupt:
         print(f"sapgo: interrupted; the last completed iteration is kept: continue with "
               f"'sapgo adjust --resume {args.project}'", file=sys.stderr)
@@ -618,6 +630,12 @@ def build_parser():
                         "as the project is ordered; an unordered project is ordered for the "
                         "one of the smaller predicted time). A project ordered for the other "
                         "solver is ordered again first")
+    a.add_argument("--workers", type=int, metavar="N",
+                   help="build and factor the partition tree's subtrees on N worker "
+                        "processes (a Dask LocalCluster for the run; needs sapgo[dask])")
+    a.add_argument("--scheduler", metavar="ADDRESS",
+                   help="the same on an existing Dask cluster (tcp://host:port); its workers "
+                        "must see the project and its work directory at the same paths")
     a.add_argument("--robust", choices=("huber", "cauchy"),
                    help="robust estimation of the image observations: least squares first, "
                         "then reweighted every iteration from the standardised residuals "

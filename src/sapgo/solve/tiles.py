@@ -191,6 +191,17 @@ class Panels:
             except FileNotFoundError:
                 pass
 
+    def __getstate__(self):
+        # sent to another process (Dask, a shared filesystem): the file's place, not its
+        # data; the receiver opens it and owns it from then on (its close removes it)
+        state = dict(self.__dict__)
+        state["_fd"] = None
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._fd = os.open(self.path, os.O_RDWR)
+
     def __del__(self):
         self.close()
 

@@ -245,8 +245,13 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
         old.close()
         work.tree_factor = None
     layout = factor_layout(tree, k)
+    client = getattr(opts, "client", None)
+    if client is not None:   # Dask: a part a worker process, the factor in the shared file
+        from .distributed import worker_addresses
+
+        threads = max(2, len(worker_addresses(client)))
     per, top, need, tile = work_plan(tree, k, opts, threads, blk.held, n)
-    in_core = (FactorFile.record_bytes(layout, 1 + ng).sum() + need
+    in_core = (client is None and FactorFile.record_bytes(layout, 1 + ng).sum() + need
                <= tree_budget(opts, blk.held, n))
     # in core, the last step's buffer again (its pages are faulted in already)
     file = FactorFile(None if in_core else work.dir / FACTOR_FILE, layout, n_rhs=1 + ng,
@@ -262,7 +267,17 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     cb = [(np.zeros((ng, ng)), np.zeros(ng), np.zeros(ng)) for _ in range(len(per) + 1)]
     seconds = np.zeros(len(per) + 1)
     with _progress(opts.progress, p.n_points, "build") as bar:
-        if len(per) > 1:
+        if client is not None:
+            from .distributed import distributed_step
+
+            file.close()   # the workers write their records; read back after them
+            diags[:len(per)], cb[:len(per)], sec = distributed_step(
+                p, work, blk, opts, tree, solver, per, top, lam, iteration)
+            seconds[:len(per)] = sec
+            file = FactorFile(work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
+            solver.file = file
+            bar.update(sum(int(tree.pt_start[b] - tree.pt_start[a]) for r in per for a, b in r))
+        elif len(per) > 1:
             with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
                 jobs = [pool.submit(_run_nodes, p, work, blk, opts, tree, solver, ranges,
                                     lam, diags[w], seconds, w, iteration, bar, capture, cb[w])

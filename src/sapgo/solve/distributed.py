@@ -1,0 +1,166 @@
+"""The partition tree's build and factorisation on Dask distributed (docs/theory.md 4c).
+
+The threaded tree step (:func:`sapgo.solve.tree.tree_step`) deals the tree's independent
+subtrees to threads; here the same parts (:func:`sapgo.solve.tree.work_plan`) go to Dask
+worker processes, one part to one worker for the whole run (``workers=`` restrictions, the
+part's number taken modulo the workers in the order of their addresses). Each worker opens
+the project read-only and the work files (a filesystem shared with the client), builds its
+subtrees' fronts from their own points, factors them and writes its nodes' records into the
+factor file ``tree_factor.bin`` at the tree's fixed offsets. What travels back is small: the
+Schur updates its subtree roots pass to the top nodes (dense ``f x f`` blocks with their
+right-hand sides), ``y'y`` of its nodes, the border's sums (self-calibration) and the
+stations' undamped diagonal (Levenberg-Marquardt). The client factors the top nodes, as the
+threaded step does, and solves.
+
+A task only ever reads the state of the last checkpoint and writes records at fixed offsets,
+so running it again (a worker lost, Dask's retry on another worker) writes the same bytes.
+Workers unpickle only what the client sends them, never anything read from a file.
+
+Use: ``Options(client=distributed.Client(...))`` from Python, ``sapgo adjust --workers N``
+(a LocalCluster for the run) or ``--scheduler ADDRESS`` from the shell
+(:func:`sapgo.solve.distributed.cluster`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import sys
+import time
+
+import numpy as np
+
+from ..errors import SapgoError
+
+__all__ = ["cluster", "distributed_step", "part_step", "worker_addresses"]
+
+#: Seconds to wait for a scheduler given by its address.
+CONNECT_TIMEOUT = 30
+
+
+def worker_addresses(client):
+    """The cluster's worker addresses, sorted (the parts' fixed placement)."""
+    workers = sorted(client.scheduler_info()["workers"])
+    if not workers:
+        raise SapgoError("the Dask cluster has no workers")
+    return workers
+
+
+@contextlib.contextmanager
+def cluster(workers=None, scheduler=None, quiet=False):
+    """A Dask client for a run: a LocalCluster of ``workers`` processes (one thread each, the
+    numba and BLAS threads of each limited to one) or the scheduler at ``scheduler``; the
+    dashboard's address is printed on stderr. Yields None when neither is given."""
+    if not workers and not scheduler:
+        yield None
+        return
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise SapgoError("--workers and --scheduler need Dask distributed: "
+                         "pip install 'sapgo[dask]'") from None
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT)
+        except OSError as exc:
+            raise SapgoError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+        lc = None
+    else:
+        lc = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                          dashboard_address=":0",
+                          env={"NUMBA_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+                               "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+        client = Client(lc)
+    try:
+        if not quiet:
+            sys.stderr.write(f"sapgo: Dask cluster of {len(worker_addresses(client))} "
+                             f"workers; dashboard {client.dashboard_link}\n")
+        yield client
+    finally:
+        client.close()
+        if lc is not None:
+            lc.close()
+
+
+class _NoBar:
+    def update(self, n):
+        pass
+
+
+def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, iteration,
+              tile):
+    """On a worker: build and eliminate part ``w`` of ``plan`` (``(per, top)``) and write its
+    nodes' factor records into ``work_dir/tree_factor.bin``. Returns what the client needs
+    for the top nodes and the step (a dict of arrays)."""
+    from ..blas import blas_limits
+    from ..project import Project
+    from ..work import Work
+    from .fronts import FactorFile, TreeSolver, factor_layout
+    from .tiles import Panels
+    from .tree import FACTOR_FILE, _run_nodes
+
+    per, top = plan
+    k, ng = blk.npar, blk.n_border
+    n = len(blk.station_ids)
+    t0 = time.perf_counter()
+    with Project(path, "r") as p:
+        work = Work(work_dir, p, band_width, create=False, block=k, n_border=ng)
+        work.state = state
+        file = FactorFile(work.dir / FACTOR_FILE, factor_layout(tree, k), n_rhs=1 + ng)
+        try:
+            solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file, n_border=ng,
+                                tile=tile, scratch=work.dir)
+            solver.set_parts(per, top)
+            diag = np.zeros((n, k)) if lam > 0.0 else None
+            cb = (np.zeros((ng, ng)), np.zeros(ng), np.zeros(ng))
+            seconds = np.zeros(len(per) + 1)
+            with blas_limits(1):
+                _run_nodes(p, work, blk, opts, tree, solver, per[w], lam, diag, seconds, w,
+                           iteration, _NoBar(), None, cb)
+            # the subtree roots' updates for the top nodes: in core, or (larger than a
+            # panel) their scratch files in the shared work directory, handed over by name
+            updates = {int(i): v for i, v in solver.updates.items()}
+            for u, _ in updates.values():
+                if isinstance(u, Panels):
+                    os.close(u._fd)   # (the file stays: the client opens and removes it)
+                    u._fd = None
+        finally:
+            file.close()
+            work.close()
+    nodes = np.concatenate([np.arange(a, b) for a, b in per[w]])
+    return {"updates": updates, "nodes": nodes, "yy": solver.yy[nodes],
+            "ww": solver._ww[w], "wy": solver._wy[w], "diag": diag, "border": cb,
+            "solver_seconds": float(seconds[w]), "seconds": time.perf_counter() - t0}
+
+
+def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration):
+    """The workers' parts of a tree step on ``opts.client``: each part's task pinned to its
+    worker; their results put into ``solver`` (updates for the top nodes, ``y'y``, the
+    border's sums). Returns ``(diags, border sums, seconds)`` per part as the threaded
+    step's."""
+    client = opts.client
+    addresses = worker_addresses(client)
+    wopts = dataclasses.replace(opts, client=None, progress=False)
+    # the project's own path, the work directory and the block travel once a step; the
+    # tree's arrays are scattered once and kept by the workers
+    tree_f = getattr(work, "_tree_future", None)
+    if tree_f is None or getattr(work, "_tree_id", None) is not tree:
+        tree_f = client.scatter(tree, broadcast=True)
+        work._tree_future, work._tree_id = tree_f, tree
+    futures = [client.submit(part_step, str(p.path), str(work.dir), work.band_width,
+                             work.state, blk, wopts, tree_f, (per, top), w, lam, iteration,
+                             solver.tile, workers=[addresses[w % len(addresses)]],
+                             allow_other_workers=True, pure=False, retries=2)
+               for w in range(len(per))]
+    results = client.gather(futures)
+    diags, cbs, seconds = [], [], []
+    for w, r in enumerate(results):
+        solver.updates.update(r["updates"])
+        solver.yy[r["nodes"]] = r["yy"]
+        solver._ww[w] = r["ww"]
+        solver._wy[w] = r["wy"]
+        diags.append(r["diag"])
+        cbs.append(r["border"])
+        seconds.append(r["solver_seconds"])
+    return diags, cbs, seconds

@@ -1,0 +1,126 @@
+"""The partition tree on Dask distributed (a LocalCluster of 2 worker processes): the
+subtrees built and factored on the workers give the threaded run's solution, sigma0,
+precision and observation quality (Gauss-Newton, Levenberg-Marquardt, self-calibration,
+strips); the updates of tiled fronts travel as their scratch files; the command line."""
+
+import dataclasses
+import os
+import pickle
+import shutil
+
+import numpy as np
+import pytest
+
+import sapgo
+from conftest import assert_one_line_error, run_cli
+from test_adjust import TIGHT
+from test_tree_adjust import assert_same_solution, miscalibrated_square, ordered_pair  # noqa: F401
+
+distributed = pytest.importorskip("distributed")
+
+from sapgo.solve.distributed import cluster  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def client():
+    with cluster(workers=2, quiet=True) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def blocks(tmp_path_factory):
+    d = tmp_path_factory.mktemp("dist")
+    out = {}
+    for name, spec in {"square": dict(strips=6, photos_per_strip=7, control_points=8),
+                       "strips": dict(strips=3, photos_per_strip=16, control_points=8)}.items():
+        out[name] = d / f"{name}.h5"
+        sapgo.generate_block(out[name], seed=4, progress=False, **spec)
+    return out
+
+
+def _both(src, tmp_path, opts, client, leaf=4):
+    """The threaded and the distributed adjustment of copies of ``src`` ordered for a tree
+    of small leaves; the distributed run's tasks as (name, worker)."""
+    _, ref = ordered_pair(src, tmp_path, leaf=leaf, name="ref")
+    path = tmp_path / "dist.h5"
+    shutil.copy(ref, path)
+    sr = sapgo.adjust(ref, opts)
+    with distributed.get_task_stream(client) as ts:
+        sd = sapgo.adjust(path, dataclasses.replace(opts, client=client))
+    tasks = {(d["key"].split("-")[0], d["worker"]) for d in ts.data}
+    return ref, path, sr, sd, tasks
+
+
+@pytest.mark.parametrize("case", ["square", "square-lm", "strips", "calibration"])
+def test_two_workers_give_the_threaded_solution(case, blocks, miscalibrated_square,  # noqa: F811
+                                                tmp_path, client):
+    opts = dataclasses.replace(TIGHT, progress=False)
+    if case == "square-lm":
+        opts = dataclasses.replace(opts, method="levenberg-marquardt")
+    if case == "calibration":
+        src = miscalibrated_square
+        opts = dataclasses.replace(opts, calibrate=("f", "x0", "y0", "k1", "k2", "p1", "p2"))
+    else:
+        src = blocks[case.split("-")[0]]
+    ref, path, sr, sd, tasks = _both(src, tmp_path, opts, client)
+    # both workers built and factored a part of the tree
+    assert {w for name, w in tasks if name == "part_step"} == set(
+        client.scheduler_info()["workers"])
+    assert sd.solver == "tree" and sd.converged and sd.iterations == sr.iterations
+    assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-10)
+    assert_same_solution(path, ref, rtol=1e-10)
+    if case == "calibration":
+        for a, b in zip(sd.calibration, sr.calibration):
+            assert a["sigma"] == pytest.approx(b["sigma"], rel=1e-10)
+
+
+def test_a_tiled_update_travels_as_its_scratch_file(tmp_path):
+    """A subtree root's update larger than a panel stays in its scratch file in the shared
+    work directory: pickled, it is the file's place; unpickled, the receiver reads the
+    same panels and its close removes the file."""
+    from sapgo.solve.tiles import Panels
+
+    rng = np.random.default_rng(1)
+    n, bounds = 10, [0, 4, 7, 10]
+    u = Panels(tmp_path, n, bounds)
+    full = rng.normal(size=(n, n))
+    for j in range(3):
+        u.write(j, np.asfortranarray(full[bounds[j]:, bounds[j]:bounds[j + 1]]))
+    blob = pickle.dumps(u)
+    assert len(blob) < 2000   # (not the data)
+    v = pickle.loads(blob)
+    for j in range(3):
+        np.testing.assert_array_equal(v.panel(j), full[bounds[j]:, bounds[j]:bounds[j + 1]])
+    np.testing.assert_array_equal(v.cols(2, 8), u.cols(2, 8))
+    v.close()
+    assert not os.path.exists(u.path)
+    u.close()
+
+
+def test_workers_from_the_command_line(blocks, tmp_path, capsys):
+    path = tmp_path / "c.h5"
+    shutil.copy(blocks["square"], path)
+    code, _, err = run_cli(capsys, "adjust", path, "--workers", "2", "--no-progress")
+    assert code == 0, err
+    assert "Dask cluster of 2 workers; dashboard http" in err
+    ref = tmp_path / "r.h5"
+    shutil.copy(blocks["square"], ref)
+    code, _, err = run_cli(capsys, "adjust", ref, "--solver", "tree", "--no-progress")
+    assert code == 0, err
+    assert_same_solution(path, ref, rtol=1e-10)
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--workers", "0"], "--workers 0: give 1 or more worker processes"),
+    (["--workers", "2", "--solver", "band"], "not with --solver band"),
+    (["--scheduler", "tcp://127.0.0.1:1"], "cannot reach the Dask scheduler at tcp://127.0.0.1:1"),
+])
+def test_bad_cluster_options_are_one_line_errors(blocks, tmp_path, capsys, monkeypatch, args,
+                                                 message):
+    monkeypatch.setattr("sapgo.solve.distributed.CONNECT_TIMEOUT", 2)
+    path = tmp_path / "e.h5"
+    shutil.copy(blocks["square"], path)
+    before = path.read_bytes()
+    code, _, err = run_cli(capsys, "adjust", path, "--no-progress", *args)
+    assert_one_line_error(code, err, message)
+    assert path.read_bytes() == before
