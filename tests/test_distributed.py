@@ -14,7 +14,8 @@ import pytest
 import sapgo
 from conftest import assert_one_line_error, run_cli
 from test_adjust import TIGHT
-from test_tree_adjust import assert_same_solution, miscalibrated_square, ordered_pair  # noqa: F401
+from test_tree_adjust import (  # noqa: F401
+    assert_same_solution, by_id, miscalibrated_square, ordered_pair)
 
 distributed = pytest.importorskip("distributed")
 
@@ -124,3 +125,78 @@ def test_bad_cluster_options_are_one_line_errors(blocks, tmp_path, capsys, monke
     code, _, err = run_cli(capsys, "adjust", path, "--no-progress", *args)
     assert_one_line_error(code, err, message)
     assert path.read_bytes() == before
+
+
+def test_a_killed_worker_gives_the_same_result(blocks, tmp_path):
+    """One worker killed (SIGKILL) in the middle of building its part in the second
+    iteration: Dask runs the part again (the restarted or the other worker), it writes the
+    same records at the same offsets, and the run ends with the threaded run's solution."""
+    from sapgo.solve.distributed import worker_addresses
+    from sapgo.work import FAULT_ENV
+
+    opts = dataclasses.replace(TIGHT, progress=False, chunk_points=40)
+    _, ref = ordered_pair(blocks["square"], tmp_path, leaf=4, name="ref")
+    path = tmp_path / "killed.h5"
+    shutil.copy(ref, path)
+    sr = sapgo.adjust(ref, opts)
+    with cluster(workers=2, quiet=True) as c:
+        first = worker_addresses(c)[0]
+        c.run(lambda: os.environ.__setitem__(FAULT_ENV, "build:2"), workers=[first])
+        sd = sapgo.adjust(path, dataclasses.replace(opts, client=c))
+        assert first not in worker_addresses(c)   # it died (its nanny started another)
+    assert sd.converged and sd.iterations == sr.iterations
+    assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-12)
+    assert_same_solution(path, ref, rtol=1e-12)
+
+
+def test_a_killed_client_resumes_to_the_same_result(blocks, tmp_path):
+    """``sapgo adjust --workers 2`` killed (SIGKILL) after the second iteration's solve:
+    ``--resume --workers 2`` continues from the checkpoint to the uninterrupted run's
+    solution, and the killed run's workers do not outlive it."""
+    import subprocess
+    import sys
+    import time
+
+    from sapgo.work import FAULT_ENV, work_path
+
+    _, ref = ordered_pair(blocks["square"], tmp_path, leaf=4, name="ref")
+    path = tmp_path / "k.h5"
+    shutil.copy(ref, path)
+    sapgo.adjust(ref, sapgo.Options(progress=False))
+    cmd = [sys.executable, "-m", "sapgo.cli", "adjust", str(path), "--no-progress",
+           "--workers", "2"]
+    before = set(_python_children())
+    r = subprocess.run(cmd, env=dict(os.environ, **{FAULT_ENV: "solve:2"}),
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == -9, r.stderr
+    r = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    a, b = by_id(path), by_id(ref)
+    for k in ("station_corr", "point_corr", "residuals"):
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    for k in ("station_sigma", "point_sigma"):
+        np.testing.assert_allclose(a[k], b[k], rtol=1e-6, err_msg=k)
+    assert not work_path(path).exists()
+    # no worker process of the killed run left behind (orphans: new, and their parent gone)
+    deadline = time.time() + 30
+    while time.time() < deadline and _orphans(before):
+        time.sleep(0.5)
+    assert not _orphans(before)
+
+
+def _python_children():
+    """``{pid: (ppid, args)}`` of the machine's processes."""
+    import subprocess
+
+    out = subprocess.run(["ps", "-eo", "pid=,ppid=,args="], capture_output=True,
+                         text=True).stdout
+    procs = {}
+    for ln in out.splitlines():
+        pid, ppid, args = ln.strip().split(None, 2) + [""] * (3 - len(ln.split(None, 2)))
+        procs[int(pid)] = (int(ppid), args)
+    return procs
+
+
+def _orphans(before):
+    return [pid for pid, (ppid, args) in _python_children().items()
+            if pid not in before and ppid == 1 and "multiprocessing" in args]

@@ -142,14 +142,16 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
     client = opts.client
     addresses = worker_addresses(client)
     wopts = dataclasses.replace(opts, client=None, progress=False)
-    # the project's own path, the work directory and the block travel once a step; the
-    # tree's arrays are scattered once and kept by the workers
+    # the project's path, the work directory and the block (its stations' orientations:
+    # 48 bytes a station) travel once a step; the tree's arrays are scattered once a run
+    # and kept by the workers
     tree_f = getattr(work, "_tree_future", None)
     if tree_f is None or getattr(work, "_tree_id", None) is not tree:
         tree_f = client.scatter(tree, broadcast=True)
         work._tree_future, work._tree_id = tree_f, tree
+    wblk = dataclasses.replace(blk, tree=None)   # (the tree is on the workers already)
     futures = [client.submit(part_step, str(p.path), str(work.dir), work.band_width,
-                             work.state, blk, wopts, tree_f, (per, top), w, lam, iteration,
+                             work.state, wblk, wopts, tree_f, (per, top), w, lam, iteration,
                              solver.tile, workers=[addresses[w % len(addresses)]],
                              allow_other_workers=True, pure=False, retries=2)
                for w in range(len(per))]
