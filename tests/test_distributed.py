@@ -200,3 +200,25 @@ def _python_children():
 def _orphans(before):
     return [pid for pid, (ppid, args) in _python_children().items()
             if pid not in before and ppid == 1 and "multiprocessing" in args]
+
+
+def test_a_tls_cluster_works_unchanged(blocks, tmp_path):
+    """A cluster with TLS and mutual authentication (Dask's own security settings, here
+    temporary certificates): the same solution as the threaded run."""
+    from distributed import Client, LocalCluster
+    from distributed.security import Security
+
+    pytest.importorskip("cryptography")
+    opts = dataclasses.replace(TIGHT, progress=False)
+    _, ref = ordered_pair(blocks["square"], tmp_path, leaf=4, name="ref")
+    path = tmp_path / "tls.h5"
+    shutil.copy(ref, path)
+    sr = sapgo.adjust(ref, opts)
+    sec = Security.temporary()
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, protocol="tls",
+                      security=sec, dashboard_address=None) as lc, \
+            Client(lc, security=sec) as c:
+        assert c.scheduler.address.startswith("tls://")
+        sd = sapgo.adjust(path, dataclasses.replace(opts, client=c))
+    assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-12)
+    assert_same_solution(path, ref, rtol=1e-12)
