@@ -64,9 +64,10 @@ def test_two_workers_give_the_threaded_solution(case, blocks, miscalibrated_squa
     else:
         src = blocks[case.split("-")[0]]
     ref, path, sr, sd, tasks = _both(src, tmp_path, opts, client)
-    # both workers built and factored a part of the tree
-    assert {w for name, w in tasks if name == "part_step"} == set(
-        client.scheduler_info()["workers"])
+    # both workers built, factored, back-substituted and updated a part of the tree
+    for step in ("part_step", "part_solve", "part_update"):
+        assert {w for name, w in tasks if name == step} == set(
+            client.scheduler_info()["workers"]), step
     assert sd.solver == "tree" and sd.converged and sd.iterations == sr.iterations
     assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-10)
     assert_same_solution(path, ref, rtol=1e-10)

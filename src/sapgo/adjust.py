@@ -687,6 +687,45 @@ def _moved_cameras(blk: _Block, delta, dtheta=None):
     return np.ascontiguousarray(cams)
 
 
+def _uncovered(cover):
+    """The ranges ``(a, b)`` where ``cover`` is 0."""
+    z = np.concatenate([[0], (cover == 0).astype(np.int8), [0]])
+    d = np.flatnonzero(np.diff(z))
+    return [(int(a), int(b)) for a, b in zip(d[::2], d[1::2])]
+
+
+def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, stats,
+                 stats_robust, cams_new, lam=0.0, dtheta=None, iteration=0, bar=None):
+    """:func:`update` of points ``a0 .. b0``: their new coordinates and residuals into the
+    work buffers, ``stats`` (:func:`sapgo.normals.update_points`) and ``stats_robust``
+    accumulated."""
+    xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
+    for a in range(a0, b0, opts.chunk_points):
+        b = min(b0, a + opts.chunk_points)
+        c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
+                       blk.rejected_points)
+        w = reweight(c, work, opts)
+        if w is not None:
+            stats_robust[0] += int((w < 1.0).sum())
+            stats_robust[1] += int((w < 0.1).sum())
+        xyz_out = np.empty_like(c.xyz)
+        res_out = np.zeros((c.o1 - c.o0, 2))
+        update_points(
+            c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
+            c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
+            blk.cams, CTRL_MASK, c.max_rays, xyz_out, res_out,
+            stats, lam, blk.behind_ok, cams_new, dtheta,
+        )
+        if stats[7]:
+            raise _point_error(p, c, int(stats[7]) - 1, int(stats[8]), blk)
+        xyz_out_ds[a:b] = xyz_out
+        res_ds[c.o0:c.o1] = res_out
+        del c, xyz_out, res_out  # release the chunk before the next one is read
+        if bar is not None:
+            bar.update(b - a)
+        _fault("update", iteration)
+
+
 def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam=0.0,
            dtheta=None):
     """Stream the points: back-solve their corrections, new coordinates and residuals.
@@ -695,32 +734,26 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
     residuals to the other buffer (``work.xyz_next``, ``work.res_next``).
     """
     stats = np.zeros(11)
-    stats_robust = [0, 0]  # observations downweighted, and to below a tenth
-    xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
+    stats_robust = np.zeros(2, np.int64)  # observations downweighted, and to below a tenth
     cams_new = _moved_cameras(blk, delta, dtheta)
+    client = getattr(opts, "client", None)
     with _progress(opts.progress, p.n_points, "update") as bar:
-        for a, b in p.chunks("points", opts.chunk_points):
-            c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
-                           blk.rejected_points)
-            w = reweight(c, work, opts)
-            if w is not None:
-                stats_robust[0] += int((w < 1.0).sum())
-                stats_robust[1] += int((w < 0.1).sum())
-            xyz_out = np.empty_like(c.xyz)
-            res_out = np.zeros((c.o1 - c.o0, 2))
-            update_points(
-                c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
-                c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
-                blk.cams, CTRL_MASK, c.max_rays, xyz_out, res_out,
-                stats, lam, blk.behind_ok, cams_new, dtheta,
-            )
-            if stats[7]:
-                raise _point_error(p, c, int(stats[7]) - 1, int(stats[8]), blk)
-            xyz_out_ds[a:b] = xyz_out
-            res_ds[c.o0:c.o1] = res_out
-            del c, xyz_out, res_out  # release the chunk before the next one is read
-            bar.update(b - a)
-            _fault("update", iteration)
+        mine = [(0, p.n_points)]
+        if client is not None and blk.tree is not None:
+            # Dask: each worker its part's points, the client the rest (the top nodes')
+            from .solve.distributed import distributed_update
+
+            theirs = distributed_update(p, work, blk, delta, opts, iteration, lam, dtheta,
+                                        cams_new, stats, stats_robust)
+            bar.update(sum(b - a for a, b in theirs))
+            cover = np.zeros(p.n_points + 1, np.int64)
+            for a, b in theirs:
+                cover[a] += 1
+                cover[b] -= 1
+            mine = _uncovered(np.cumsum(cover)[:-1])
+        for a, b in mine:
+            update_range(p, work, blk, delta, opts, a, b, stats, stats_robust, cams_new, lam,
+                         dtheta, iteration, bar)
     vpv_prior = 0.0
     for a, b in p.chunks("station_priors", opts.chunk_points):
         pr = p.read("station_priors", a, b)
@@ -739,8 +772,8 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
         "max_point_corr": stats[5],
         "points_cNc": stats[9],
         "points_dDd": stats[10],
-        "downweighted": stats_robust[0],
-        "downweighted_below_tenth": stats_robust[1],
+        "downweighted": int(stats_robust[0]),
+        "downweighted_below_tenth": int(stats_robust[1]),
     }
 
 

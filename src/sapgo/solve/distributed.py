@@ -33,7 +33,8 @@ import numpy as np
 
 from ..errors import SapgoError
 
-__all__ = ["cluster", "distributed_step", "part_step", "worker_addresses"]
+__all__ = ["cluster", "distributed_solve", "distributed_step", "distributed_update", "part_solve",
+           "part_step", "part_update", "worker_addresses"]
 
 #: Seconds to wait for a scheduler given by its address.
 CONNECT_TIMEOUT = 30
@@ -67,10 +68,14 @@ def cluster(workers=None, scheduler=None, quiet=False):
             raise SapgoError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
         lc = None
     else:
-        lc = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                          dashboard_address=":0",
-                          env={"NUMBA_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-                               "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
+        import dask
+
+        # a part stays on its worker (no work stealing): its files and, later, its memory
+        with dask.config.set({"distributed.scheduler.work-stealing": False}):
+            lc = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                              dashboard_address=":0",
+                              env={"NUMBA_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+                                   "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})
         client = Client(lc)
     try:
         if not quiet:
@@ -140,7 +145,6 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
     border's sums). Returns ``(diags, border sums, seconds)`` per part as the threaded
     step's."""
     client = opts.client
-    addresses = worker_addresses(client)
     wopts = dataclasses.replace(opts, client=None, progress=False)
     # the project's path, the work directory and the block (its stations' orientations:
     # 48 bytes a station) travel once a step; the tree's arrays are scattered once a run
@@ -150,10 +154,10 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
         tree_f = client.scatter(tree, broadcast=True)
         work._tree_future, work._tree_id = tree_f, tree
     wblk = dataclasses.replace(blk, tree=None)   # (the tree is on the workers already)
+    work._dask_plan = (per, top)
     futures = [client.submit(part_step, str(p.path), str(work.dir), work.band_width,
                              work.state, wblk, wopts, tree_f, (per, top), w, lam, iteration,
-                             solver.tile, workers=[addresses[w % len(addresses)]],
-                             allow_other_workers=True, pure=False, retries=2)
+                             solver.tile, **_pinned(client, w))
                for w in range(len(per))]
     results = client.gather(futures)
     diags, cbs, seconds = [], [], []
@@ -166,3 +170,91 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
         cbs.append(r["border"])
         seconds.append(r["solver_seconds"])
     return diags, cbs, seconds
+
+
+def _pinned(client, w):
+    addresses = worker_addresses(client)
+    return {"workers": [addresses[w % len(addresses)]], "allow_other_workers": True,
+            "pure": False, "retries": 2}
+
+
+def part_solve(work_dir, tree, k, ng, x, ranges, theta, tile):
+    """On a worker: the back substitution of its part's nodes (``ranges``) from the factor
+    file, ``x`` holding the top nodes' stations; returns the part's stations' rows of ``x``
+    per range."""
+    from pathlib import Path
+
+    from ..blas import blas_limits
+    from .fronts import FactorFile, TreeSolver, factor_layout
+    from .tree import FACTOR_FILE
+
+    file = FactorFile(Path(work_dir) / FACTOR_FILE, factor_layout(tree, k), "r", n_rhs=1 + ng)
+    try:
+        solver = TreeSolver(tree, k, None, file=file, n_border=ng, tile=tile,
+                            scratch=Path(work_dir))
+        nodes = sorted((i for a, b in ranges for i in range(a, b)), reverse=True)
+        with blas_limits(1):
+            solver.back_substitute(x, nodes, theta)
+    finally:
+        file.close()
+    return [x[k * int(tree.lo[a]):k * int(tree.hi[b - 1])] for a, b in ranges]
+
+
+def distributed_solve(client, work, tree, solver, n, theta, per, top):
+    """``delta`` (n x k): the top nodes' back substitution here, then each part's on its
+    worker (the stations' corrections travel, 8 k bytes a station each way)."""
+    k, ng = solver.k, solver.n_border
+    x = np.zeros(k * n)
+    solver.back_substitute(x, sorted(top, reverse=True), theta)
+    tree_f = work._tree_future
+    futures = [client.submit(part_solve, str(work.dir), tree_f, k, ng, x, per[w], theta,
+                             solver.tile, **_pinned(client, w))
+               for w in range(len(per))]
+    for w, rows in enumerate(client.gather(futures)):
+        for (a, b), r in zip(per[w], rows):
+            x[k * int(tree.lo[a]):k * int(tree.hi[b - 1])] = r
+    return x.reshape(n, k)
+
+
+def part_update(path, work_dir, band_width, state, blk, opts, delta, ranges, cams_new, lam,
+                dtheta, iteration):
+    """On a worker: :func:`sapgo.adjust.update_range` of its part's points (``ranges``),
+    their new coordinates and residuals into the shared work buffers; returns the sums."""
+    from ..adjust import update_range
+    from ..project import Project
+    from ..work import Work
+
+    stats, robust = np.zeros(11), np.zeros(2, np.int64)
+    with Project(path, "r") as p:
+        work = Work(work_dir, p, band_width, create=False, block=blk.npar,
+                    n_border=blk.n_border)
+        work.state = state
+        try:
+            for a, b in ranges:
+                update_range(p, work, blk, delta, opts, a, b, stats, robust, cams_new, lam,
+                             dtheta, iteration)
+        finally:
+            work.close()
+    return stats, robust
+
+
+def distributed_update(p, work, blk, delta, opts, iteration, lam, dtheta, cams_new, stats,
+                       stats_robust):
+    """The point update of each part's points on its worker (:func:`part_update`); their
+    sums added into ``stats`` and ``stats_robust``. Returns the point ranges done."""
+    client = opts.client
+    per, top = work._dask_plan
+    pt = blk.tree.pt_start
+    wopts = dataclasses.replace(opts, client=None, progress=False)
+    wblk = dataclasses.replace(blk, tree=None)
+    ranges = [[(int(pt[a]), int(pt[b])) for a, b in per[w]] for w in range(len(per))]
+    futures = [client.submit(part_update, str(p.path), str(work.dir), work.band_width,
+                             work.state, wblk, wopts, delta, ranges[w], cams_new, lam, dtheta,
+                             iteration, **_pinned(client, w))
+               for w in range(len(per))]
+    for st, rb in client.gather(futures):
+        stats[5] = max(stats[5], st[5])
+        st[5] = 0.0
+        stats += st
+        stats_robust += rb
+    return [r for rr in ranges for r in rr]

@@ -648,49 +648,51 @@ class TreeSolver:
         subtrees side by side (each writes its own stations and reads its ancestors')."""
         t, k = self.tree, self.k
         x = np.zeros(k * n_stations)
-
-        size = self.file.record_bytes(self.file.shape, self.file.n_rhs)
-        th = np.zeros(0) if theta is None else np.ascontiguousarray(theta, dtype=np.float64)
-
-        def run(nodes):
-            nodes = list(nodes)
-            out = None if self.file.in_core else np.empty(BACK_BYTES // 8)
-            j = 0
-            while j < len(nodes):
-                i = nodes[j]
-                if self.tiled[i]:
-                    y1 = self.file.read_y(i)
-                    r = y1 if not self.n_border else y1[:, 0] - y1[:, 1:] @ theta
-                    x[k * t.lo[i]:k * t.hi[i]] = self._back_tiled(
-                        i, r[:, None], x[_scalar(t.bnd(i), k)][:, None])[:, 0]
-                    j += 1
-                    continue
-                # a run of consecutive nodes i, i - 1, ..: their records in one piece
-                e, total = j + 1, size[i]
-                while (e < len(nodes) and nodes[e] == nodes[e - 1] - 1
-                       and not self.tiled[nodes[e]] and total + size[nodes[e]] <= BACK_BYTES):
-                    total += size[nodes[e]]
-                    e += 1
-                buf, base = self.file.records(nodes[e - 1], i + 1, out)
-                _back_nodes(FNS, buf, base, self.file.offset // 8, self.file.shape,
-                            self.file.n_rhs, th, t.lo, t.bptr, t.boundary, k, x, i,
-                            nodes[e - 1])
-                j = e
-
         if plan is None or len(plan[0]) < 2:
-            run(range(t.n_nodes - 1, -1, -1))
+            self.back_substitute(x, range(t.n_nodes - 1, -1, -1), theta)
             return x.reshape(n_stations, k)
         from concurrent.futures import ThreadPoolExecutor
 
         from ..blas import blas_limits
 
         per, top = plan
-        run(sorted(top, reverse=True))
+        self.back_substitute(x, sorted(top, reverse=True), theta)
         with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
-            for job in [pool.submit(run, sorted((i for a, b in ranges for i in range(a, b)),
-                                                reverse=True)) for ranges in per]:
+            for job in [pool.submit(self.back_substitute, x,
+                                    sorted((i for a, b in ranges for i in range(a, b)),
+                                           reverse=True), theta) for ranges in per]:
                 job.result()
         return x.reshape(n_stations, k)
+
+    def back_substitute(self, x, nodes, theta=None):
+        """``x`` (k n_stations) of the stations of ``nodes`` (in descending order: a node
+        after its ancestors, whose stations ``x`` holds already)."""
+        t, k = self.tree, self.k
+        size = self.file.record_bytes(self.file.shape, self.file.n_rhs)
+        th = np.zeros(0) if theta is None else np.ascontiguousarray(theta, dtype=np.float64)
+        nodes = list(nodes)
+        out = None if self.file.in_core else np.empty(BACK_BYTES // 8)
+        j = 0
+        while j < len(nodes):
+            i = nodes[j]
+            if self.tiled[i]:
+                y1 = self.file.read_y(i)
+                r = y1 if not self.n_border else y1[:, 0] - y1[:, 1:] @ theta
+                x[k * t.lo[i]:k * t.hi[i]] = self._back_tiled(
+                    i, r[:, None], x[_scalar(t.bnd(i), k)][:, None])[:, 0]
+                j += 1
+                continue
+            # a run of consecutive nodes i, i - 1, ..: their records in one piece
+            e, total = j + 1, size[i]
+            while (e < len(nodes) and nodes[e] == nodes[e - 1] - 1
+                   and not self.tiled[nodes[e]] and total + size[nodes[e]] <= BACK_BYTES):
+                total += size[nodes[e]]
+                e += 1
+            buf, base = self.file.records(nodes[e - 1], i + 1, out)
+            _back_nodes(FNS, buf, base, self.file.offset // 8, self.file.shape,
+                        self.file.n_rhs, th, t.lo, t.bptr, t.boundary, k, x, i,
+                        nodes[e - 1])
+            j = e
 
     def border_x(self, n_stations):
         """``X = M^-1 B`` (n_stations x k x n_border): the border's columns substituted

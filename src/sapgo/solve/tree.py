@@ -306,7 +306,12 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
         theta, decrease, s_inv = border_schur_solve(cnn - solver.ww, ccg - solver.wy,
                                                     opts.pivot_tolerance)
         out.update(border=(cnn, ccg, cdiag), theta=theta, border_cov=s_inv)
-    out["delta"] = solver.solve(n, theta, (per, top))
+    if client is not None:
+        from .distributed import distributed_solve
+
+        out["delta"] = distributed_solve(client, work, tree, solver, n, theta, per, top)
+    else:
+        out["delta"] = solver.solve(n, theta, (per, top))
     out["xb"] = solver.y_norm2 + decrease
     work.tree_factor = file
     # the threads' solver time overlaps: count the busiest thread's
