@@ -58,9 +58,9 @@ def cluster(workers=None, scheduler=None, quiet=False):
         return
     try:
         from distributed import Client, LocalCluster
-    except ImportError:
-        raise SapgoError("--workers and --scheduler need Dask distributed: "
-                         "pip install 'sapgo[dask]'") from None
+    except ImportError as exc:
+        raise SapgoError(f"--workers and --scheduler need Dask distributed ({exc}): "
+                         f"pip install 'sapgo[dask]'") from None
     if scheduler:
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT)
@@ -151,15 +151,16 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
     # and kept by the workers
     tree_f = getattr(work, "_tree_future", None)
     if tree_f is None or getattr(work, "_tree_id", None) is not tree:
+        _count(*[tree] * len(worker_addresses(client)), key="to_workers")   # (to each)
         tree_f = client.scatter(tree, broadcast=True)
         work._tree_future, work._tree_id = tree_f, tree
     wblk = dataclasses.replace(blk, tree=None)   # (the tree is on the workers already)
     work._dask_plan = (per, top)
-    futures = [client.submit(part_step, str(p.path), str(work.dir), work.band_width,
-                             work.state, wblk, wopts, tree_f, (per, top), w, lam, iteration,
-                             solver.tile, **_pinned(client, w))
+    futures = [_submit(client, part_step, w, str(p.path), str(work.dir), work.band_width,
+                       work.state, wblk, wopts, tree_f, (per, top), w, lam, iteration,
+                       solver.tile)
                for w in range(len(per))]
-    results = client.gather(futures)
+    results = _gather(client, futures)
     diags, cbs, seconds = [], [], []
     for w, r in enumerate(results):
         solver.updates.update(r["updates"])
@@ -170,6 +171,34 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
         cbs.append(r["border"])
         seconds.append(r["solver_seconds"])
     return diags, cbs, seconds
+
+
+#: Bytes this process sent to and received from the workers (the pickled arguments and
+#: results of the tasks), counted while ``TRAFFIC["on"]`` (benchmarks/distributed.py).
+TRAFFIC = {"on": False, "to_workers": 0, "from_workers": 0, "tasks": 0}
+
+
+def _count(*objs, key):
+    if TRAFFIC["on"]:
+        import pickle
+
+        from distributed import Future
+
+        TRAFFIC[key] += sum(len(pickle.dumps(o, protocol=5)) for o in objs
+                            if not isinstance(o, Future))
+
+
+def _submit(client, fn, w, *args):
+    """``fn(*args)`` on part ``w``'s worker."""
+    _count(*args, key="to_workers")
+    TRAFFIC["tasks"] += 1
+    return client.submit(fn, *args, **_pinned(client, w))
+
+
+def _gather(client, futures):
+    out = client.gather(futures)
+    _count(out, key="from_workers")
+    return out
 
 
 def _pinned(client, w):
@@ -207,10 +236,10 @@ def distributed_solve(client, work, tree, solver, n, theta, per, top):
     x = np.zeros(k * n)
     solver.back_substitute(x, sorted(top, reverse=True), theta)
     tree_f = work._tree_future
-    futures = [client.submit(part_solve, str(work.dir), tree_f, k, ng, x, per[w], theta,
-                             solver.tile, **_pinned(client, w))
+    futures = [_submit(client, part_solve, w, str(work.dir), tree_f, k, ng, x, per[w], theta,
+                       solver.tile)
                for w in range(len(per))]
-    for w, rows in enumerate(client.gather(futures)):
+    for w, rows in enumerate(_gather(client, futures)):
         for (a, b), r in zip(per[w], rows):
             x[k * int(tree.lo[a]):k * int(tree.hi[b - 1])] = r
     return x.reshape(n, k)
@@ -248,11 +277,11 @@ def distributed_update(p, work, blk, delta, opts, iteration, lam, dtheta, cams_n
     wopts = dataclasses.replace(opts, client=None, progress=False)
     wblk = dataclasses.replace(blk, tree=None)
     ranges = [[(int(pt[a]), int(pt[b])) for a, b in per[w]] for w in range(len(per))]
-    futures = [client.submit(part_update, str(p.path), str(work.dir), work.band_width,
-                             work.state, wblk, wopts, delta, ranges[w], cams_new, lam, dtheta,
-                             iteration, **_pinned(client, w))
+    futures = [_submit(client, part_update, w, str(p.path), str(work.dir), work.band_width,
+                       work.state, wblk, wopts, delta, ranges[w], cams_new, lam, dtheta,
+                       iteration)
                for w in range(len(per))]
-    for st, rb in client.gather(futures):
+    for st, rb in _gather(client, futures):
         stats[5] = max(stats[5], st[5])
         st[5] = 0.0
         stats += st
