@@ -1,24 +1,28 @@
-"""The partition tree's build and factorisation on Dask distributed (docs/theory.md 4c).
+"""The partition tree's iteration on Dask distributed (docs/theory.md section 4c).
 
 The threaded tree step (:func:`sapgo.solve.tree.tree_step`) deals the tree's independent
 subtrees to threads; here the same parts (:func:`sapgo.solve.tree.work_plan`) go to Dask
 worker processes, one part to one worker for the whole run (``workers=`` restrictions, the
-part's number taken modulo the workers in the order of their addresses). Each worker opens
-the project read-only and the work files (a filesystem shared with the client), builds its
-subtrees' fronts from their own points, factors them and writes its nodes' records into the
-factor file ``tree_factor.bin`` at the tree's fixed offsets. What travels back is small: the
-Schur updates its subtree roots pass to the top nodes (dense ``f x f`` blocks with their
-right-hand sides), ``y'y`` of its nodes, the border's sums (self-calibration) and the
-stations' undamped diagonal (Levenberg-Marquardt). The client factors the top nodes, as the
-threaded step does, and solves.
+part's number taken modulo the workers in the order of their addresses). The workers open the
+project read-only and the work files on a filesystem shared with the client. An iteration is
+three rounds of tasks, one task a part:
 
-A task only ever reads the state of the last checkpoint and writes records at fixed offsets,
-so running it again (a worker lost, Dask's retry on another worker) writes the same bytes.
-Workers unpickle only what the client sends them, never anything read from a file.
+- :func:`part_step`: build the part's fronts from its own points, factor them, write their
+  records into the factor file ``tree_factor.bin`` at the tree's fixed offsets; return the
+  Schur updates the subtree roots pass to the top nodes (dense ``f x f`` blocks with their
+  right-hand sides), ``y'y``, the border's sums, the stations' undamped diagonal;
+- :func:`part_solve`: the back substitution through the part's nodes, given the top
+  stations' corrections; return the part's stations' corrections;
+- :func:`part_update`: the part's points back-solved, their coordinates and residuals written
+  into the work buffers; return the sums.
+
+The client factors and substitutes through the top nodes and updates their points. A task
+only ever reads the state of the last checkpoint and writes at fixed offsets, so running it
+again (a worker lost, Dask's retry on another worker) writes the same bytes. Workers unpickle
+only what the client sends them, never anything read from a file.
 
 Use: ``Options(client=distributed.Client(...))`` from Python, ``sapgo adjust --workers N``
-(a LocalCluster for the run) or ``--scheduler ADDRESS`` from the shell
-(:func:`sapgo.solve.distributed.cluster`).
+(a LocalCluster for the run) or ``--scheduler ADDRESS`` from the shell (:func:`cluster`).
 """
 
 from __future__ import annotations
@@ -161,7 +165,11 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
                        solver.tile)
                for w in range(len(per))]
     results = _gather(client, futures)
-    diags, cbs, seconds = [], [], []
+    diags, cbs = [], []
+    # the solver's seconds of each worker (its parts one after the other): the busiest one
+    # counts, as the busiest thread's does in the threaded step
+    seconds = [0.0] * len(per)
+    n_workers = len(worker_addresses(client))
     for w, r in enumerate(results):
         solver.updates.update(r["updates"])
         solver.yy[r["nodes"]] = r["yy"]
@@ -169,7 +177,7 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
         solver._wy[w] = r["wy"]
         diags.append(r["diag"])
         cbs.append(r["border"])
-        seconds.append(r["solver_seconds"])
+        seconds[w % n_workers] += r["solver_seconds"]
     return diags, cbs, seconds
 
 
