@@ -212,7 +212,7 @@ def _gather(client, futures):
 def _pinned(client, w):
     addresses = worker_addresses(client)
     return {"workers": [addresses[w % len(addresses)]], "allow_other_workers": True,
-            "pure": False, "retries": 2}
+            "pure": False}   # (a lost worker: the scheduler runs the task again)
 
 
 def part_solve(work_dir, tree, k, ng, x, ranges, theta, tile):

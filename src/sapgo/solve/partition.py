@@ -135,7 +135,7 @@ class Tree:
         f = k * np.diff(self.bptr).astype(np.float64)
         return 8 * ((m + f) * m + f * f)
 
-    def peak_front_bytes(self, k=6, plan=None, tile=None):
+    def peak_front_bytes(self, k=6, plan=None, tile=None, separate=False):
         """Bytes in core at the worst moment of the factorisation: the fronts being factored
         plus the update matrices (f x f each) waiting for their parents.
 
@@ -148,7 +148,11 @@ class Tree:
         ``tile``: ``(front_bytes, panel_bytes)``, fronts larger than ``front_bytes`` tiled
         (:mod:`sapgo.solve.tiles`: a panel being assembled, a factor panel read back and a
         part of a child's update, a panel each at most) and updates larger than a panel in
-        scratch files (a panel of them in core while they are written or added)."""
+        scratch files (a panel of them in core while they are written or added).
+
+        ``separate``: the workers are processes of their own (Dask), each with its own
+        memory: the largest worker's peak, or the top's (with every worker's updates
+        passed to it), counts, not their sum."""
         f = k * np.diff(self.bptr).astype(np.float64)
         upd = 8 * f * f
         front = self.front_bytes(k)
@@ -177,12 +181,13 @@ class Tree:
         if plan is None:
             return int(run(range(self.n_nodes), 0.0)[0])
         per, top = plan
-        total, left = 0.0, 0.0
+        total, left, largest = 0.0, 0.0, 0.0
         for ranges in per:
             peak, stack = run((i for a, b in ranges for i in range(a, b)), 0.0)
             total += peak
             left += stack
-        return int(max(total, run(sorted(top), left)[0]))
+            largest = max(largest, peak)
+        return int(max(largest if separate else total, run(sorted(top), left)[0]))
 
     # -- storage in the project ------------------------------------------------------
     def to_arrays(self):

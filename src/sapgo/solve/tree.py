@@ -54,19 +54,19 @@ def tree_budget(opts, held=0, n_stations=0):
     return total - BASELINE - BASELINE_PER_STATION * n_stations - held
 
 
-def tile_plan(tree, k, budget, plan=None):
+def tile_plan(tree, k, budget, plan=None, separate=False):
     """The tiling that fits ``budget`` (with ``plan``, workers side by side, or one worker):
     None when every front fits in core, else ``(front_bytes, panel_bytes)`` for
     :meth:`~sapgo.solve.partition.Tree.peak_front_bytes` and the solver, fronts beyond half
     the budget tiled in panels of half that, halved until the peak fits (or the smallest
     tried). Returns ``(tile, peak bytes)``."""
-    need = tree.peak_front_bytes(k, plan)
+    need = tree.peak_front_bytes(k, plan, separate=separate)
     if need <= budget:
         return None, need
     big = max(budget, 1 << 20) / 2.0
     for _ in range(_TILE_STEPS):
         tile = (big, big / 2.0)
-        need = tree.peak_front_bytes(k, plan, tile)
+        need = tree.peak_front_bytes(k, plan, tile, separate)
         if need <= budget:
             break
         big /= 2.0
@@ -179,24 +179,34 @@ def parallel_plan(tree, k, workers, share=0.5):
     return [sorted(x) for x in per], sorted(top)
 
 
-def work_plan(tree, k, opts, threads=None, held=0, n_stations=0):
+def work_plan(tree, k, opts, threads=None, held=0, n_stations=0, separate=False):
     """The plan of :func:`parallel_plan` for ``threads`` workers (default numba's thread
     count) whose fronts fit the memory budget side by side (subtrees split smaller, the
     large fronts near the root left to the top, until they do), else one worker, with the
     large fronts tiled if they do not fit in core (:func:`tile_plan`). Returns
     ``(per_worker, top, bytes, tile)`` with the bytes of fronts and updates it holds at its
-    peak (:meth:`~sapgo.solve.partition.Tree.peak_front_bytes`)."""
+    peak (:meth:`~sapgo.solve.partition.Tree.peak_front_bytes`).
+
+    ``separate``: the workers are processes with a budget each (Dask), so a worker's fronts
+    need to fit its own budget, not the sum; with tiling, the largest subtrees that fit
+    (the least work left to the top, which the client does alone)."""
     import numba
 
     budget = tree_budget(opts, held, n_stations)
-    for share in (0.5, 0.25, 0.125, 0.0625):   # smaller subtrees, more nodes on top
+    shares = (0.5, 0.25, 0.125, 0.0625)   # smaller subtrees, more nodes on top
+    for share in shares:
         per, top = parallel_plan(tree, k, threads or numba.get_num_threads(), share)
         if len(per) < 2:
             break
-        need = tree.peak_front_bytes(k, (per, top))
+        need = tree.peak_front_bytes(k, (per, top), separate=separate)
         if need <= budget:
             return per, top, need, None
     if len(per) > 1:   # the workers' subtrees side by side with the large fronts tiled
+        for share in shares if separate else ():
+            per_s, top_s = parallel_plan(tree, k, threads, share)
+            tile, need = tile_plan(tree, k, budget, (per_s, top_s), True)
+            if need <= budget:
+                return per_s, top_s, need, tile
         tile, need = tile_plan(tree, k, budget, (per, top))
         if need <= budget:
             return per, top, need, tile
@@ -250,7 +260,8 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
         from .distributed import worker_addresses
 
         threads = max(2, len(worker_addresses(client)))
-    per, top, need, tile = work_plan(tree, k, opts, threads, blk.held, n)
+    per, top, need, tile = work_plan(tree, k, opts, threads, blk.held, n,
+                                     separate=client is not None)
     in_core = (client is None and FactorFile.record_bytes(layout, 1 + ng).sum() + need
                <= tree_budget(opts, blk.held, n))
     # in core, the last step's buffer again (its pages are faulted in already)
