@@ -282,7 +282,7 @@ def test_tiled_fronts_give_the_in_core_result(miscalibrated_square, tmp_path, mo
     # (Gauss-Newton: a peak beyond the budget, so that the factor goes to its file)
     need = 1 << 40 if case[0] == "g" else 0
     monkeypatch.setattr(tree_mod, "work_plan",
-                        lambda tree, k, opts, threads=None, held=0, n_stations=0:
+                        lambda tree, k, opts, threads=None, held=0, n_stations=0, separate=False:
                         ([[(0, tree.n_nodes)]], [], need, SMALL_TILES))
     st = sapgo.adjust(path, opts)
     assert seen["tiled"] > 0 and seen["inverted"] > 0
@@ -382,7 +382,7 @@ def test_fronts_larger_than_the_memory_budget_are_refused_before_any_work(square
     sapgo.order_project(path, solver="tree", leaf_stations=4)
     before = open(path, "rb").read()
     monkeypatch.setattr(Tree, "peak_front_bytes",
-                        lambda self, k=6, plan=None, tile=None: 3 << 30)
+                        lambda self, k=6, plan=None, tile=None, separate=False: 3 << 30)
     code, _, err = run_cli(capsys, "adjust", path, "--no-progress", "--memory", "2G")
     # 3 GiB for the fronts, 256 MiB and 400 bytes a station (42) for the process
     assert_one_line_error(code, err, "fronts need 3072 MiB in core even tiled",
