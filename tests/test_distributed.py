@@ -99,6 +99,48 @@ def test_a_tiled_update_travels_as_its_scratch_file(tmp_path):
     u.close()
 
 
+def test_the_trace_holds_every_node_and_task(blocks, tmp_path, client, monkeypatch):
+    """With the trace on (the scale-out replay's input), every node's seconds once an
+    iteration wherever it ran, three rounds of one task a part an iteration with their
+    seconds and bytes, the client's share; the replay of the iteration as built runs."""
+    from sapgo.solve import distributed as dist
+    from sapgo.solve import scaleout
+
+    monkeypatch.setitem(dist.TRACE, "on", True)
+    monkeypatch.setitem(dist.TRACE, "nodes", {})
+    monkeypatch.setitem(dist.TRACE, "rounds", [])
+    monkeypatch.setitem(dist.TRACE, "client", {})
+    _, ref = ordered_pair(blocks["square"], tmp_path, leaf=4, name="ref")
+    s = sapgo.adjust(ref, dataclasses.replace(TIGHT, progress=False, client=client))
+    from sapgo.project import Project
+
+    with Project(ref, "r") as p:
+        tree = p.tree()
+    per, top = dist.TRACE["plan"]
+    assert sorted(dist.TRACE["nodes"]) == list(range(tree.n_nodes))
+    its = {len(v) for v in dist.TRACE["nodes"].values()}
+    assert its == {s.iterations}
+    kinds = [r["kind"] for r in dist.TRACE["rounds"]]
+    assert kinds == ["step", "back", "update"] * s.iterations
+    for r in dist.TRACE["rounds"]:
+        assert [t["part"] for t in r["tasks"]] == list(range(len(per)))
+        assert all(t["seconds"] > 0 and t["bytes_in"] > 0 and t["bytes_out"] > 0
+                   for t in r["tasks"])
+        assert r["wall_s"] >= max(t["seconds"] for t in r["tasks"])
+    assert dist.TRACE["client"]["back"] > 0 and dist.TRACE["client"]["update"] > 0
+    for total, elim in (x for v in dist.TRACE["nodes"].values() for x in v):
+        assert total >= elim > 0
+    step = [float(np.median([x[0] for x in dist.TRACE["nodes"][i]]))
+            for i in range(tree.n_nodes)]
+    zero = {"step": 0.0, "back": 0.0, "update": 0.0, "client": 0.0, "task": [0.0] * len(per)}
+    b = {kd: [(1.0, 1.0)] * len(per) for kd in ("step", "back", "update")}
+    g = scaleout.built_graph(tree, ([[tuple(x) for x in r] for r in per], top), step,
+                             [0.0] * len(per), [0.0] * len(per), 0.0, 0.0, zero, b, 2)
+    r = scaleout.replay(g, scaleout.Network())
+    assert r["work_s"] == pytest.approx(sum(step))
+    assert r["seconds"] < r["work_s"]
+
+
 def test_workers_from_the_command_line(blocks, tmp_path, capsys):
     path = tmp_path / "c.h5"
     shutil.copy(blocks["square"], path)

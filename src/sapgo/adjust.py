@@ -751,9 +751,14 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
                 cover[a] += 1
                 cover[b] -= 1
             mine = _uncovered(np.cumsum(cover)[:-1])
+        t0 = time.perf_counter()
         for a, b in mine:
             update_range(p, work, blk, delta, opts, a, b, stats, stats_robust, cams_new, lam,
                          dtheta, iteration, bar)
+        if client is not None:
+            from .solve.distributed import client_seconds
+
+            client_seconds("update", time.perf_counter() - t0)
     vpv_prior = 0.0
     for a, b in p.chunks("station_priors", opts.chunk_points):
         pr = p.read("station_priors", a, b)

@@ -37,8 +37,8 @@ import numpy as np
 
 from ..errors import SapgoError
 
-__all__ = ["cluster", "distributed_solve", "distributed_step", "distributed_update", "part_solve",
-           "part_step", "part_update", "worker_addresses"]
+__all__ = ["TRACE", "TRAFFIC", "client_seconds", "cluster", "distributed_solve", "distributed_step", "distributed_update", "part_solve",
+           "note_nodes", "part_step", "part_update", "worker_addresses"]
 
 #: Seconds to wait for a scheduler given by its address.
 CONNECT_TIMEOUT = 30
@@ -98,10 +98,11 @@ class _NoBar:
 
 
 def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, iteration,
-              tile):
+              tile, trace=False):
     """On a worker: build and eliminate part ``w`` of ``plan`` (``(per, top)``) and write its
     nodes' factor records into ``work_dir/tree_factor.bin``. Returns what the client needs
-    for the top nodes and the step (a dict of arrays)."""
+    for the top nodes and the step (a dict of arrays; with ``trace`` each node's seconds,
+    :attr:`~sapgo.solve.fronts.TreeSolver.trace`)."""
     from ..blas import blas_limits
     from ..project import Project
     from ..work import Work
@@ -121,6 +122,7 @@ def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, 
             solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file, n_border=ng,
                                 tile=tile, scratch=work.dir)
             solver.set_parts(per, top)
+            solver.trace = {} if trace else None
             diag = np.zeros((n, k)) if lam > 0.0 else None
             cb = (np.zeros((ng, ng)), np.zeros(ng), np.zeros(ng))
             seconds = np.zeros(len(per) + 1)
@@ -140,7 +142,8 @@ def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, 
     nodes = np.concatenate([np.arange(a, b) for a, b in per[w]])
     return {"updates": updates, "nodes": nodes, "yy": solver.yy[nodes],
             "ww": solver._ww[w], "wy": solver._wy[w], "diag": diag, "border": cb,
-            "solver_seconds": float(seconds[w]), "seconds": time.perf_counter() - t0}
+            "solver_seconds": float(seconds[w]), "trace": solver.trace,
+            "seconds": time.perf_counter() - t0}
 
 
 def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration):
@@ -160,11 +163,12 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
         work._tree_future, work._tree_id = tree_f, tree
     wblk = dataclasses.replace(blk, tree=None)   # (the tree is on the workers already)
     work._dask_plan = (per, top)
-    futures = [_submit(client, part_step, w, str(p.path), str(work.dir), work.band_width,
-                       work.state, wblk, wopts, tree_f, (per, top), w, lam, iteration,
-                       solver.tile)
-               for w in range(len(per))]
-    results = _gather(client, futures)
+    if TRACE["on"]:
+        TRACE["plan"] = ([list(r) for r in per], [int(i) for i in top])
+    results = _round(client, "step", part_step,
+                     [(str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts,
+                       tree_f, (per, top), w, lam, iteration, solver.tile, TRACE["on"])
+                      for w in range(len(per))])
     diags, cbs = [], []
     # the solver's seconds of each worker (its parts one after the other): the busiest one
     # counts, as the busiest thread's does in the threaded step
@@ -178,6 +182,7 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
         diags.append(r["diag"])
         cbs.append(r["border"])
         seconds[w % n_workers] += r["solver_seconds"]
+        note_nodes(r["trace"])
     return diags, cbs, seconds
 
 
@@ -185,27 +190,64 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
 #: results of the tasks), counted while ``TRAFFIC["on"]`` (benchmarks/distributed.py).
 TRAFFIC = {"on": False, "to_workers": 0, "from_workers": 0, "tasks": 0}
 
+#: While ``TRACE["on"]``: each node's seconds (``nodes``: node -> (seconds from opening its
+#: front to the end of its elimination, seconds of the elimination), wherever it ran), each
+#: round of tasks (``rounds``: its kind, the client's seconds from submitting to having
+#: every result, and per task its part, its seconds on the worker, the bytes of its
+#: arguments and of its result) and the client's own work between the rounds (``client``:
+#: seconds per kind, summed over the run): the input of the scale-out replay
+#: (:mod:`sapgo.solve.scaleout`, benchmarks/distributed.py).
+TRACE = {"on": False, "nodes": {}, "rounds": [], "client": {}}
+
+
+def _size(*objs):
+    import pickle
+
+    from distributed import Future
+
+    return sum(len(pickle.dumps(o, protocol=5)) for o in objs if not isinstance(o, Future))
+
 
 def _count(*objs, key):
     if TRAFFIC["on"]:
-        import pickle
-
-        from distributed import Future
-
-        TRAFFIC[key] += sum(len(pickle.dumps(o, protocol=5)) for o in objs
-                            if not isinstance(o, Future))
+        TRAFFIC[key] += _size(*objs)
 
 
-def _submit(client, fn, w, *args):
-    """``fn(*args)`` on part ``w``'s worker."""
-    _count(*args, key="to_workers")
-    TRAFFIC["tasks"] += 1
-    return client.submit(fn, *args, **_pinned(client, w))
+def client_seconds(kind, seconds):
+    """Add the client's ``seconds`` of ``kind`` to the trace (while it is on)."""
+    if TRACE["on"]:
+        TRACE["client"][kind] = TRACE["client"].get(kind, 0.0) + seconds
 
 
-def _gather(client, futures):
+def note_nodes(trace):
+    """Add a step's node seconds (:attr:`~sapgo.solve.fronts.TreeSolver.trace`) to the
+    trace: each node's list over the iterations."""
+    if TRACE["on"] and trace:
+        for i, v in trace.items():
+            TRACE["nodes"].setdefault(int(i), []).append(tuple(v))
+
+
+def _round(client, kind, fn, args):
+    """``fn(*args[w])`` on part ``w``'s worker for every part; the results in order.
+    Every task returns a dict with its ``seconds``."""
+    t0 = time.perf_counter()
+    futures, sent = [], []
+    for w, a in enumerate(args):
+        n_in = _size(*a) if TRAFFIC["on"] or TRACE["on"] else 0
+        sent.append(n_in)
+        if TRAFFIC["on"]:
+            TRAFFIC["to_workers"] += n_in
+        TRAFFIC["tasks"] += 1
+        futures.append(client.submit(fn, *a, **_pinned(client, w)))
     out = client.gather(futures)
-    _count(out, key="from_workers")
+    wall = time.perf_counter() - t0
+    got = [_size(r) for r in out] if TRAFFIC["on"] or TRACE["on"] else [0] * len(out)
+    if TRAFFIC["on"]:
+        TRAFFIC["from_workers"] += sum(got)
+    if TRACE["on"]:
+        TRACE["rounds"].append({"kind": kind, "wall_s": wall, "tasks": [
+            {"part": w, "seconds": float(r["seconds"]), "bytes_in": sent[w],
+             "bytes_out": got[w]} for w, r in enumerate(out)]})
     return out
 
 
@@ -218,13 +260,14 @@ def _pinned(client, w):
 def part_solve(work_dir, tree, k, ng, x, ranges, theta, tile):
     """On a worker: the back substitution of its part's nodes (``ranges``) from the factor
     file, ``x`` holding the top nodes' stations; returns the part's stations' rows of ``x``
-    per range."""
+    per range (``rows``) and the task's ``seconds``."""
     from pathlib import Path
 
     from ..blas import blas_limits
     from .fronts import FactorFile, TreeSolver, factor_layout
     from .tree import FACTOR_FILE
 
+    t0 = time.perf_counter()
     file = FactorFile(Path(work_dir) / FACTOR_FILE, factor_layout(tree, k), "r", n_rhs=1 + ng)
     try:
         solver = TreeSolver(tree, k, None, file=file, n_border=ng, tile=tile,
@@ -234,7 +277,8 @@ def part_solve(work_dir, tree, k, ng, x, ranges, theta, tile):
             solver.back_substitute(x, nodes, theta)
     finally:
         file.close()
-    return [x[k * int(tree.lo[a]):k * int(tree.hi[b - 1])] for a, b in ranges]
+    return {"rows": [x[k * int(tree.lo[a]):k * int(tree.hi[b - 1])] for a, b in ranges],
+            "seconds": time.perf_counter() - t0}
 
 
 def distributed_solve(client, work, tree, solver, n, theta, per, top):
@@ -242,13 +286,15 @@ def distributed_solve(client, work, tree, solver, n, theta, per, top):
     worker (the stations' corrections travel, 8 k bytes a station each way)."""
     k, ng = solver.k, solver.n_border
     x = np.zeros(k * n)
+    t0 = time.perf_counter()
     solver.back_substitute(x, sorted(top, reverse=True), theta)
+    client_seconds("back", time.perf_counter() - t0)
     tree_f = work._tree_future
-    futures = [_submit(client, part_solve, w, str(work.dir), tree_f, k, ng, x, per[w], theta,
-                       solver.tile)
-               for w in range(len(per))]
-    for w, rows in enumerate(_gather(client, futures)):
-        for (a, b), r in zip(per[w], rows):
+    results = _round(client, "back", part_solve,
+                     [(str(work.dir), tree_f, k, ng, x, per[w], theta, solver.tile)
+                      for w in range(len(per))])
+    for w, res in enumerate(results):
+        for (a, b), r in zip(per[w], res["rows"]):
             x[k * int(tree.lo[a]):k * int(tree.hi[b - 1])] = r
     return x.reshape(n, k)
 
@@ -256,11 +302,13 @@ def distributed_solve(client, work, tree, solver, n, theta, per, top):
 def part_update(path, work_dir, band_width, state, blk, opts, delta, ranges, cams_new, lam,
                 dtheta, iteration):
     """On a worker: :func:`sapgo.adjust.update_range` of its part's points (``ranges``),
-    their new coordinates and residuals into the shared work buffers; returns the sums."""
+    their new coordinates and residuals into the shared work buffers; returns the sums
+    (``stats``, ``robust``) and the task's ``seconds``."""
     from ..adjust import update_range
     from ..project import Project
     from ..work import Work
 
+    t0 = time.perf_counter()
     stats, robust = np.zeros(11), np.zeros(2, np.int64)
     with Project(path, "r") as p:
         work = Work(work_dir, p, band_width, create=False, block=blk.npar,
@@ -272,7 +320,7 @@ def part_update(path, work_dir, band_width, state, blk, opts, delta, ranges, cam
                              dtheta, iteration)
         finally:
             work.close()
-    return stats, robust
+    return {"stats": stats, "robust": robust, "seconds": time.perf_counter() - t0}
 
 
 def distributed_update(p, work, blk, delta, opts, iteration, lam, dtheta, cams_new, stats,
@@ -285,11 +333,12 @@ def distributed_update(p, work, blk, delta, opts, iteration, lam, dtheta, cams_n
     wopts = dataclasses.replace(opts, client=None, progress=False)
     wblk = dataclasses.replace(blk, tree=None)
     ranges = [[(int(pt[a]), int(pt[b])) for a, b in per[w]] for w in range(len(per))]
-    futures = [_submit(client, part_update, w, str(p.path), str(work.dir), work.band_width,
-                       work.state, wblk, wopts, delta, ranges[w], cams_new, lam, dtheta,
-                       iteration)
-               for w in range(len(per))]
-    for st, rb in _gather(client, futures):
+    results = _round(client, "update", part_update,
+                     [(str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts,
+                       delta, ranges[w], cams_new, lam, dtheta, iteration)
+                      for w in range(len(per))])
+    for res in results:
+        st, rb = res["stats"], res["robust"]
         stats[5] = max(stats[5], st[5])
         st[5] = 0.0
         stats += st

@@ -425,6 +425,9 @@ class TreeSolver:
         self.part = np.zeros(tree.n_nodes, np.int64)
         self._ww = np.zeros((1, n_border, n_border))
         self._wy = np.zeros((1, n_border))
+        # node -> (seconds from opening the front to its elimination's end, seconds of the
+        # elimination) when a dict (benchmarks/distributed.py: the scale-out replay's input)
+        self.trace = None
         tune_malloc()
 
     def set_parts(self, per, top):

@@ -271,6 +271,9 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file, n_border=ng,
                         tile=tile, scratch=work.dir)
     solver.set_parts(per, top)
+    from .distributed import TRACE, note_nodes
+
+    solver.trace = {} if TRACE["on"] else None
     if capture is not None and solver.tiled.any():
         raise ValueError("capture needs every front in core: give a larger --memory")
     diags = [np.zeros((n, k)) if lam > 0.0 else None for _ in per]
@@ -325,6 +328,7 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
         out["delta"] = solver.solve(n, theta, (per, top))
     out["xb"] = solver.y_norm2 + decrease
     work.tree_factor = file
+    note_nodes(solver.trace)
     # the threads' solver time overlaps: count the busiest thread's
     out["seconds"] = (float(seconds[:len(per)].max() + seconds[len(per)])
                       + time.perf_counter() - t0)
@@ -352,6 +356,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
     cal = blk.cal if ng else np.full((0, 8), -1, np.int64)
 
     def open_node(i):
+        t_open = time.perf_counter()
         fr = fronts.enter(i)
         tiled = bool(solver.tiled[i])
         a, b = solver.open(i, tiled)
@@ -370,7 +375,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
                 a[0][k * s:k * s + 6, k * s:k * s + 6] += w
             rhs[k * s:k * s + 6] += w @ (-_prior_residual(rec, blk.eo[lo + s]))
         state.update(node=i, a=a, b=b, rhs=rhs, bord=bord, tiled=tiled, priors=held,
-                     chunks=None)
+                     chunks=None, opened=t_open)
 
     def node_chunks():
         """The tiled front's own points, read (and reweighted) once for all its panels:
@@ -423,7 +428,10 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
         else:
             solver.eliminate(i, state["a"], state["b"], damping)
         fronts.leave()
-        seconds[slot] += time.perf_counter() - t0
+        t1 = time.perf_counter()
+        seconds[slot] += t1 - t0
+        if solver.trace is not None:
+            solver.trace[int(i)] = (t1 - state["opened"], t1 - t0)
         state.update(node=-1, chunks=None)
 
     for first, stop in ranges:
