@@ -197,6 +197,8 @@ def replay_inputs(runs):
         counts = {kd: 0 for kd in kinds}
         for rd in r["trace"]["rounds"]:
             kd = rd["kind"]
+            if kd not in counts:   # (the precision pass's round: not an iteration's)
+                continue
             counts[kd] += 1
             for t in rd["tasks"]:
                 task[kd][t["part"]].append(t["seconds"])

@@ -64,13 +64,21 @@ def test_two_workers_give_the_threaded_solution(case, blocks, miscalibrated_squa
     else:
         src = blocks[case.split("-")[0]]
     ref, path, sr, sd, tasks = _both(src, tmp_path, opts, client)
-    # both workers built, factored, back-substituted and updated a part of the tree
-    for step in ("part_step", "part_solve", "part_update"):
+    # both workers built, factored, back-substituted, updated and inverted a part of the
+    # tree
+    for step in ("part_step", "part_solve", "part_update", "part_quality"):
         assert {w for name, w in tasks if name == step} == set(
             client.scheduler_info()["workers"]), step
     assert sd.solver == "tree" and sd.converged and sd.iterations == sr.iterations
     assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-10)
     assert_same_solution(path, ref, rtol=1e-10)
+    # the high correlations found on the workers: the threaded run's (to rounding)
+    cd, cr = sd.correlations, sr.correlations
+    assert cd["counts"] == cr["counts"]
+    assert [(e.get("point_id", e.get("photo_id")), e["pair"]) for e in cd["largest"]] == \
+        [(e.get("point_id", e.get("photo_id")), e["pair"]) for e in cr["largest"]]
+    np.testing.assert_allclose([e["rho"] for e in cd["largest"]],
+                               [e["rho"] for e in cr["largest"]], rtol=1e-9)
     if case == "calibration":
         for a, b in zip(sd.calibration, sr.calibration):
             assert a["sigma"] == pytest.approx(b["sigma"], rel=1e-10)
@@ -121,7 +129,7 @@ def test_the_trace_holds_every_node_and_task(blocks, tmp_path, client, monkeypat
     its = {len(v) for v in dist.TRACE["nodes"].values()}
     assert its == {s.iterations}
     kinds = [r["kind"] for r in dist.TRACE["rounds"]]
-    assert kinds == ["step", "back", "update"] * s.iterations
+    assert kinds == ["step", "back", "update"] * s.iterations + ["quality"]
     for r in dist.TRACE["rounds"]:
         assert [t["part"] for t in r["tasks"]] == list(range(len(per)))
         assert all(t["seconds"] > 0 and t["bytes_in"] > 0 and t["bytes_out"] > 0
@@ -139,6 +147,69 @@ def test_the_trace_holds_every_node_and_task(blocks, tmp_path, client, monkeypat
     r = scaleout.replay(g, scaleout.Network())
     assert r["work_s"] == pytest.approx(sum(step))
     assert r["seconds"] < r["work_s"]
+
+
+def _report_progress(key):
+    from sapgo.solve.distributed import _Progress
+
+    bar = _Progress(key)
+    bar.update(5)
+    bar.update(7)
+    bar.flush()
+    return 12
+
+
+class _Bar:
+    def __init__(self):
+        self.n = 0
+
+    def update(self, n):
+        self.n += n
+
+
+def test_the_workers_progress_reaches_the_client(client):
+    """Points done on a worker go to the client's bar as Dask events, once; what has not
+    arrived when the round ends is counted then."""
+    import time
+
+    from sapgo.solve.distributed import _Forwarded
+
+    bar = _Bar()
+    with _Forwarded(client, bar) as fw:
+        assert client.submit(_report_progress, fw.key, pure=False).result() == 12
+        t0 = time.monotonic()
+        while bar.n < 12 and time.monotonic() - t0 < 10:
+            time.sleep(0.05)
+    assert bar.n == 12   # (through the event)
+    fw.finish(20)
+    assert bar.n == 20
+    other = _Bar()   # another round's events are not counted
+    with _Forwarded(client, other) as fw2:
+        client.submit(_report_progress, "not-this-round", pure=False).result()
+        time.sleep(0.5)
+    fw2.finish(3)
+    assert other.n == 3
+
+
+def test_the_bars_count_every_point_once(blocks, tmp_path, client, monkeypatch):
+    import contextlib
+    import importlib
+
+    adj = importlib.import_module("sapgo.adjust")   # (sapgo.adjust is also the function)
+    bars = []
+
+    @contextlib.contextmanager
+    def counting(enabled, total, desc):
+        bars.append((desc, total, _Bar()))
+        yield bars[-1][2]
+
+    monkeypatch.setattr(adj, "_progress", counting)
+    _, ref = ordered_pair(blocks["square"], tmp_path, leaf=4, name="ref")
+    s = sapgo.adjust(ref, dataclasses.replace(TIGHT, progress=True, client=client))
+    assert {d for d, _, _ in bars} == {"build", "update"}
+    assert sum(1 for d, _, _ in bars if d == "build") == s.iterations
+    for desc, total, bar in bars:
+        assert bar.n == total, desc
 
 
 def test_workers_from_the_command_line(blocks, tmp_path, capsys):

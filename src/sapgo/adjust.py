@@ -744,8 +744,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
             from .solve.distributed import distributed_update
 
             theirs = distributed_update(p, work, blk, delta, opts, iteration, lam, dtheta,
-                                        cams_new, stats, stats_robust)
-            bar.update(sum(b - a for a, b in theirs))
+                                        cams_new, stats, stats_robust, bar)
             cover = np.zeros(p.n_points + 1, np.int64)
             for a, b in theirs:
                 cover[a] += 1

@@ -37,8 +37,10 @@ import numpy as np
 
 from ..errors import SapgoError
 
-__all__ = ["TRACE", "TRAFFIC", "client_seconds", "cluster", "distributed_solve", "distributed_step", "distributed_update", "part_solve",
-           "note_nodes", "part_step", "part_update", "worker_addresses"]
+__all__ = ["TRACE", "TRAFFIC", "client_seconds", "cluster", "distributed_quality",
+           "distributed_solve", "distributed_step", "distributed_update", "part_solve",
+           "note_nodes", "part_quality", "part_solve", "part_step", "part_update",
+           "worker_addresses"]
 
 #: Seconds to wait for a scheduler given by its address.
 CONNECT_TIMEOUT = 30
@@ -97,12 +99,83 @@ class _NoBar:
         pass
 
 
+#: The Dask event topic on which the workers report their points done (the client's
+#: progress bars: :class:`_Forwarded`).
+TOPIC = "sapgo-progress"
+
+
+class _Progress:
+    """A worker's progress bar: the points done sent to the client as Dask events (at most
+    one every ``every`` seconds) under the round's ``key``."""
+
+    def __init__(self, key, every=0.5):
+        self.key, self.every = key, every
+        self.n = 0
+        self.t = time.monotonic()
+
+    def update(self, n):
+        self.n += int(n)
+        if time.monotonic() - self.t >= self.every:
+            self.flush()
+
+    def flush(self):
+        if self.n:
+            try:
+                from distributed import get_worker
+
+                get_worker().log_event(TOPIC, {"key": self.key, "n": self.n})
+            except ValueError:   # (not on a worker)
+                pass
+            self.n = 0
+        self.t = time.monotonic()
+
+
+class _Forwarded:
+    """The workers' progress events of a round into the client's ``bar``; :meth:`finish`
+    then counts what the events did not (the last ones may arrive after the results)."""
+
+    def __init__(self, client, bar):
+        import threading
+        import uuid
+
+        self.client, self.bar = client, bar
+        self.key = uuid.uuid4().hex
+        self.n = 0
+        self.open = True
+        self.lock = threading.Lock()
+
+    def _handler(self, event):
+        msg = event[1] if isinstance(event, (tuple, list)) else event
+        if isinstance(msg, dict) and msg.get("key") == self.key:
+            with self.lock:
+                if self.open:
+                    self.n += int(msg["n"])
+                    self.bar.update(int(msg["n"]))
+
+    def __enter__(self):
+        self.client.subscribe_topic(TOPIC, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        with self.lock:
+            self.open = False
+        self.client.unsubscribe_topic(TOPIC)
+
+    def finish(self, total):
+        with self.lock:
+            self.open = False
+            rest = total - self.n
+        if rest > 0:
+            self.bar.update(rest)
+
+
 def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, iteration,
-              tile, trace=False):
+              tile, trace=False, progress=None):
     """On a worker: build and eliminate part ``w`` of ``plan`` (``(per, top)``) and write its
     nodes' factor records into ``work_dir/tree_factor.bin``. Returns what the client needs
     for the top nodes and the step (a dict of arrays; with ``trace`` each node's seconds,
-    :attr:`~sapgo.solve.fronts.TreeSolver.trace`)."""
+    :attr:`~sapgo.solve.fronts.TreeSolver.trace`). ``progress``: the key under which its
+    points done go to the client's bar (:class:`_Progress`)."""
     from ..blas import blas_limits
     from ..project import Project
     from ..work import Work
@@ -126,9 +199,12 @@ def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, 
             diag = np.zeros((n, k)) if lam > 0.0 else None
             cb = (np.zeros((ng, ng)), np.zeros(ng), np.zeros(ng))
             seconds = np.zeros(len(per) + 1)
+            bar = _Progress(progress) if progress else _NoBar()
             with blas_limits(1):
                 _run_nodes(p, work, blk, opts, tree, solver, per[w], lam, diag, seconds, w,
-                           iteration, _NoBar(), None, cb)
+                           iteration, bar, None, cb)
+            if progress:
+                bar.flush()
             # the subtree roots' updates for the top nodes: in core, or (larger than a
             # panel) their scratch files in the shared work directory, handed over by name
             updates = {int(i): v for i, v in solver.updates.items()}
@@ -146,11 +222,11 @@ def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, 
             "seconds": time.perf_counter() - t0}
 
 
-def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration):
+def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration, bar=None):
     """The workers' parts of a tree step on ``opts.client``: each part's task pinned to its
     worker; their results put into ``solver`` (updates for the top nodes, ``y'y``, the
-    border's sums). Returns ``(diags, border sums, seconds)`` per part as the threaded
-    step's."""
+    border's sums), their points done counted into ``bar`` as they go. Returns ``(diags,
+    border sums, seconds)`` per part as the threaded step's."""
     client = opts.client
     wopts = dataclasses.replace(opts, client=None, progress=False)
     # the project's path, the work directory and the block (its stations' orientations:
@@ -165,10 +241,14 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration)
     work._dask_plan = (per, top)
     if TRACE["on"]:
         TRACE["plan"] = ([list(r) for r in per], [int(i) for i in top])
-    results = _round(client, "step", part_step,
-                     [(str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts,
-                       tree_f, (per, top), w, lam, iteration, solver.tile, TRACE["on"])
-                      for w in range(len(per))])
+    with _Forwarded(client, bar or _NoBar()) as fw:
+        results = _round(client, "step", part_step,
+                         [(str(p.path), str(work.dir), work.band_width, work.state, wblk,
+                           wopts, tree_f, (per, top), w, lam, iteration, solver.tile,
+                           TRACE["on"], fw.key)
+                          for w in range(len(per))])
+    pt = tree.pt_start
+    fw.finish(sum(int(pt[b] - pt[a]) for r in per for a, b in r))
     diags, cbs = [], []
     # the solver's seconds of each worker (its parts one after the other): the busiest one
     # counts, as the busiest thread's does in the threaded step
@@ -300,7 +380,7 @@ def distributed_solve(client, work, tree, solver, n, theta, per, top):
 
 
 def part_update(path, work_dir, band_width, state, blk, opts, delta, ranges, cams_new, lam,
-                dtheta, iteration):
+                dtheta, iteration, progress=None):
     """On a worker: :func:`sapgo.adjust.update_range` of its part's points (``ranges``),
     their new coordinates and residuals into the shared work buffers; returns the sums
     (``stats``, ``robust``) and the task's ``seconds``."""
@@ -315,28 +395,34 @@ def part_update(path, work_dir, band_width, state, blk, opts, delta, ranges, cam
                     n_border=blk.n_border)
         work.state = state
         try:
+            bar = _Progress(progress) if progress else None
             for a, b in ranges:
                 update_range(p, work, blk, delta, opts, a, b, stats, robust, cams_new, lam,
-                             dtheta, iteration)
+                             dtheta, iteration, bar)
+            if bar is not None:
+                bar.flush()
         finally:
             work.close()
     return {"stats": stats, "robust": robust, "seconds": time.perf_counter() - t0}
 
 
 def distributed_update(p, work, blk, delta, opts, iteration, lam, dtheta, cams_new, stats,
-                       stats_robust):
+                       stats_robust, bar=None):
     """The point update of each part's points on its worker (:func:`part_update`); their
-    sums added into ``stats`` and ``stats_robust``. Returns the point ranges done."""
+    sums added into ``stats`` and ``stats_robust``, their points counted into ``bar`` as
+    they go. Returns the point ranges done."""
     client = opts.client
     per, top = work._dask_plan
     pt = blk.tree.pt_start
     wopts = dataclasses.replace(opts, client=None, progress=False)
     wblk = dataclasses.replace(blk, tree=None)
     ranges = [[(int(pt[a]), int(pt[b])) for a, b in per[w]] for w in range(len(per))]
-    results = _round(client, "update", part_update,
-                     [(str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts,
-                       delta, ranges[w], cams_new, lam, dtheta, iteration)
-                      for w in range(len(per))])
+    with _Forwarded(client, bar or _NoBar()) as fw:
+        results = _round(client, "update", part_update,
+                         [(str(p.path), str(work.dir), work.band_width, work.state, wblk,
+                           wopts, delta, ranges[w], cams_new, lam, dtheta, iteration, fw.key)
+                          for w in range(len(per))])
+    fw.finish(sum(b - a for rr in ranges for a, b in rr))
     for res in results:
         st, rb = res["stats"], res["robust"]
         stats[5] = max(stats[5], st[5])
@@ -344,3 +430,89 @@ def distributed_update(p, work, blk, delta, opts, iteration, lam, dtheta, cams_n
         stats += st
         stats_robust += rb
     return [r for rr in ranges for r in rr]
+
+
+def part_quality(path, work_dir, band_width, state, blk, opts, tree, ranges, held, sigma0,
+                 tile, xb, threshold):
+    """On a worker: the precision pass of its part's nodes (``ranges``): their selected
+    inversion from the factor file, ``held`` giving the inverse over the part's subtree
+    roots' boundaries (computed by the client over the top nodes); the stations' cofactor
+    blocks, the points' standard deviations and the observations' quality written into the
+    shared work files (``cov.bin``, ``point_sigma.bin``, ``quality.bin``). Returns the
+    stations' variances per range (``var``), the high correlations found (``correlations``,
+    a :class:`~sapgo.report.HighCorrelations` or None) and the task's ``seconds``."""
+    from ..blas import blas_limits
+    from ..project import Project
+    from ..quality import QUALITY_COLUMNS
+    from ..rawfile import RawArray
+    from ..report import HighCorrelations
+    from ..work import Work
+    from .fronts import FactorFile, TreeSolver, factor_layout
+    from .tree import FACTOR_FILE, quality_visitor
+
+    t0 = time.perf_counter()
+    k, ng = blk.npar, blk.n_border
+    n = len(blk.station_ids)
+    var = np.zeros((n, k))
+    correlations = HighCorrelations(threshold) if threshold is not None else None
+    with Project(path, "r") as p:
+        work = Work(work_dir, p, band_width, create=False, block=k, n_border=ng)
+        work.state = state
+        files = []
+        try:
+            d = work.dir
+            psig = RawArray(d / "point_sigma.bin", (p.n_points, 3))
+            files.append(psig)
+            quality = RawArray(d / "quality.bin", (p.n_observations, len(QUALITY_COLUMNS)))
+            files.append(quality)
+            cov = RawArray(d / "cov.bin", (n, k, k))
+            files.append(cov)
+            file = FactorFile(d / FACTOR_FILE, factor_layout(tree, k), "r", n_rhs=1 + ng)
+            files.append(file)
+            solver = TreeSolver(tree, k, None, file=file, n_border=ng, tile=tile, scratch=d)
+            cal = sig_b = None
+            if ng:
+                cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
+            on_node = quality_visitor(p, work, blk, opts, tree, sigma0, psig, quality, cov,
+                                      var, correlations, xb, cal, sig_b, None)
+            with blas_limits(1):
+                solver.inverse(on_node, [i for a, b in ranges for i in range(a, b)], held)
+        finally:
+            for f in files:
+                f.close()
+            work.close()
+    return {"var": [var[int(tree.lo[a]):int(tree.hi[b - 1])] for a, b in ranges],
+            "correlations": correlations, "seconds": time.perf_counter() - t0}
+
+
+def distributed_quality(client, p, work, blk, opts, tree, per, held, sigma0, tile, xb, var,
+                        correlations):
+    """The precision pass of each part on its worker (:func:`part_quality`), the client
+    having inverted the top nodes (``held``: the inverses over the parts' subtree roots'
+    boundaries); their stations' variances into ``var``, their high correlations added to
+    ``correlations``."""
+    wopts = dataclasses.replace(opts, client=None, progress=False)
+    wblk = dataclasses.replace(blk, tree=None)
+    tree_f = getattr(work, "_tree_future", None)
+    if tree_f is None or getattr(work, "_tree_id", None) is not tree:
+        tree_f = client.scatter(tree, broadcast=True)   # (a resumed run: not sent yet)
+        work._tree_future, work._tree_id = tree_f, tree
+    threshold = correlations.threshold if correlations is not None else None
+    args = []
+    for ranges in per:
+        mine = {i: z for i, z in held.items()
+                if any(a <= i < b for a, b in ranges)}   # (the part's subtree roots)
+        args.append((str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts,
+                     tree_f, ranges, mine, sigma0, tile, xb, threshold))
+    for w, res in enumerate(_round(client, "quality", part_quality, args)):
+        for (a, b), v in zip(per[w], res["var"]):
+            var[int(tree.lo[a]):int(tree.hi[b - 1])] = v
+        if correlations is not None:
+            theirs = res["correlations"]
+            for what, counts in theirs.counts.items():
+                for name, c in counts.items():
+                    correlations.counts[what][name] += c
+            correlations.largest.extend(theirs.largest)
+            correlations.largest.sort(key=lambda e: -abs(e["rho"]))
+            del correlations.largest[correlations.listed:]
+

@@ -286,11 +286,10 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
 
             file.close()   # the workers write their records; read back after them
             diags[:len(per)], cb[:len(per)], sec = distributed_step(
-                p, work, blk, opts, tree, solver, per, top, lam, iteration)
+                p, work, blk, opts, tree, solver, per, top, lam, iteration, bar)
             seconds[:len(per)] = sec
             file = FactorFile(work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
             solver.file = file
-            bar.update(sum(int(tree.pt_start[b] - tree.pt_start[a]) for r in per for a, b in r))
         elif len(per) > 1:
             with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
                 jobs = [pool.submit(_run_nodes, p, work, blk, opts, tree, solver, ranges,
@@ -502,30 +501,17 @@ def _gathered(z, fronts, k, xw):
     return take
 
 
-def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlations):
-    """The precision pass on the tree: the selected inversion top-down and, node by node,
-    the stations' cofactor blocks (``cov``), the points' standard deviations (``psig``) and
-    their observations' quality (``quality``), as :func:`sapgo.quality.quality_sweep` does
-    along the band. Self-calibration: the stations' cofactors gain the border's share
-    ``X S^-1 X'`` (``X = M^-1 B`` from :meth:`~sapgo.solve.fronts.TreeSolver.border_x`, in
-    core, ``S^-1`` the last step's ``blk.border_cov``) and the points' and observations'
-    kernel its terms, as on the band. Returns the stations' variances (n x k)."""
+def quality_visitor(p, work, blk, opts, tree, sigma0, psig, quality, cov, var, correlations,
+                    xb, cal, sig_b, lock):
+    """The precision pass's ``on_node(i, z)`` for :meth:`~sapgo.solve.fronts.TreeSolver
+    .inverse`: node ``i``'s stations' cofactor blocks into ``cov`` and their diagonals into
+    ``var``, its points' standard deviations into ``psig`` and their observations' quality
+    into ``quality`` (``correlations``, if any, told the high ones). ``xb``, ``cal``,
+    ``sig_b``: self-calibration's ``X = M^-1 B``, border and ``S^-1`` (else None)."""
     from ..quality import points_quality
 
     k = blk.npar
-    n = len(blk.station_ids)
     ng = blk.n_border
-    var = np.zeros((n, k))
-    per, top, _, tile = work_plan(tree, k, opts, held=blk.held, n_stations=n)
-    file = getattr(work, "tree_factor", None)
-    if file is None:   # (a resumed run: the factor file of the last step)
-        file = FactorFile(work.dir / FACTOR_FILE, factor_layout(tree, k), "r", n_rhs=1 + ng)
-    solver = TreeSolver(tree, k, None, file=file, n_border=ng, tile=tile, scratch=work.dir)
-    xb = cal = sig_b = None
-    if ng:
-        xb = solver.border_x(n)
-        cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
-    lock = threading.Lock()
     fronts_of = {}   # one numbering of the front's stations per thread
 
     def my_fronts():
@@ -569,6 +555,43 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
         finally:
             fronts.leave()
 
+    return on_node
+
+
+def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlations):
+    """The precision pass on the tree: the selected inversion top-down and, node by node,
+    the stations' cofactor blocks (``cov``), the points' standard deviations (``psig``) and
+    their observations' quality (``quality``), as :func:`sapgo.quality.quality_sweep` does
+    along the band. Self-calibration: the stations' cofactors gain the border's share
+    ``X S^-1 X'`` (``X = M^-1 B`` from :meth:`~sapgo.solve.fronts.TreeSolver.border_x`, in
+    core, ``S^-1`` the last step's ``blk.border_cov``) and the points' and observations'
+    kernel its terms, as on the band. On Dask (``opts.client``) the parts' nodes are
+    inverted on their workers (:func:`sapgo.solve.distributed.distributed_quality`).
+    Returns the stations' variances (n x k)."""
+    k = blk.npar
+    n = len(blk.station_ids)
+    ng = blk.n_border
+    var = np.zeros((n, k))
+    client = getattr(opts, "client", None)
+    if client is not None:
+        from .distributed import worker_addresses
+
+        threads = max(2, len(worker_addresses(client)))
+        per, top, _, tile = work_plan(tree, k, opts, threads, blk.held, n, separate=True)
+    else:
+        per, top, _, tile = work_plan(tree, k, opts, held=blk.held, n_stations=n)
+    file = getattr(work, "tree_factor", None)
+    if file is None:   # (a resumed run: the factor file of the last step)
+        file = FactorFile(work.dir / FACTOR_FILE, factor_layout(tree, k), "r", n_rhs=1 + ng)
+    solver = TreeSolver(tree, k, None, file=file, n_border=ng, tile=tile, scratch=work.dir)
+    xb = cal = sig_b = None
+    if ng:
+        xb = solver.border_x(n)
+        cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
+    lock = threading.Lock()
+    on_node = quality_visitor(p, work, blk, opts, tree, sigma0, psig, quality, cov, var,
+                              correlations, xb, cal, sig_b, lock)
+
     from concurrent.futures import ThreadPoolExecutor
 
     from ..blas import blas_limits
@@ -576,6 +599,20 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
     if len(per) < 2:
         solver.inverse(on_node)
         return var
+    held = solver.inverse(on_node, top) if top else {}
+    if client is not None:
+        from .distributed import distributed_quality
+
+        distributed_quality(client, p, work, blk, opts, tree, per, held, sigma0, tile, xb,
+                            var, correlations)
+        return var
+    with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
+        jobs = [pool.submit(solver.inverse, on_node,
+                            [i for a, b in ranges for i in range(a, b)], held)
+                for ranges in per]
+        for j in jobs:
+            j.result()
+    return var
     held = solver.inverse(on_node, top) if top else {}
     with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
         jobs = [pool.submit(solver.inverse, on_node,
