@@ -613,11 +613,3 @@ def tree_quality(p, work, blk, opts, tree, sigma0, psig, quality, cov, correlati
         for j in jobs:
             j.result()
     return var
-    held = solver.inverse(on_node, top) if top else {}
-    with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
-        jobs = [pool.submit(solver.inverse, on_node,
-                            [i for a, b in ranges for i in range(a, b)], held)
-                for ranges in per]
-        for j in jobs:
-            j.result()
-    return var
