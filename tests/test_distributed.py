@@ -212,6 +212,46 @@ def test_the_bars_count_every_point_once(blocks, tmp_path, client, monkeypatch):
         assert bar.n == total, desc
 
 
+def test_a_front_tiled_across_the_workers_is_the_dense_partial_cholesky(client):
+    """The building block of the top fronts tiled across workers: a front's partial
+    Cholesky as Dask tasks over its tiles (own rows and boundary rows cut apart), against
+    scipy's dense factor and Schur complement; the tasks spread over both workers, as many
+    of each kind as the scale-out replay counts."""
+    import scipy.linalg
+
+    from sapgo.solve.distributed import tile_cuts, tiled_cholesky_dense
+
+    rng = np.random.default_rng(5)
+    n, m, tile = 300, 170, 64
+    g = rng.standard_normal((n, n))
+    a = g @ g.T + n * np.eye(n)
+    with distributed.get_task_stream(client) as ts:
+        low, s = tiled_cholesky_dense(client, a, m, tile)
+    l11 = scipy.linalg.cholesky(a[:m, :m], lower=True)
+    l21 = scipy.linalg.solve_triangular(l11, a[m:, :m].T, lower=True).T
+    np.testing.assert_allclose(low[:m], l11, rtol=1e-12, atol=1e-12 * n)
+    np.testing.assert_allclose(low[m:], l21, rtol=1e-12, atol=1e-12 * n)
+    np.testing.assert_allclose(s, np.tril(a[m:, m:] - l21 @ l21.T), rtol=1e-12,
+                               atol=1e-10 * n)
+    cuts = tile_cuts(m, n, tile)
+    nt, mt = len(cuts), sum(1 for c0, _ in cuts if c0 < m)
+    kinds = [d["key"].split("-")[0] for d in ts.data]
+    assert kinds.count("_t_potrf") == mt
+    assert kinds.count("_t_trsm") == sum(nt - k - 1 for k in range(mt))
+    assert kinds.count("_t_update") == sum(nt - j for k in range(mt)
+                                           for j in range(k + 1, nt))
+    assert len({d["worker"] for d in ts.data}) == 2
+
+
+def test_a_tiled_front_names_its_failing_pivot(client):
+    from sapgo.solve.distributed import tiled_cholesky_dense
+
+    a = np.eye(200)
+    a[130, 130] = -1.0
+    with pytest.raises(ValueError, match="non-positive pivot at row 130"):
+        tiled_cholesky_dense(client, a, 150, 64)
+
+
 def test_workers_from_the_command_line(blocks, tmp_path, capsys):
     path = tmp_path / "c.h5"
     shutil.copy(blocks["square"], path)

@@ -40,7 +40,7 @@ from ..errors import SapgoError
 __all__ = ["TRACE", "TRAFFIC", "client_seconds", "cluster", "distributed_quality",
            "distributed_solve", "distributed_step", "distributed_update", "part_solve",
            "note_nodes", "part_quality", "part_solve", "part_step", "part_update",
-           "worker_addresses"]
+           "tile_cuts", "tiled_cholesky", "tiled_cholesky_dense", "worker_addresses"]
 
 #: Seconds to wait for a scheduler given by its address.
 CONNECT_TIMEOUT = 30
@@ -516,3 +516,94 @@ def distributed_quality(client, p, work, blk, opts, tree, per, held, sigma0, til
             correlations.largest.sort(key=lambda e: -abs(e["rho"]))
             del correlations.largest[correlations.listed:]
 
+
+
+# -- a front factored tile by tile across the workers -----------------------------------
+#
+# The building block of the top fronts tiled across workers (the design the scale-out replay
+# simulates, :func:`sapgo.solve.scaleout.tiled_graph`): the same cuts, kernels, placement
+# and dependencies, here as Dask tasks whose data Dask moves between the workers.
+
+def tile_cuts(m, n, tile):
+    """Row ranges of a front of ``n`` rows whose first ``m`` are eliminated: the own rows,
+    then the boundary rows, each cut in tiles of at most ``tile`` rows."""
+    return ([(a, min(a + tile, m)) for a in range(0, m, tile)] +
+            [(a, min(a + tile, n)) for a in range(m, n, tile)])
+
+
+def _t_potrf(a, first):
+    import scipy.linalg
+
+    try:
+        return scipy.linalg.cholesky(a, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        # the first row whose pivot fails
+        for j in range(1, a.shape[0] + 1):
+            try:
+                np.linalg.cholesky(a[:j, :j])
+            except np.linalg.LinAlgError:
+                raise ValueError(f"non-positive pivot at row {first + j - 1}") from None
+        raise
+
+
+def _t_trsm(a, low):
+    import scipy.linalg
+
+    return scipy.linalg.solve_triangular(low, a.T, lower=True, check_finite=False).T
+
+
+def _t_update(a, x, y):
+    return a - x @ y.T
+
+
+def tiled_cholesky(client, tiles, cuts, mt):
+    """The partial Cholesky of a symmetric front given as its lower tiles ``tiles[(i, j)]``
+    (``i >= j``; arrays or futures) over the row ranges ``cuts`` (:func:`tile_cuts`), the
+    first ``mt`` of them eliminated, as Dask tasks: each tile's tasks on one worker, 2-D
+    block-cyclic over the cluster's workers (``potrf`` of a diagonal tile, ``trsm`` of the
+    tiles below it, ``syrk`` / ``gemm`` of the trailing tiles, right-looking). Returns the
+    tiles' futures: ``L`` in the first ``mt`` tile columns, the Schur complement (the
+    update for the parent, lower tiles) in the others."""
+    addresses = worker_addresses(client)
+    w = len(addresses)
+    r = int(np.sqrt(w))
+    while w % r:
+        r -= 1
+    c = w // r
+
+    def where(i, j):
+        return {"workers": [addresses[(i % r) * c + (j % c)]], "allow_other_workers": True,
+                "pure": False}
+
+    cur = dict(tiles)
+    nt = len(cuts)
+    for k in range(mt):
+        cur[(k, k)] = client.submit(_t_potrf, cur[(k, k)], cuts[k][0], **where(k, k))
+        for i in range(k + 1, nt):
+            cur[(i, k)] = client.submit(_t_trsm, cur[(i, k)], cur[(k, k)], **where(i, k))
+        for j in range(k + 1, nt):
+            for i in range(j, nt):
+                cur[(i, j)] = client.submit(_t_update, cur[(i, j)], cur[(i, k)],
+                                            cur[(j, k)], **where(i, j))
+    return cur
+
+
+def tiled_cholesky_dense(client, a, m, tile):
+    """:func:`tiled_cholesky` of the dense symmetric ``a`` (its lower triangle), ``m``
+    rows eliminated: ``(L, S)`` with ``L`` the ``n x m`` factor columns and ``S`` the
+    Schur complement ``A22 - L21 L21'`` (lower triangle; tests and benchmarks)."""
+    n = a.shape[0]
+    cuts = tile_cuts(m, n, tile)
+    mt = sum(1 for a0, _ in cuts if a0 < m)
+    tiles = {(i, j): np.ascontiguousarray(a[cuts[i][0]:cuts[i][1], cuts[j][0]:cuts[j][1]])
+             for i in range(len(cuts)) for j in range(i + 1)}
+    out = client.gather(tiled_cholesky(client, tiles, cuts, mt))
+    low = np.zeros((n, m))
+    s = np.zeros((n - m, n - m))
+    for (i, j), t in out.items():
+        (r0, r1), (c0, c1) = cuts[i], cuts[j]
+        if j < mt:
+            low[r0:r1, c0:c1] = np.tril(t) if i == j else t
+        else:
+            s[r0 - m:r1 - m, c0 - m:c1 - m] = t
+    return low, np.tril(s)

@@ -348,6 +348,7 @@ def tiled_graph(tree, k, workers, step_s, back_s, update_s, build_s, rates, tile
     on the first of them; the Schur updates sent as lower triangles, tile by tile; back
     substitution (``back_s``) and point update (``update_s``) down the tree; the sums to
     worker 0. Arrays per node."""
+    from .distributed import tile_cuts
     from .tree import parallel_plan
 
     per, top = plan or parallel_plan(tree, k, workers)
@@ -394,9 +395,7 @@ def tiled_graph(tree, k, workers, step_s, back_s, update_s, build_s, rates, tile
         m, f = int(m_all[i]), int(f_all[i])
         big = m + f > tile
         # the tiles' row ranges: own rows, then boundary rows, each cut in tiles
-        cuts = ([(a, min(a + tile, m)) for a in range(0, m, tile)] +
-                [(m + a, m + min(a + tile, f)) for a in range(0, f, tile)]) if big else \
-            [(0, m + f)]
+        cuts = tile_cuts(m, m + f, tile) if big else [(0, m + f)]
         mt = sum(1 for a, _ in cuts if a < m)
         nt = len(cuts)
         starts = np.array([a for a, _ in cuts])
