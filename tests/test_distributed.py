@@ -243,6 +243,64 @@ def test_a_front_tiled_across_the_workers_is_the_dense_partial_cholesky(client):
     assert len({d["worker"] for d in ts.data}) == 2
 
 
+def test_childrens_updates_reach_the_tiles_they_land_on(client):
+    """Two children's Schur updates added into a front's tiles piece by piece (each piece
+    cut where the update is), then the tiled factorisation: the dense extend-add and
+    scipy's partial factor and Schur complement."""
+    import scipy.linalg
+
+    from sapgo.solve.distributed import extend_add_tiles, tile_cuts, tiled_cholesky
+
+    rng = np.random.default_rng(6)
+    n, m, tile = 260, 150, 48
+    g = rng.standard_normal((n, n))
+    own = g @ g.T + n * np.eye(n)
+    dense = own.copy()
+    updates = []
+    for size in (90, 120):
+        places = np.sort(rng.choice(n, size, replace=False))
+        h = rng.standard_normal((size, size))
+        u = h @ h.T
+        dense[np.ix_(places, places)] += u
+        updates.append((client.scatter(u), places))
+    cuts = tile_cuts(m, n, tile)
+    mt = sum(1 for c0, _ in cuts if c0 < m)
+    tiles = {(i, j): own[cuts[i][0]:cuts[i][1], cuts[j][0]:cuts[j][1]].copy()
+             for i in range(len(cuts)) for j in range(i + 1)}
+    assembled = client.gather(extend_add_tiles(client, tiles, cuts, updates))
+    for (i, j), t in assembled.items():
+        np.testing.assert_allclose(t, dense[cuts[i][0]:cuts[i][1], cuts[j][0]:cuts[j][1]],
+                                   rtol=1e-13, atol=1e-12, err_msg=str((i, j)))
+    fac = client.gather(tiled_cholesky(client, extend_add_tiles(client, tiles, cuts, updates),
+                                       cuts, mt))
+    l11 = scipy.linalg.cholesky(dense[:m, :m], lower=True)
+    l21 = scipy.linalg.solve_triangular(l11, dense[m:, :m].T, lower=True).T
+    s = dense[m:, m:] - l21 @ l21.T
+    for (i, j), t in fac.items():
+        (r0, r1), (c0, c1) = cuts[i], cuts[j]
+        want = (np.vstack([l11, l21])[r0:r1, c0:c1] if j < mt else
+                s[r0 - m:r1 - m, c0 - m:c1 - m])
+        got = np.tril(t) if i == j and j < mt else t
+        np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-10, err_msg=str((i, j)))
+
+
+def test_a_tile_piece_is_where_the_block_lands():
+    from sapgo.solve.distributed import tile_cuts, tile_pieces
+
+    cuts = tile_cuts(5, 12, 3)   # own 0-3, 3-5; boundary 5-8, 8-11, 11-12
+    assert cuts == [(0, 3), (3, 5), (5, 8), (8, 11), (11, 12)]
+    places = np.array([1, 4, 6, 7, 11])
+    p = tile_pieces(places, places, cuts)
+    assert set(p) == {(a, b) for a in (0, 1, 2, 4) for b in (0, 1, 2, 4) if b <= a}
+    r, c = p[(2, 1)]
+    assert list(places[r]) == [6, 7] and list(places[c]) == [4]
+    # every element of the lower triangle lands once
+    hits = np.zeros((5, 5), int)
+    for r, c in p.values():
+        hits[np.ix_(r, c)] += 1
+    assert (np.tril(hits) == np.tril(np.ones((5, 5), int))).all()
+
+
 def test_a_tiled_front_names_its_failing_pivot(client):
     from sapgo.solve.distributed import tiled_cholesky_dense
 

@@ -40,7 +40,8 @@ from ..errors import SapgoError
 __all__ = ["TRACE", "TRAFFIC", "client_seconds", "cluster", "distributed_quality",
            "distributed_solve", "distributed_step", "distributed_update", "part_solve",
            "note_nodes", "part_quality", "part_solve", "part_step", "part_update",
-           "tile_cuts", "tiled_cholesky", "tiled_cholesky_dense", "worker_addresses"]
+           "extend_add_tiles", "tile_cuts", "tile_pieces", "tiled_cholesky",
+           "tiled_cholesky_dense", "worker_addresses"]
 
 #: Seconds to wait for a scheduler given by its address.
 CONNECT_TIMEOUT = 30
@@ -531,6 +532,70 @@ def tile_cuts(m, n, tile):
             [(a, min(a + tile, n)) for a in range(m, n, tile)])
 
 
+def tile_pieces(rows, cols, cuts):
+    """Where a block lands in a front's tiles: ``rows`` and ``cols`` (ascending places in
+    the front of the block's rows and columns; a child's update has ``rows is cols``, its
+    boundary's places) against the tiles' row ranges ``cuts``. Returns ``{(a, b): (r, c)}``
+    for the lower tiles ``a >= b`` it touches, ``r`` and ``c`` the block's row and column
+    indices landing in tile ``(a, b)``."""
+    starts = np.array([c0 for c0, _ in cuts])
+    tr = np.searchsorted(starts, rows, side="right") - 1
+    tc = tr if cols is rows else np.searchsorted(starts, cols, side="right") - 1
+    by_r = {int(a): np.flatnonzero(tr == a) for a in np.unique(tr)}
+    by_c = by_r if cols is rows else {int(b): np.flatnonzero(tc == b) for b in np.unique(tc)}
+    return {(a, b): (r, c) for a, r in by_r.items() for b, c in by_c.items() if b <= a}
+
+
+def _t_take(u, r, c):
+    return np.ascontiguousarray(u[np.ix_(r, c)])
+
+
+def _t_add(tile, r0, c0, *pieces):
+    """``tile`` (rows from ``r0``, columns from ``c0`` of the front) plus the pieces
+    ``(rows, cols, block)`` (places in the front)."""
+    out = np.array(tile, copy=True)
+    for rows, cols, block in pieces:
+        out[np.ix_(rows - r0, cols - c0)] += block
+    return out
+
+
+def extend_add_tiles(client, tiles, cuts, updates):
+    """The children's Schur updates added into a front's tiles as Dask tasks: ``updates``
+    a list of ``(u, places)`` (``u`` an array or a future on the child's worker, ``places``
+    its rows' places in the front); each tile's piece cut out where the update is
+    (:func:`tile_pieces`, so that only the piece travels) and added on the tile's worker.
+    Returns the tiles (futures where something was added)."""
+    where = _tile_places(client)
+    out = dict(tiles)
+    adds = {}
+    for u, places in updates:
+        places = np.asarray(places)
+        for (a, b), (r, c) in tile_pieces(places, places, cuts).items():
+            piece = client.submit(_t_take, u, r, c, pure=False)
+            adds.setdefault((a, b), []).append((places[r], places[c], piece))
+    for (a, b), pieces in adds.items():   # (Dask resolves the futures in the tuples)
+        out[(a, b)] = client.submit(_t_add, out[(a, b)], cuts[a][0], cuts[b][0], *pieces,
+                                    **where(a, b))
+    return out
+
+
+def _tile_places(client):
+    """``where(i, j)``: the submit options placing tile ``(i, j)``'s tasks on one worker,
+    2-D block-cyclic over the cluster's workers (a grid as square as their number)."""
+    addresses = worker_addresses(client)
+    w = len(addresses)
+    r = int(np.sqrt(w))
+    while w % r:
+        r -= 1
+    c = w // r
+
+    def where(i, j):
+        return {"workers": [addresses[(i % r) * c + (j % c)]], "allow_other_workers": True,
+                "pure": False}
+
+    return where
+
+
 def _t_potrf(a, first):
     import scipy.linalg
 
@@ -564,17 +629,7 @@ def tiled_cholesky(client, tiles, cuts, mt):
     tiles below it, ``syrk`` / ``gemm`` of the trailing tiles, right-looking). Returns the
     tiles' futures: ``L`` in the first ``mt`` tile columns, the Schur complement (the
     update for the parent, lower tiles) in the others."""
-    addresses = worker_addresses(client)
-    w = len(addresses)
-    r = int(np.sqrt(w))
-    while w % r:
-        r -= 1
-    c = w // r
-
-    def where(i, j):
-        return {"workers": [addresses[(i % r) * c + (j % c)]], "allow_other_workers": True,
-                "pure": False}
-
+    where = _tile_places(client)
     cur = dict(tiles)
     nt = len(cuts)
     for k in range(mt):
