@@ -173,17 +173,32 @@ def _med(v):
     return float(np.median(v)) if len(v) else 0.0
 
 
-def replay_inputs(runs):
-    """The 1-worker runs' traces as the replay's inputs: each node's seconds (median over
-    the iterations, then the rounds), each part's task seconds and bytes per round kind,
-    the client's seconds, and the overheads (:func:`sapgo.solve.scaleout.built_graph`)."""
-    ts = [r for r in runs if "error" not in r and r.get("trace")]
+def merged_nodes(runs):
+    """Each node's seconds over the 1-worker runs (their medians over the iterations): the
+    medians over the rounds, as ``{"total": [...], "elim": [...]}`` by node (None: a node
+    no run traced), rounded to 4 significant digits; the runs' own node lists dropped
+    (the result file keeps only these)."""
     nodes = {}
-    for r in ts:
-        for i, v in r["trace"]["nodes"].items():
+    for r in runs:
+        tr = r.get("trace") or {}
+        for i, v in (tr.pop("nodes", None) or {}).items():
             nodes.setdefault(int(i), []).append(v)
-    total = {i: _med([x[0] for x in v]) for i, v in nodes.items()}
-    elim = {i: _med([x[1] for x in v]) for i, v in nodes.items()}
+    n = max(nodes) + 1 if nodes else 0
+
+    def med(i, j):
+        v = nodes.get(i)
+        return float(f"{_med([x[j] for x in v]):.4g}") if v else None
+
+    return {"total": [med(i, 0) for i in range(n)], "elim": [med(i, 1) for i in range(n)]}
+
+
+def replay_inputs(runs, nodes):
+    """The 1-worker runs' traces as the replay's inputs: each node's seconds (``nodes``,
+    :func:`merged_nodes`), each part's task seconds and bytes per round kind, the client's
+    seconds, and the overheads (:func:`sapgo.solve.scaleout.built_graph`)."""
+    ts = [r for r in runs if "error" not in r and r.get("trace")]
+    total = {i: v for i, v in enumerate(nodes["total"]) if v is not None}
+    elim = {i: v for i, v in enumerate(nodes["elim"]) if v is not None}
     per, top = ts[0]["trace"]["plan"]
     per = [[tuple(x) for x in ranges] for ranges in per]
     n_parts = len(per)
@@ -293,7 +308,7 @@ def simulate(gen, row, task, rates, tile, workers):
     with Project(gen, "r") as p:
         tree = p.tree()
     k = 6
-    inp = replay_inputs(row["runs"]["1 worker"])
+    inp = replay_inputs(row["runs"]["1 worker"], row["trace_nodes"])
     free = so.Network(1e30, 0.0)   # (the bytes' time on one machine: in the overheads)
     valid = {}
     for w in (1, 2):
@@ -450,6 +465,7 @@ def main(argv=None):
                 row["iteration_speedup_2_vs_1_worker"] = (s1["s_per_iteration"]["median"] /
                                                           s2["s_per_iteration"]["median"])
             if runs.get("1 worker") and any(r.get("trace") for r in runs["1 worker"]):
+                row["trace_nodes"] = merged_nodes(runs["1 worker"])
                 row["replay"], model = simulate(gen, row, task, rates, args.tile,
                                                 sim_workers)
             out["blocks"][name] = row
@@ -461,10 +477,20 @@ def main(argv=None):
     out["replay_wall_s" if args.replay_only else "wall_s"] = time.perf_counter() - t_all
     out["machine"]["load_at_end"] = shape.load()
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.output).write_text(json.dumps(out, indent=1) + "\n")
+    Path(args.output).write_text(dumps(out))
     print(table(out))
     wall = out["replay_wall_s" if args.replay_only else "wall_s"]
     print(f"\nResults: {args.output}  (wall {wall:.0f} s)")
+
+
+def dumps(out):
+    """The results as indented JSON with lists of numbers on one line each (the traces)."""
+    import re
+
+    text = json.dumps(out, indent=1)
+    return re.sub(r"\[\s*((?:-?[\d.e+-]+|null)(?:,\s*(?:-?[\d.e+-]+|null))*)\s*\]",
+                  lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]",
+                  text) + "\n"
 
 
 def table(out):

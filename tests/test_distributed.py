@@ -15,7 +15,7 @@ import sapgo
 from conftest import assert_one_line_error, run_cli
 from test_adjust import TIGHT
 from test_tree_adjust import (  # noqa: F401
-    assert_same_solution, by_id, miscalibrated_square, ordered_pair)
+    assert_resumed_solution, assert_same_solution, miscalibrated_square, ordered_pair)
 
 distributed = pytest.importorskip("distributed")
 
@@ -369,7 +369,7 @@ def test_a_killed_client_resumes_to_the_same_result(blocks, tmp_path):
     import sys
     import time
 
-    from sapgo.work import FAULT_ENV, work_path
+    from sapgo.work import FAULT_ENV
 
     _, ref = ordered_pair(blocks["square"], tmp_path, leaf=4, name="ref")
     path = tmp_path / "k.h5"
@@ -383,12 +383,7 @@ def test_a_killed_client_resumes_to_the_same_result(blocks, tmp_path):
     assert r.returncode == -9, r.stderr
     r = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    a, b = by_id(path), by_id(ref)
-    for k in ("station_corr", "point_corr", "residuals"):
-        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
-    for k in ("station_sigma", "point_sigma"):
-        np.testing.assert_allclose(a[k], b[k], rtol=1e-6, err_msg=k)
-    assert not work_path(path).exists()
+    assert_resumed_solution(path, ref)
     # no worker process of the killed run left behind (orphans: new, and their parent gone)
     deadline = time.time() + 30
     while time.time() < deadline and _orphans(before):

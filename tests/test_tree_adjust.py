@@ -46,6 +46,19 @@ def assert_same_solution(a, b, rtol=1e-9):
         np.testing.assert_allclose(sa[k], sb[k], rtol=tol, atol=tol * scale, err_msg=k)
 
 
+def assert_resumed_solution(path, ref):
+    """A resumed run's committed result against the uninterrupted run's: the corrections
+    and residuals bit for bit; the precision, which comes from normals built again at the
+    final state (as on the band), not from the last iteration's, to the convergence
+    tolerance; no work directory left."""
+    a, b = by_id(path), by_id(ref)
+    for k in ("station_corr", "point_corr", "residuals"):
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    for k in ("station_sigma", "point_sigma"):
+        np.testing.assert_allclose(a[k], b[k], rtol=1e-6, err_msg=k)
+    assert not work_path(path).exists()
+
+
 def ordered_pair(src, tmp_path, leaf=4, name="b", deep=True):
     """Copies of ``src`` ordered for the band and for a tree of small leaves (``deep``:
     checked to have several levels); with ``deep=False`` also the tree's order result."""
@@ -330,14 +343,7 @@ def test_a_killed_tree_run_resumes_to_the_same_result(square, tmp_path, fault):
     assert r.returncode == -signal.SIGKILL, r.stderr
     s = sapgo.adjust(path, sapgo.Options(progress=False, chunk_points=40, resume=True))
     assert s.converged and s.solver == "tree"
-    a, b = by_id(path), by_id(ref)
-    for k in ("station_corr", "point_corr", "residuals"):
-        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
-    # the precision of a resumed run comes from normals built again at the final state (as
-    # on the band), not from the last iteration's: equal to the convergence tolerance
-    for k in ("station_sigma", "point_sigma"):
-        np.testing.assert_allclose(a[k], b[k], rtol=1e-6, err_msg=k)
-    assert not work_path(path).exists()
+    assert_resumed_solution(path, ref)
 
 
 RUN_CAL = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "
