@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import os
 import sys
 import time
 
@@ -181,7 +180,6 @@ def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, 
     from ..project import Project
     from ..work import Work
     from .fronts import FactorFile, TreeSolver, factor_layout
-    from .tiles import Panels
     from .tree import FACTOR_FILE, _run_nodes
 
     per, top = plan
@@ -207,17 +205,15 @@ def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, 
             if progress:
                 bar.flush()
             # the subtree roots' updates for the top nodes: in core, or (larger than a
-            # panel) their scratch files in the shared work directory, handed over by name
+            # panel) their scratch files in the shared work directory; they stay here
+            # until the top's tasks take their pieces (:func:`distributed_top`)
             updates = {int(i): v for i, v in solver.updates.items()}
-            for u, _ in updates.values():
-                if isinstance(u, Panels):
-                    os.close(u._fd)   # (the file stays: the client opens and removes it)
-                    u._fd = None
         finally:
             file.close()
             work.close()
     nodes = np.concatenate([np.arange(a, b) for a, b in per[w]])
-    return {"updates": updates, "nodes": nodes, "yy": solver.yy[nodes],
+    return {"updates": updates, "update_nodes": sorted(updates), "nodes": nodes,
+            "yy": solver.yy[nodes],
             "ww": solver._ww[w], "wy": solver._wy[w], "diag": diag, "border": cb,
             "solver_seconds": float(seconds[w]), "trace": solver.trace,
             "seconds": time.perf_counter() - t0}
@@ -225,9 +221,10 @@ def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, 
 
 def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration, bar=None):
     """The workers' parts of a tree step on ``opts.client``: each part's task pinned to its
-    worker; their results put into ``solver`` (updates for the top nodes, ``y'y``, the
-    border's sums), their points done counted into ``bar`` as they go. Returns ``(diags,
-    border sums, seconds)`` per part as the threaded step's."""
+    worker; their results put into ``solver`` (``y'y``, the border's sums), their points
+    done counted into ``bar`` as they go; the parts' futures, whose updates for the top
+    nodes stay on the workers, in ``work._dask_parts`` (:func:`distributed_top`). Returns
+    ``(diags, border sums, seconds)`` per part as the threaded step's."""
     client = opts.client
     wopts = dataclasses.replace(opts, client=None, progress=False)
     # the project's path, the work directory and the block (its stations' orientations:
@@ -243,11 +240,12 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration,
     if TRACE["on"]:
         TRACE["plan"] = ([list(r) for r in per], [int(i) for i in top])
     with _Forwarded(client, bar or _NoBar()) as fw:
-        results = _round(client, "step", part_step,
-                         [(str(p.path), str(work.dir), work.band_width, work.state, wblk,
-                           wopts, tree_f, (per, top), w, lam, iteration, solver.tile,
-                           TRACE["on"], fw.key)
-                          for w in range(len(per))])
+        results, futures = _round(
+            client, "step", part_step,
+            [(str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts, tree_f,
+              (per, top), w, lam, iteration, solver.tile, TRACE["on"], fw.key)
+             for w in range(len(per))], keep=True)
+    work._dask_parts = [(f, r["update_nodes"]) for f, r in zip(futures, results)]
     pt = tree.pt_start
     fw.finish(sum(int(pt[b] - pt[a]) for r in per for a, b in r))
     diags, cbs = [], []
@@ -256,7 +254,6 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration,
     seconds = [0.0] * len(per)
     n_workers = len(worker_addresses(client))
     for w, r in enumerate(results):
-        solver.updates.update(r["updates"])
         solver.yy[r["nodes"]] = r["yy"]
         solver._ww[w] = r["ww"]
         solver._wy[w] = r["wy"]
@@ -308,9 +305,10 @@ def note_nodes(trace):
             TRACE["nodes"].setdefault(int(i), []).append(tuple(v))
 
 
-def _round(client, kind, fn, args):
+def _round(client, kind, fn, args, keep=False):
     """``fn(*args[w])`` on part ``w``'s worker for every part; the results in order.
-    Every task returns a dict with its ``seconds``."""
+    Every task returns a dict with its ``seconds``. ``keep``: the results without their
+    ``updates`` (:func:`_strip`) and the futures, whose updates stay on the workers."""
     t0 = time.perf_counter()
     futures, sent = [], []
     for w, a in enumerate(args):
@@ -320,7 +318,11 @@ def _round(client, kind, fn, args):
             TRAFFIC["to_workers"] += n_in
         TRAFFIC["tasks"] += 1
         futures.append(client.submit(fn, *a, **_pinned(client, w)))
-    out = client.gather(futures)
+    if keep:
+        out = client.gather([client.submit(_strip, f, **_pinned(client, w))
+                             for w, f in enumerate(futures)])
+    else:
+        out = client.gather(futures)
     wall = time.perf_counter() - t0
     got = [_size(r) for r in out] if TRAFFIC["on"] or TRACE["on"] else [0] * len(out)
     if TRAFFIC["on"]:
@@ -329,7 +331,7 @@ def _round(client, kind, fn, args):
         TRACE["rounds"].append({"kind": kind, "wall_s": wall, "tasks": [
             {"part": w, "seconds": float(r["seconds"]), "bytes_in": sent[w],
              "bytes_out": got[w]} for w, r in enumerate(out)]})
-    return out
+    return (out, futures) if keep else out
 
 
 def _pinned(client, w):
@@ -546,17 +548,24 @@ def tile_pieces(rows, cols, cuts):
     return {(a, b): (r, c) for a, r in by_r.items() for b, c in by_c.items() if b <= a}
 
 
-def _t_take(u, r, c):
-    return np.ascontiguousarray(u[np.ix_(r, c)])
-
-
 def _t_add(tile, r0, c0, *pieces):
     """``tile`` (rows from ``r0``, columns from ``c0`` of the front) plus the pieces
     ``(rows, cols, block)`` (places in the front)."""
     out = np.array(tile, copy=True)
     for rows, cols, block in pieces:
-        out[np.ix_(rows - r0, cols - c0)] += block
+        out[np.ix_(rows - r0, cols - c0)] += _lower(rows, cols, block)
     return out
+
+
+def _lower(rows, cols, block):
+    """``block`` at places ``rows`` x ``cols`` of a front with what falls above the
+    front's diagonal zeroed: an update's strict upper triangle is not set (its diagonal
+    blocks are in full; the rest may be anything, NaN included)."""
+    if rows[0] < cols[-1]:   # (places ascending: else nothing above the diagonal)
+        above = rows[:, None] < cols[None, :]
+        if above.any():
+            return np.where(above, 0.0, block)
+    return block
 
 
 def extend_add_tiles(client, tiles, cuts, updates):
@@ -565,18 +574,8 @@ def extend_add_tiles(client, tiles, cuts, updates):
     its rows' places in the front); each tile's piece cut out where the update is
     (:func:`tile_pieces`, so that only the piece travels) and added on the tile's worker.
     Returns the tiles (futures where something was added)."""
-    where = _tile_places(client)
-    out = dict(tiles)
-    adds = {}
-    for u, places in updates:
-        places = np.asarray(places)
-        for (a, b), (r, c) in tile_pieces(places, places, cuts).items():
-            piece = client.submit(_t_take, u, r, c, pure=False)
-            adds.setdefault((a, b), []).append((places[r], places[c], piece))
-    for (a, b), pieces in adds.items():   # (Dask resolves the futures in the tuples)
-        out[(a, b)] = client.submit(_t_add, out[(a, b)], cuts[a][0], cuts[b][0], *pieces,
-                                    **where(a, b))
-    return out
+    blocks = [(np.asarray(pl), np.asarray(pl), u, None) for u, pl in updates]
+    return _add_blocks(client, tiles, cuts, blocks, _tile_places(client))
 
 
 def _tile_places(client):
@@ -596,19 +595,32 @@ def _tile_places(client):
     return where
 
 
-def _t_potrf(a, first):
+def _t_potrf(a, first, orig=None, tol=0.0, base=(0, 1)):
+    """``chol(a)`` (lower) of a diagonal tile whose first row is the front's ``first``;
+    with ``orig`` (its diagonal as assembled) the band solver's pivot test (a pivot, the
+    squared diagonal of the factor, at or below ``tol`` times it fails). A failure raises
+    :class:`TilePivotError` naming the front's row (``base``: the front's first station and
+    the parameters a station)."""
     import scipy.linalg
 
     try:
-        return scipy.linalg.cholesky(a, lower=True, check_finite=False)
+        low = scipy.linalg.cholesky(a, lower=True, check_finite=False)
     except np.linalg.LinAlgError:
-        # the first row whose pivot fails
-        for j in range(1, a.shape[0] + 1):
-            try:
-                np.linalg.cholesky(a[:j, :j])
-            except np.linalg.LinAlgError:
-                raise ValueError(f"non-positive pivot at row {first + j - 1}") from None
-        raise
+        low = None
+    if low is not None:
+        if orig is None:
+            return low
+        bad = np.flatnonzero(~(np.diagonal(low) ** 2 > tol * orig))
+        if not len(bad):
+            return low
+        raise TilePivotError(first + int(bad[0]), *base)
+    # the first row whose pivot fails
+    for j in range(1, a.shape[0] + 1):
+        try:
+            np.linalg.cholesky(a[:j, :j])
+        except np.linalg.LinAlgError:
+            raise TilePivotError(first + j - 1, *base) from None
+    raise TilePivotError(first + a.shape[0] - 1, *base)
 
 
 def _t_trsm(a, low):
@@ -621,25 +633,32 @@ def _t_update(a, x, y):
     return a - x @ y.T
 
 
-def tiled_cholesky(client, tiles, cuts, mt):
+def tiled_cholesky(client, tiles, cuts, mt, origs=None, tol=0.0, tag="", base=(0, 1)):
     """The partial Cholesky of a symmetric front given as its lower tiles ``tiles[(i, j)]``
     (``i >= j``; arrays or futures) over the row ranges ``cuts`` (:func:`tile_cuts`), the
     first ``mt`` of them eliminated, as Dask tasks: each tile's tasks on one worker, 2-D
     block-cyclic over the cluster's workers (``potrf`` of a diagonal tile, ``trsm`` of the
     tiles below it, ``syrk`` / ``gemm`` of the trailing tiles, right-looking). Returns the
     tiles' futures: ``L`` in the first ``mt`` tile columns, the Schur complement (the
-    update for the parent, lower tiles) in the others."""
+    update for the parent, lower tiles) in the others. ``origs``: the diagonal tiles'
+    diagonals as assembled (by tile column, arrays or futures), for the pivot test with
+    ``tol`` (:func:`_t_potrf`); ``tag`` goes into the tasks' keys; ``base`` names a failing
+    pivot's station (:class:`TilePivotError`)."""
     where = _tile_places(client)
     cur = dict(tiles)
     nt = len(cuts)
+    origs = origs or {}
     for k in range(mt):
-        cur[(k, k)] = client.submit(_t_potrf, cur[(k, k)], cuts[k][0], **where(k, k))
+        cur[(k, k)] = client.submit(_t_potrf, cur[(k, k)], cuts[k][0], origs.get(k), tol,
+                                    base, key=_key("_t_potrf", tag), **where(k, k))
         for i in range(k + 1, nt):
-            cur[(i, k)] = client.submit(_t_trsm, cur[(i, k)], cur[(k, k)], **where(i, k))
+            cur[(i, k)] = client.submit(_t_trsm, cur[(i, k)], cur[(k, k)],
+                                        key=_key("_t_trsm", tag), **where(i, k))
         for j in range(k + 1, nt):
             for i in range(j, nt):
                 cur[(i, j)] = client.submit(_t_update, cur[(i, j)], cur[(i, k)],
-                                            cur[(j, k)], **where(i, j))
+                                            cur[(j, k)], key=_key("_t_update", tag),
+                                            **where(i, j))
     return cur
 
 
@@ -662,3 +681,423 @@ def tiled_cholesky_dense(client, a, m, tile):
         else:
             s[r0 - m:r1 - m, c0 - m:c1 - m] = t
     return low, np.tril(s)
+
+
+# -- the top nodes on the workers ----------------------------------------------------------
+#
+# The nodes above the parts (``top``) as one graph of Dask tasks, submitted at once: a front
+# of at most one tile (:data:`TOP_TILE` rows) is built, assembled and factored by one task on
+# one worker (:func:`top_node`); a larger one is built by column panels (:func:`top_panel`),
+# cut into tiles, the children's pieces added where the tiles are (:func:`_add_blocks`) and
+# factored tile by tile across the workers (:func:`tiled_cholesky`). The right-hand sides
+# travel with the tiles as one more row of tiles, ``R = b'`` (nr rows: the right-hand side
+# and the border's columns): the right-looking elimination turns ``R`` into ``y'`` over the
+# own columns and into the parent's right-hand side over the boundary's. The factor's tiles
+# are written into the factor file where they are; the client gathers ``y`` (m x nr a node),
+# the border's sums and, at the end, nothing else. Updates stay on the worker that made them
+# until the parent's tiles take their pieces.
+
+#: Rows of a tile of a top front (rounded down to whole stations): fronts of more rows are
+#: factored tile by tile across the workers, smaller ones by one task.
+TOP_TILE = 2048
+
+
+class TilePivotError(ValueError):
+    """A pivot failed on a worker (picklable): ``row`` of the front whose own stations
+    start at station ``lo``, ``k`` parameters a station (the station and parameter of
+    :class:`~sapgo.solve.band.PivotError`)."""
+
+    def __init__(self, row, lo=0, k=1):
+        super().__init__(row, lo, k)
+        self.row, self.lo, self.k = int(row), int(lo), int(k)
+
+    @property
+    def station(self):
+        return self.lo + self.row // self.k
+
+    @property
+    def parameter(self):
+        return self.row % self.k
+
+    def __str__(self):
+        return f"non-positive pivot at row {self.row}"
+
+
+def _dig(obj, key):
+    """``obj[key[0]][key[1]]..`` (``"T"``: transposed, a vector as a row)."""
+    for x in key or ():
+        if isinstance(x, str) and x == "T":
+            obj = obj.T if obj.ndim == 2 else obj[None, :]
+        else:
+            obj = obj[x]
+    return obj
+
+
+def _t_take(obj, key, r, c):
+    """The piece ``[r, c]`` of the block ``_dig(obj, key)`` (an array or a
+    :class:`~sapgo.solve.tiles.Panels` of a subtree root's update), cut where it is."""
+    from .tiles import Panels
+
+    u = _dig(obj, key)
+    if isinstance(u, Panels):
+        if u._fd is None:   # (handed over already: reopen by name)
+            u.__setstate__(u.__getstate__())
+        c0 = int(c.min())
+        cols = u.cols(c0, int(c.max()) + 1)
+        return np.ascontiguousarray(cols[np.ix_(r - c0, c - c0)])
+    return np.ascontiguousarray(u[np.ix_(r, c)])
+
+
+def _add_blocks(client, tiles, cuts, blocks, where, tag=""):
+    """Add ``blocks`` (``(rows, cols, u, key)``: the block ``_dig(u, key)`` at places
+    ``rows`` x ``cols`` of the front, ``u`` an array or a future) into the front's lower
+    ``tiles`` over ``cuts``: each tile's piece cut where the block is (only the piece
+    travels), added on the tile's worker. Returns the tiles (futures where added)."""
+    out = dict(tiles)
+    adds = {}
+    for rows, cols, u, key in blocks:
+        rows, cols = np.asarray(rows), np.asarray(cols)
+        for (a, b), (r, c) in tile_pieces(rows, cols if cols is not rows else rows,
+                                          cuts).items():
+            piece = client.submit(_t_take, u, key, r, c, pure=False,
+                                  key=_key("_t_take", tag))
+            adds.setdefault((a, b), []).append((rows[r], cols[c], piece))
+    for (a, b), pieces in adds.items():   # (Dask resolves the futures in the tuples)
+        out[(a, b)] = client.submit(_t_add, out[(a, b)], cuts[a][0], cuts[b][0], *pieces,
+                                    key=_key("_t_add", tag), **where(a, b))
+    return out
+
+
+def _key(name, tag=""):
+    import uuid
+
+    return f"{name}-{tag}{uuid.uuid4().hex}"
+
+
+class _OnWorker:
+    """A worker's view of the project and the work files at the last checkpoint (the
+    build and update tasks' setting)."""
+
+    def __init__(self, path, work_dir, band_width, state, blk):
+        from ..project import Project
+        from ..work import Work
+
+        self.p = Project(path, "r")
+        try:
+            self.work = Work(work_dir, self.p, band_width, create=False, block=blk.npar,
+                             n_border=blk.n_border)
+        except BaseException:
+            self.p.close()
+            raise
+        self.work.state = state
+
+    def __enter__(self):
+        return self.p, self.work
+
+    def __exit__(self, *exc):
+        try:
+            self.work.close()
+        finally:
+            self.p.close()
+
+
+def _front_part(env, blk, opts, tree, i, lam, priors, damping, c0, c1):
+    """Columns ``c0 .. c1`` (rows from ``c0``) of top node ``i``'s front from its own points
+    and priors, its own diagonal there damped; ``b`` (front x nr: the right-hand side's rows
+    ``c0 .. c1``, with ``c0 == 0`` the border's columns in full) and the border's sums."""
+    from .tree import _Fronts, build_panel, node_points
+
+    p, work = env
+    k, ng = blk.npar, blk.n_border
+    fronts = _Fronts(tree, blk, k)
+    fr = fronts.enter(i)
+    n = k * len(fr)
+    m = k * tree.own(i)
+    a = np.zeros((n - c0, c1 - c0), order="F")
+    b = np.zeros((n, 1 + ng), order="F")
+    rhs = b[:, 0]
+    sums = (np.zeros((ng, ng)), np.zeros(ng), np.zeros(ng))
+    bord = b[:, 1:].reshape(len(fr), k, ng) if ng else np.zeros((len(fr), k, 0))
+    for r0, w, g in priors:
+        if c0 <= r0 < c1:
+            a[r0 - c0:r0 - c0 + 6, r0 - c0:r0 - c0 + 6] += w
+            rhs[r0:r0 + 6] += g
+    build_panel(p, blk, fronts, node_points(p, work, blk, opts, tree, fronts, i), lam, a,
+                rhs, bord, sums, c0, c1)
+    if damping is not None and c0 < m:
+        e = min(c1, m)
+        idx = np.arange(e - c0)
+        a[idx, idx] += damping[c0:e]
+    return a, b, (sums if c0 == 0 else None)
+
+
+def top_panel(path, work_dir, band_width, state, blk, opts, tree, i, lam, priors, damping,
+              c0, c1):
+    """On a worker: a column panel of a tiled top front (:func:`_front_part`) as ``{"a":
+    (n - c0) x w, "b": its rows of the right-hand side (w x 1), "bord": the border's rows
+    (n x ng, first panel), "border": the border's sums (first panel) or None}``."""
+    t0 = time.perf_counter()
+    with _OnWorker(path, work_dir, band_width, state, blk) as env:
+        a, b, sums = _front_part(env, blk, opts, tree, i, lam, priors, damping, c0, c1)
+    return {"a": a, "b": np.ascontiguousarray(b[c0:c1, :1]),
+            "bord": np.ascontiguousarray(b[:, 1:]) if c0 == 0 else None, "border": sums,
+            "seconds": time.perf_counter() - t0}
+
+
+def _t_rows(res, r0, r1):
+    return np.asfortranarray(res["a"][r0:r1])
+
+
+def _t_rrow(rhs, bord, c0, c1):
+    """Tile ``(R, J)``: the right-hand sides' rows ``c0 .. c1`` transposed (nr x w)."""
+    out = np.zeros((1 + (0 if bord is None else bord.shape[1]), c1 - c0))
+    out[0] = rhs[:, 0]
+    if bord is not None:
+        out[1:] = bord[c0:c1].T
+    return out
+
+
+def _t_diag(a):
+    return np.diagonal(a).copy()
+
+
+def _t_write(work_dir, layout, nr, i, r0, c0, tile):
+    """Write tile ``(r0, c0)`` of node ``i``'s factor columns into the factor file (a
+    diagonal tile's upper triangle is not used)."""
+    from pathlib import Path
+
+    from .fronts import FactorFile
+    from .tree import FACTOR_FILE
+
+    file = FactorFile(Path(work_dir) / FACTOR_FILE, layout, "w", n_rhs=nr)
+    try:
+        file.write_cols(i, c0, np.asfortranarray(tile), r0=r0)
+    finally:
+        file.close()
+    return tile.shape[1]
+
+
+def top_node(path, work_dir, band_width, state, blk, opts, tree, i, lam, priors, damping,
+             layout, tol, *pieces):
+    """On a worker: top node ``i``'s front in core (at most one tile): built from its
+    points and priors, damped, the children's ``pieces`` (``(rows, cols, block)``, places
+    in the front with its right-hand sides as rows ``n ..``) added, factored, its record
+    written into the factor file. Returns ``{"u": the update (f x f, lower triangle), "ubT":
+    its right-hand sides (nr x f), "y1", "border", "seconds"}``."""
+    from ..blas import FNS, blas_limits
+    from .fronts import FactorFile, _factor_front
+    from .tree import FACTOR_FILE
+
+    t0 = time.perf_counter()
+    k = blk.npar
+    m = k * tree.own(i)
+    with _OnWorker(path, work_dir, band_width, state, blk) as env:
+        a, b, sums = _front_part(env, blk, opts, tree, i, lam, priors, damping, 0,
+                                 k * len(tree.front(i)))
+        n = a.shape[0]
+        for rows, cols, block in pieces:
+            inner = rows < n
+            if inner.all():
+                a[np.ix_(rows, cols)] += _lower(rows, cols, block)
+            else:   # (rows of the right-hand sides: b')
+                b[cols, (rows - n)[:, None]] += block
+        own = a[:, :m]
+        upd = np.asfortranarray(a[m:, m:])
+        with blas_limits(1):
+            fail = _factor_front(FNS, own.reshape(-1, order="F"), n, m,
+                                 upd.reshape(-1, order="F"), b.reshape(-1, order="F"),
+                                 b.shape[1], tol)
+        if fail:
+            raise TilePivotError(fail - 1, tree.lo[i], k)
+        file = FactorFile(env[1].dir / FACTOR_FILE, layout, "w", n_rhs=b.shape[1])
+        try:
+            file.write(i, own, b[:m])
+        finally:
+            file.close()
+    return {"u": upd, "ubT": np.ascontiguousarray(b[m:].T), "y1": b[:m].copy(order="F"),
+            "border": sums, "seconds": time.perf_counter() - t0}
+
+
+def _strip(res):
+    """A part's result without its updates (they stay on the worker)."""
+    return {x: v for x, v in res.items() if x != "updates"}
+
+
+def _top_inputs(p, work, blk, opts, tree, top, lam, diag):
+    """Per top node: its own stations' priors (``(row, weight, right-hand side)``) and
+    damping."""
+    from ..adjust import _PriorCursor, _prior_residual
+
+    k = blk.npar
+    priors = _PriorCursor(p, opts.chunk_points)
+    out = {}
+    for i in top:
+        lo, hi = int(tree.lo[i]), int(tree.hi[i])
+        mine = []
+        for rec in priors.take(lo, hi):
+            s = int(rec["station"]) - lo
+            w = np.array(rec["weight"], dtype=np.float64)
+            mine.append((k * s, w, w @ (-_prior_residual(rec, blk.eo[lo + s]))))
+        damping = None
+        if lam > 0.0:
+            damping = lam * np.clip(diag[lo:hi], 1e-6, 1e32).ravel()
+        out[i] = (mine, damping)
+    return out
+
+
+def distributed_top(client, p, work, blk, opts, tree, solver, top, parts, lam, diag, cb):
+    """The top nodes on the workers (the section's comment): factor records written into
+    the factor file, ``y1`` written by the client, ``y'y`` and the border's ``W'W``,
+    ``W'y`` into ``solver``, the border's sums into ``cb``. ``parts``: per part, its
+    future and the nodes of its subtree roots' updates."""
+    from .band import PivotError
+    from .fronts import factor_layout
+
+    k, ng = blk.npar, blk.n_border
+    nr = 1 + ng
+    tile = max(k, k * (TOP_TILE // k))
+    layout = factor_layout(tree, k)
+    wopts = dataclasses.replace(opts, client=None, progress=False)
+    wblk = dataclasses.replace(blk, tree=None)
+    tree_f = work._tree_future
+    common = (str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts, tree_f)
+    inputs = _top_inputs(p, work, blk, opts, tree, top, lam, diag)
+    addresses = worker_addresses(client)
+    blocks = {}      # node -> its update's blocks for the parent
+    home = {}        # node -> the worker holding its update (a small node's parent goes there)
+    for w, (fut, nodes) in enumerate(parts):
+        for c in nodes:
+            f = k * len(tree.bnd(c))
+            blocks[c] = [(np.arange(f), np.arange(f), fut, ("updates", c, 0)),
+                         (f + np.arange(nr), np.arange(f), fut, ("updates", c, 1, "T"))]
+            home[c] = addresses[w % len(addresses)]
+    stream = contextlib.nullcontext()
+    if TRACE["on"]:
+        from distributed import get_task_stream
+
+        stream = get_task_stream(client)
+    with stream as ts:
+        ys, borders, writes = _submit_top(client, blk, tree, top, common, inputs, blocks,
+                                          home, layout, opts.pivot_tolerance, lam,
+                                          str(work.dir), tile)
+        try:
+            got_y, got_b, _ = client.gather([ys, borders, writes])
+        except TilePivotError as exc:
+            raise PivotError(exc.station, exc.parameter) from None
+    if TRACE["on"]:
+        _note_top(ts.data)
+    for i in sorted(top):
+        m = k * tree.own(i)
+        y1 = np.zeros((m, nr), order="F")
+        for r0, y in got_y[i]:
+            y1[r0:r0 + y.shape[0]] = y
+        solver.note_y(i, y1 if ng else y1[:, 0])
+        solver.file.write_y(i, y1)
+    for s in got_b:
+        if s is not None and ng:
+            for acc, x in zip(cb, s):
+                acc += x
+
+
+#: The tasks of a top node that eliminate (the trace's second figure of a node).
+_ELIMINATE = {"top_node", "_t_potrf", "_t_trsm", "_t_update"}
+
+
+def _note_top(stream):
+    """The top nodes' seconds from Dask's task stream (their tasks' keys carry ``n<node>``):
+    per node the sum of its tasks' seconds and of those that eliminate."""
+    per = {}
+    for d in stream:
+        name, tag = (d["key"].split("-") + ["", ""])[:2]
+        if not tag.startswith("n"):
+            continue
+        sec = sum(s["stop"] - s["start"] for s in d.get("startstops", ())
+                  if s.get("action") == "compute")
+        tot, eli = per.get(int(tag[1:]), (0.0, 0.0))
+        per[int(tag[1:])] = (tot + sec, eli + (sec if name in _ELIMINATE else 0.0))
+    note_nodes(per)
+
+
+def _submit_top(client, blk, tree, top, common, inputs, blocks, home, layout, tol, lam,
+                work_dir, tile):
+    """The top nodes' tasks (:func:`distributed_top`): ``blocks`` and ``home`` hold the
+    parts' updates and receive the top nodes'. Returns the futures of each node's ``y1``
+    pieces (``(first row, piece)``), of the border's sums and of the factor's writes."""
+    from .fronts import _scalar
+
+    k, ng = blk.npar, blk.n_border
+    nr = 1 + ng
+    addresses = worker_addresses(client)
+    where = _tile_places(client)
+    children = tree.children()
+    ys, borders, writes = {}, [], []
+    for i in sorted(top):
+        fr = tree.front(i)
+        n, m = k * len(fr), k * tree.own(i)
+        f = n - m
+        priors, damping = inputs[i]
+        mine = []
+        for c in children[i]:
+            if c in blocks:
+                ext = np.concatenate([_scalar(np.searchsorted(fr, tree.bnd(c)), k),
+                                      n + np.arange(nr)])
+                mine += [(ext[r], ext[cc], u, key) for r, cc, u, key in blocks.pop(c)]
+        tag = f"n{i}-"
+        if n <= tile:
+            cuts = [(0, n), (n, n + nr)]
+            # (where the largest child's update is)
+            kids = [c for c in children[i] if c in home]
+            target = (home[max(kids, key=lambda c: len(tree.bnd(c)))] if kids else
+                      addresses[i % len(addresses)])
+            pieces = []
+            for rows, cols, u, key in mine:
+                for (a, b), (r, cc) in tile_pieces(rows, cols, cuts).items():
+                    piece = client.submit(_t_take, u, key, r, cc, pure=False,
+                                          key=_key("_t_take", tag))
+                    pieces.append((rows[r], cols[cc], piece))
+            fut = client.submit(top_node, *common, i, lam, priors, damping, layout,
+                                tol, *pieces, key=_key("top_node", tag),
+                                workers=[target], allow_other_workers=True, pure=False)
+            ys[i] = [(0, client.submit(_dig, fut, ("y1",), key=_key("_dig", tag)))]
+            borders.append(client.submit(_dig, fut, ("border",), key=_key("_dig", tag)))
+            blocks[i] = [(np.arange(f), np.arange(f), fut, ("u",)),
+                         (f + np.arange(nr), np.arange(f), fut, ("ubT",))]
+            home[i] = target
+            continue
+        cuts = tile_cuts(m, n, tile) + [(n, n + nr)]
+        nt = len(cuts)
+        mt = sum(1 for a0, _ in cuts if a0 < m)
+        panels = [client.submit(top_panel, *common, i, lam, priors, damping, c0, c1,
+                                key=_key("top_panel", tag), **where(j, j))
+                  for j, (c0, c1) in enumerate(cuts[:-1])]
+        bord = (client.submit(_dig, panels[0], ("bord",), key=_key("_dig", tag))
+                if ng else None)
+        borders.append(client.submit(_dig, panels[0], ("border",), key=_key("_dig", tag)))
+        tiles = {}
+        for j, (c0, c1) in enumerate(cuts[:-1]):
+            for r in range(j, nt - 1):
+                tiles[(r, j)] = client.submit(_t_rows, panels[j], cuts[r][0] - c0,
+                                              cuts[r][1] - c0, key=_key("_t_rows", tag),
+                                              **where(j, j))
+            rhs = client.submit(_dig, panels[j], ("b",), key=_key("_dig", tag))
+            tiles[(nt - 1, j)] = client.submit(_t_rrow, rhs, bord, c0, c1,
+                                               key=_key("_t_rrow", tag), **where(nt - 1, j))
+        tiles[(nt - 1, nt - 1)] = np.zeros((nr, nr))
+        tiles = _add_blocks(client, tiles, cuts, mine, where, tag)
+        origs = {j: client.submit(_t_diag, tiles[(j, j)], key=_key("_t_diag", tag),
+                                  **where(j, j)) for j in range(mt)}
+        out = tiled_cholesky(client, tiles, cuts, mt, origs, tol, tag,
+                             (int(tree.lo[i]), k))
+        for j in range(mt):
+            for r in range(j, nt - 1):
+                writes.append(client.submit(_t_write, work_dir, layout, nr, i,
+                                            cuts[r][0], cuts[j][0], out[(r, j)],
+                                            key=_key("_t_write", tag), **where(r, j)))
+        ys[i] = [(cuts[j][0], client.submit(_dig, out[(nt - 1, j)], ("T",),
+                                            key=_key("_dig", tag))) for j in range(mt)]
+        blocks[i] = [(np.arange(cuts[r][0], cuts[r][1]) - m,
+                      np.arange(cuts[j][0], cuts[j][1]) - m, out[(r, j)], None)
+                     for j in range(mt, nt) for r in range(j, nt)
+                     if (r, j) != (nt - 1, nt - 1)]
+        home[i] = where(nt - 1, nt - 1)["workers"][0]
+    return ys, borders, writes

@@ -246,17 +246,19 @@ class FactorFile:
         os.pwrite(self._fd, memoryview(np.asfortranarray(y1).reshape(-1, order="F")),
                   int(self.offset[i]) + col.nbytes)
 
-    def write_cols(self, i, c0, a):
+    def write_cols(self, i, c0, a, r0=None):
         """A panel of node ``i``'s factor columns: ``a`` ((m + f - c0) x w, F order) is
-        rows ``c0 ..`` of columns ``c0 .. c0 + w`` (the rows above are not used)."""
+        rows ``c0 ..`` of columns ``c0 .. c0 + w`` (the rows above are not used); with
+        ``r0``, ``a`` is rows ``r0 .. r0 + len(a)`` of them (a tile)."""
         m, f = (int(x) for x in self.shape[i])
         kf, w = m + f, a.shape[1]
+        r0 = c0 if r0 is None else r0
         if self._buf is not None:
-            self._cols(i)[c0:, c0:c0 + w] = a
+            self._cols(i)[r0:r0 + a.shape[0], c0:c0 + w] = a
             return
         for c in range(w):
             os.pwrite(self._fd, memoryview(np.ascontiguousarray(a[:, c])),
-                      int(self.offset[i]) + 8 * ((c0 + c) * kf + c0))
+                      int(self.offset[i]) + 8 * ((c0 + c) * kf + r0))
 
     def write_y(self, i, y1):
         """Node ``i``'s ``y1`` (after :meth:`write_cols`)."""
@@ -553,6 +555,11 @@ class TreeSolver:
         """``y1`` of node ``i`` from its forward-substituted ``b``; ``y'y`` and the
         border's ``W'W``, ``W'y`` accumulated."""
         y1 = b[:m].copy(order="F")
+        self.note_y(i, y1)
+        return y1
+
+    def note_y(self, i, y1):
+        """Node ``i``'s ``y1`` (m, or m x n_rhs) into ``y'y`` and the border's sums."""
         if self.n_border:
             w = y1[:, 1:]
             self.yy[i] = float(y1[:, 0] @ y1[:, 0])

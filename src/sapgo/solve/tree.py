@@ -305,7 +305,21 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
             diag = diags[0]
             for d in diags[1:]:
                 diag += d
-        if top:
+        if top and client is not None:   # Dask: the top's fronts on the workers too
+            from .distributed import distributed_top
+
+            t_top = time.perf_counter()
+            if lam > 0.0:
+                points_diagonal(p, work, blk, opts, tree, top, diag)
+            distributed_top(client, p, work, blk, opts, tree, solver, top, work._dask_parts,
+                            lam, diag, cb[len(per)])
+            work._dask_parts = None   # (the parts' updates go)
+            file.close()   # (opened again: what the workers wrote, seen on any filesystem)
+            file = FactorFile(work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
+            solver.file = file
+            seconds[len(per)] += time.perf_counter() - t_top
+            bar.update(sum(int(tree.pt_start[j + 1] - tree.pt_start[j]) for j in top))
+        elif top:
             _run_nodes(p, work, blk, opts, tree, solver, [(j, j + 1) for j in top], lam,
                        diag, seconds, len(per), iteration, bar, capture, cb[len(per)])
     t0 = time.perf_counter()
@@ -376,38 +390,16 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
         state.update(node=i, a=a, b=b, rhs=rhs, bord=bord, tiled=tiled, priors=held,
                      chunks=None, opened=t_open)
 
-    def node_chunks():
-        """The tiled front's own points, read (and reweighted) once for all its panels:
-        a separator's points, a few thousand."""
-        if state["chunks"] is None:
-            i = state["node"]
-            q0, q1 = int(pt[i]), int(pt[i + 1])
-            state["chunks"] = []
-            for a0 in range(q0, q1, opts.chunk_points):
-                b0 = min(q1, a0 + opts.chunk_points)
-                c = PointChunk(p, a0, b0, work.xyz_current[a0:b0], blk.camera,
-                               blk.cam_sigma, blk.frame, blk.rejected, blk.rejected_points)
-                reweight(c, work, opts)
-                state["chunks"].append((c, fronts.local(c.obs_station, c.obs_active)))
-        return state["chunks"]
-
     def assemble(c0, c1, a):
         """A panel of the tiled front at hand: its own points (the border's terms with the
-        first panel) and its priors."""
+        first panel; the points read once for all its panels) and its priors."""
         for r0, w in state["priors"]:
             if c0 <= r0 < c1:
                 a[r0 - c0:r0 - c0 + 6, r0 - c0:r0 - c0 + 6] += w
-        first = c0 == 0
-        bord = state["bord"] if first else np.zeros((state["bord"].shape[0], k, 0))
-        nb = (cnn, ccg, cdiag) if first else (np.zeros((0, 0)), np.zeros(0), np.zeros(0))
-        for c, st in node_chunks():
-            status, bad = build_front(
-                0, len(c.active), c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
-                c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo, fronts.camera,
-                blk.cams, CTRL_MASK, a, _EMPTY, state["rhs"], c.max_rays, k, lam,
-                blk.behind_ok, cal, bord, *nb, c0, c1)
-            if status != OK:
-                raise _point_error(p, c, bad, status, blk)
+        if state["chunks"] is None:
+            state["chunks"] = node_points(p, work, blk, opts, tree, fronts, state["node"])
+        build_panel(p, blk, fronts, state["chunks"], lam, a, state["rhs"], state["bord"],
+                    (cnn, ccg, cdiag), c0, c1)
 
     def close_node():
         i = state["node"]
@@ -477,6 +469,63 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
             node += 1
             open_node(node)
             close_node()
+
+
+def points_diagonal(p, work, blk, opts, tree, nodes, diag):
+    """The stations' undamped diagonal (``diag``, stations x k) of the points of
+    ``nodes``."""
+    from ..quality import reweight
+
+    pt = tree.pt_start
+    for i in nodes:
+        q0, q1 = int(pt[i]), int(pt[i + 1])
+        for a0 in range(q0, q1, opts.chunk_points):
+            b0 = min(q1, a0 + opts.chunk_points)
+            c = PointChunk(p, a0, b0, work.xyz_current[a0:b0], blk.camera, blk.cam_sigma,
+                           blk.frame, blk.rejected, blk.rejected_points)
+            reweight(c, work, opts)
+            station_diagonal(c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
+                             c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams, diag)
+
+
+def node_points(p, work, blk, opts, tree, fronts, i):
+    """Node ``i``'s own points, read (and reweighted) in chunks, each with its
+    observations' places in the front (``fronts`` entered at ``i``): a separator's points,
+    read once for all the panels of its front."""
+    from ..quality import reweight
+
+    pt = tree.pt_start
+    q0, q1 = int(pt[i]), int(pt[i + 1])
+    out = []
+    for a0 in range(q0, q1, opts.chunk_points):
+        b0 = min(q1, a0 + opts.chunk_points)
+        c = PointChunk(p, a0, b0, work.xyz_current[a0:b0], blk.camera, blk.cam_sigma,
+                       blk.frame, blk.rejected, blk.rejected_points)
+        reweight(c, work, opts)
+        out.append((c, fronts.local(c.obs_station, c.obs_active)))
+    return out
+
+
+def build_panel(p, blk, fronts, chunks, lam, a, rhs, bord, sums, c0, c1):
+    """Columns ``c0 .. c1`` (rows from ``c0``) of a front from its points ``chunks``
+    (:func:`node_points`) into ``a``, their rows of the right-hand side into ``rhs``; with
+    ``c0 == 0`` the border's rows ``bord`` (front stations x k x ng) and sums ``sums``
+    (``(cnn, ccg, cdiag)``) too."""
+    from ..adjust import _point_error
+
+    k, ng = blk.npar, blk.n_border
+    cal = blk.cal if ng else np.full((0, 8), -1, np.int64)
+    if c0 != 0:
+        bord = np.zeros((bord.shape[0], k, 0))
+        sums = (np.zeros((0, 0)), np.zeros(0), np.zeros(0))
+    for c, st in chunks:
+        status, bad = build_front(
+            0, len(c.active), c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
+            c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo, fronts.camera,
+            blk.cams, CTRL_MASK, a, _EMPTY, rhs, c.max_rays, k, lam, blk.behind_ok, cal,
+            bord, *sums, c0, c1)
+        if status != OK:
+            raise _point_error(p, c, bad, status, blk)
 
 
 #: Points a tiled front's quality takes at a time (the inverse over their stations is
