@@ -8,8 +8,9 @@ interpreter, as shape.py: peak RSS by ``wait4``) on a fresh copy, in interleaved
 - ``serial``: one process, one thread (``NUMBA_NUM_THREADS=1``, BLAS on one thread);
 - ``1 worker`` and ``2 workers``: a LocalCluster of 1 or 2 worker processes (one thread
   each) started by the run (``--workers N``), the tree's parts built, factored,
-  back-substituted and updated on the workers, the top nodes, the precision pass and the
-  commit on the client.
+  back-substituted, updated and inverted on the workers, the top fronts built and factored
+  on the workers (tiled across them beyond ``--tile`` rows); the back substitution
+  through the top, the top's point update and inversion and the commit on the client.
 
 Recorded per run: seconds per iteration and per phase (build, solve, update a step; order,
 precision, total), the bytes the client sent to and received from the workers (the pickled
@@ -63,14 +64,18 @@ except ImportError:
 CONFIGS = ("threads", "serial", "1 worker", "2 workers")
 
 
-def child(path, config):
+def child(path, config, tile=None):
     import resource
 
     from sapgo.solve import distributed as dist
 
+    if tile:
+        dist.TOP_TILE = int(tile)
+
     opts = sapgo.Options(progress=False, solver="tree")
     workers = {"1 worker": 1, "2 workers": 2}.get(config)
     rss_workers = None
+    between = 0
     t0 = time.perf_counter()
     if workers:
         with dist.cluster(workers=workers, quiet=True) as c:
@@ -81,6 +86,10 @@ def child(path, config):
             s = sapgo.adjust(path, opts)
             rss_workers = sorted(c.run(lambda: resource.getrusage(
                 resource.RUSAGE_SELF).ru_maxrss / 1024.0).values())
+            # what the workers sent each other (Dask's own count: the top's tiles and
+            # pieces of updates)
+            between = sum(c.run(lambda dask_worker: dask_worker.transfer_outgoing_bytes_total
+                                ).values())
     else:
         t1 = t0
         s = sapgo.adjust(path, opts)
@@ -96,6 +105,7 @@ def child(path, config):
         "bytes_to_workers_per_iteration": dist.TRAFFIC["to_workers"] / its if workers else 0,
         "bytes_from_workers_per_iteration": (dist.TRAFFIC["from_workers"] / its
                                              if workers else 0),
+        "bytes_between_workers_per_iteration": between / its,
         "tasks": dist.TRAFFIC["tasks"],
         "worker_peak_rss_mb": rss_workers,
         "trace": ({"nodes": {i: [float(np.median([x[0] for x in v])),
@@ -106,7 +116,7 @@ def child(path, config):
     }
 
 
-def run_child(path, config):
+def run_child(path, config, tile=None):
     import shape
 
     env_one = config == "serial"
@@ -125,7 +135,8 @@ def run_child(path, config):
         c0 = cpu_snapshot()
         ch0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         proc = subprocess.run([sys.executable, "-S", "-c", LAUNCH, sys.executable, __file__,
-                               "--child", str(path), config], capture_output=True, text=True)
+                               "--child", str(path), config, str(tile or "")],
+                              capture_output=True, text=True)
         ch1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     finally:
         os.environ.clear()
@@ -246,8 +257,8 @@ def replay_inputs(runs, nodes):
 
 def _project_costs(tree, k, inp):
     """Per-node seconds for the projections: the traced nodes of the parts as measured, the
-    others (the top, run on the client's 2 threads) and the back substitution, update and
-    build by the cost model fitted to the parts' nodes."""
+    others (the top's) and the back substitution, update and build by the cost model fitted
+    to the parts' nodes."""
     from sapgo.solve import scaleout as so
 
     fig = so.node_figures(tree, k)
@@ -299,6 +310,11 @@ def _projection(tree, k, costs, rates, task, workers, tile):
     return out
 
 
+def _top_tile(tile, k):
+    """The rows of a top front's tile as the iteration cuts them (whole stations)."""
+    return max(k, k * (tile // k))
+
+
 def simulate(gen, row, task, rates, tile, workers):
     """The replay of a measured block: validation against its 1- and 2-worker runs, and
     the projections to ``workers`` workers with the tiled top."""
@@ -311,11 +327,15 @@ def simulate(gen, row, task, rates, tile, workers):
     inp = replay_inputs(row["runs"]["1 worker"], row["trace_nodes"])
     free = so.Network(1e30, 0.0)   # (the bytes' time on one machine: in the overheads)
     valid = {}
+    # (a tiled top front: its build as traced, its tiles' kernels at the measured rates)
+    build = np.array([inp["total"].get(i, 0.0) - inp["elim"].get(i, 0.0)
+                      for i in range(tree.n_nodes)])
     for w in (1, 2):
         g = so.built_graph(tree, inp["plan"], [inp["total"].get(i, 0.0)
                                                for i in range(tree.n_nodes)],
                            inp["back_s"], inp["update_s"], inp["top_update_s"],
-                           inp["top_back_s"], inp["overhead"], inp["bytes"], w)
+                           inp["top_back_s"], inp["overhead"], inp["bytes"], w, k, build,
+                           rates, _top_tile(tile, k), task["bulk_s"])
         r = so.replay(g, free)
         meas = row["summary"][f"{w} worker{'s' if w > 1 else ''}"]["s_per_iteration"]
         valid[f"{w} worker{'s' if w > 1 else ''}"] = {
@@ -358,9 +378,9 @@ def main(argv=None):
     ap.add_argument("--configs", default=",".join(CONFIGS))
     ap.add_argument("--dir", default=None)
     ap.add_argument("--output", default=str(RESULTS))
-    ap.add_argument("--child", nargs=2)
+    ap.add_argument("--child", nargs=3)
     ap.add_argument("--tile", type=int, default=2048,
-                    help="tile of the simulated top fronts (rows)")
+                    help="rows of a tile of the top fronts (the runs' and the replay's)")
     ap.add_argument("--simulate", default="2,8,32,128",
                     help="workers of the scale-out replay")
     ap.add_argument("--big", default="3163x3163",
@@ -427,7 +447,7 @@ def main(argv=None):
                 for c in configs:
                     path = tmp / "run.h5"
                     shutil.copy(gen, path)
-                    res = run_child(path, c)
+                    res = run_child(path, c, args.tile)
                     shutil.rmtree(path.with_name(path.name + ".work"), ignore_errors=True)
                     path.unlink(missing_ok=True)
                     runs[c].append(res)
@@ -455,6 +475,8 @@ def main(argv=None):
                         [x["bytes_to_workers_per_iteration"] for x in ok]),
                     "bytes_from_workers_per_iteration": shape.spread(
                         [x["bytes_from_workers_per_iteration"] for x in ok]),
+                    "bytes_between_workers_per_iteration": shape.spread(
+                        [x.get("bytes_between_workers_per_iteration", 0) for x in ok]),
                     "sigma0": sorted({x["sigma0"] for x in ok}),
                 }
             row = {"block": name, "photos": info["photos"], "runs": runs, "summary": summary}
@@ -500,14 +522,15 @@ def table(out):
         return f"{s['median']:.{nd}f} ({s['min']:.{nd}f}-{s['max']:.{nd}f})"
 
     lines = ["| block | run | s/iteration | build / solve / update s a step | to solution s "
-             "| precision s | MB to / from workers an iteration | peak RSS MB client; "
-             "workers | sigma0 |",
+             "| precision s | MB to / from / between workers an iteration | peak RSS MB "
+             "client; workers | sigma0 |",
              "|---|---|---|---|---|---|---|---|---|"]
     for name, row in out["blocks"].items():
         for c, s in row["summary"].items():
             if not s["s_per_iteration"]:
                 continue
             to, fr = s["bytes_to_workers_per_iteration"], s["bytes_from_workers_per_iteration"]
+            bw = s.get("bytes_between_workers_per_iteration")
             wr = [w for w in s["worker_peak_rss_mb"] if w]
             lines.append(
                 f"| {name} | {c} | {rng(s['s_per_iteration'])} | "
@@ -515,7 +538,8 @@ def table(out):
                 f"{s['solve_per_iteration_s']['median']:.2f} / "
                 f"{s['update_per_iteration_s']['median']:.2f} | "
                 f"{rng(s['time_to_solution_s'], 1)} | {rng(s['precision_s'])} | "
-                f"{(to['median'] / 1e6 if to else 0):.1f} / {(fr['median'] / 1e6 if fr else 0):.1f} | "
+                f"{(to['median'] / 1e6 if to else 0):.1f} / {(fr['median'] / 1e6 if fr else 0):.1f}"
+                f" / {(bw['median'] / 1e6 if bw else 0):.1f} | "
                 f"{s['client_peak_rss_mb']['median']:.0f}; "
                 f"{', '.join(f'{x:.0f}' for x in wr[-1]) if wr else ''} | "
                 f"{s['sigma0'][0]:.10f}{' (+%d)' % (len(s['sigma0']) - 1) if len(s['sigma0']) > 1 else ''} |")

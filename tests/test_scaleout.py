@@ -146,6 +146,32 @@ def test_built_graph_on_one_worker_is_the_sum_of_its_tasks():
     assert two["seconds"] == pytest.approx(g.work() - (0.1 + 1.0) - 0.7 - 0.9)
 
 
+def test_built_graph_tiles_a_large_top_front_across_the_workers():
+    """The top on the workers as built: the separator's front (18 rows) beyond a tile of
+    6 rows is built and factored tile by tile on both workers (its flops at the kernels'
+    rate, its build as given); on one worker the iteration is the sum of its tasks."""
+    tree = _chain_tree()
+    k = 6
+    plan = ([[(0, 1)], [(1, 2)]], [2])
+    step = np.array([1.0, 2.0, 3.0])
+    build = np.array([0.0, 0.0, 0.5])
+    b = {kind: [(10.0, 20.0), (10.0, 20.0)] for kind in ("step", "back", "update")}
+    over = {"task": [0.1, 0.2], "step": 0.3, "back": 0.4, "update": 0.5, "client": 0.6}
+    rates = {x: 1e3 for x in ("potrf", "trsm", "syrk", "gemm")}
+    graphs = {w: so.built_graph(tree, plan, step, [0.7, 0.8], [0.9, 1.0], 1.1, 1.2, over, b,
+                                w, k, build, rates, tile=6) for w in (1, 2)}
+    g = graphs[2]
+    tiles = [(kd, w) for kd, w in zip(g.kind, g.worker) if kd in ("potrf", "syrk", "gemm")]
+    assert {w for _, w in tiles} == {0, 1} and "top" in g.kind
+    fl = so.node_figures(tree, k)["flops"][2]
+    assert sum(s for kd, s in zip(g.kind, g.seconds)
+               if kd in ("potrf", "trsm", "syrk", "gemm")) == pytest.approx(fl / 1e3)
+    assert sum(s for kd, s in zip(g.kind, g.seconds) if kd == "build") == pytest.approx(0.5)
+    one = so.replay(graphs[1], FREE)
+    assert one["seconds"] == pytest.approx(graphs[1].work())
+    assert so.replay(g, FREE)["seconds"] < one["seconds"]
+
+
 def test_the_grid_tree_is_the_tree_of_the_generated_block(tmp_path):
     path = tmp_path / "g.h5"
     sapgo.generate_block(path, strips=24, photos_per_strip=24, control_points=8,

@@ -7,8 +7,9 @@ on this machine (benchmarks/distributed.py traces every node of a run,
 (:class:`CostModel`, for blocks too large to run here). Two graphs:
 
 - :func:`built_graph`, the iteration as :mod:`sapgo.solve.distributed` runs it today: the
-  parts of the plan on the workers, the top nodes, the gathering and the rest of the
-  iteration on the client, three rounds of tasks. Replayed with the costs of a 1-worker
+  parts of the plan on the workers, then the top nodes' tasks on the workers (small fronts
+  one task, large ones tile by tile), the back substitution through the top, the
+  gathering and the rest of the iteration on the client, three rounds of tasks. Replayed with the costs of a 1-worker
   run it predicts the 1- and 2-worker runs (the model's validation);
 - :func:`tiled_graph`, the design for many workers: the subtrees on their workers as today,
   every top front factored tile by tile (``potrf``, ``trsm``, ``syrk``, ``gemm`` on
@@ -295,9 +296,15 @@ def _part_nodes(per):
 
 
 def built_graph(tree, plan, step_s, part_back_s, part_update_s, top_update_s, top_back_s,
-                overhead, bytes_, workers):
+                overhead, bytes_, workers, k=6, build_s=None, rates=None, tile=2048,
+                task_s=0.0):
     """The iteration as :mod:`sapgo.solve.distributed` runs it on ``workers`` workers (part
-    ``w`` on worker ``w mod workers``, the client the worker numbered ``workers``):
+    ``w`` on worker ``w mod workers``, the client the worker numbered ``workers``): the
+    parts' step tasks; the top nodes' tasks on the workers (:func:`_top_graph`: a front of
+    at most ``tile`` rows one task where its largest child's update is, a larger one tile by
+    tile over all the workers, its build ``build_s`` and the kernels at ``rates`` plus
+    ``task_s`` a task; without ``rates`` every top front one task); the client's gathering,
+    its back substitution through the top, the back-substitution and update rounds.
 
     ``step_s`` (node -> seconds of building and eliminating it), ``part_back_s`` and
     ``part_update_s`` (seconds of each part's back-substitution and update tasks),
@@ -306,19 +313,35 @@ def built_graph(tree, plan, step_s, part_back_s, part_update_s, top_update_s, to
     seconds of each round besides the tasks' own; ``client``: the rest of the iteration on
     the client), ``bytes_`` (per round kind, per part: ``(to the worker, from it)``)."""
     per, top = plan
+    f_all = node_figures(tree, k)["f"].astype(np.int64)
     g = Graph()
     c = workers
     start = g.add("client", c, 0.0)
+    out, last_step, home = {}, {}, {}
     ends = []
     for w, nodes in enumerate(_part_nodes(per)):
         t = g.add("task", w % workers, overhead["task"][w], [(start, bytes_["step"][w][0])])
         for i in nodes:
             t = g.add("step", w % workers, step_s[i], [(t, 0)])
+        for i in nodes:   # (the updates stay on the worker until the step task's end)
+            out[i] = [(t, 0, int(f_all[i]), 0, int(f_all[i]))]
+            home[i] = w % workers
         ends.append((t, bytes_["step"][w][1]))
     t = g.add("round", c, overhead["step"], ends)
-    for i in top:
-        t = g.add("top", c, step_s[i], [(t, 0)])
-    t = g.add("top", c, top_back_s, [(t, 0)])
+    children = tree.children()
+    groups = {}
+    big = (k * (tree.hi - tree.lo + np.diff(tree.bptr)) > tile if rates is not None
+           else np.zeros(tree.n_nodes, bool))
+    for i in sorted(top):
+        kids = [x for x in children[i] if x in home]
+        home[i] = (home[max(kids, key=lambda x: f_all[x])] if kids else i % workers)
+        groups[i] = list(range(workers)) if big[i] else [home[i]]
+    _top_graph(g, tree, k, top, groups, out, last_step, t, step_s,
+               build_s if build_s is not None else np.zeros(tree.n_nodes),
+               rates or {}, tile if rates is not None else np.inf, task_s, half=False)
+    last = [x for i in top for x in (last_step[i] if isinstance(last_step[i], list)
+                                     else [last_step[i]])]
+    t = g.add("top", c, top_back_s, [(t, 0)] + [(x, 0) for x in last])
     ends = [(g.add("back", w % workers, part_back_s[w], [(t, bytes_["back"][w][0])]),
              bytes_["back"][w][1]) for w in range(len(per))]
     t = g.add("round", c, overhead["back"], ends)
@@ -338,50 +361,23 @@ def _grid(n):
     return r, n // r
 
 
-def tiled_graph(tree, k, workers, step_s, back_s, update_s, build_s, rates, tile=2048,
-                task_s=0.0, plan=None):
-    """The iteration for ``workers`` workers (one core each) as designed for many workers:
-    the subtrees of :func:`~sapgo.solve.tree.parallel_plan` on their workers (each node's
-    ``step_s``), the top fronts larger than one tile factored tile by tile on the workers
-    below them (``build_s`` of their own points split over those workers; the kernels at
-    ``rates``, :func:`kernel_rates`, plus ``task_s`` a task), smaller top fronts as one task
-    on the first of them; the Schur updates sent as lower triangles, tile by tile; back
-    substitution (``back_s``) and point update (``update_s``) down the tree; the sums to
-    worker 0. Arrays per node."""
+def _top_graph(g, tree, k, top, groups, out, last_step, start, step_s, build_s, rates,
+               tile, task_s, half=True):
+    """The top nodes' tasks (:func:`tiled_graph`, :func:`built_graph`): a front of at most
+    ``tile`` rows one task (``step_s``) on the first worker of its group (``groups``: node
+    -> workers), a larger one tile by tile 2-D block-cyclic over its group (its points'
+    build, ``build_s``, split over the workers holding its tiles; the kernels at ``rates``
+    plus ``task_s`` a task); the children's updates (``out``: node -> the tasks holding
+    blocks of its update) sent to the tiles they land on (``half``: a diagonal block as its
+    lower triangle). Fills ``out`` and ``last_step`` for the top nodes; returns the workers
+    holding each tiled node's tiles."""
     from .distributed import tile_cuts
-    from .tree import parallel_plan
 
-    per, top = plan or parallel_plan(tree, k, workers)
     fig = node_figures(tree, k)
     m_all, f_all = fig["m"].astype(np.int64), fig["f"].astype(np.int64)
-    first = tree.first
-    n_nodes = tree.n_nodes
     children = tree.children()
-    owner = np.full(n_nodes, -1, np.int64)   # a part's nodes: its worker
-    for w, nodes in enumerate(_part_nodes(per)):
-        owner[nodes] = w
-    g = Graph()
-    start = g.add("start", 0, 0.0)
-    # out[i]: how node i's update leaves it: [(task, rows lo, rows hi, cols lo, cols hi)]
-    # in its boundary's scalar rows (a task holding that block of the update)
-    out = {}
-    last_step = {}
-    for w, nodes in enumerate(_part_nodes(per)):
-        t = start
-        for i in nodes:
-            t = g.add("subtree", w, step_s[i], [(t, 0)])
-            last_step[i] = t
-            f = int(f_all[i])
-            out[i] = [(t, 0, f, 0, f)]
-    # the top nodes' worker groups: the workers of the parts below them
-    groups = {}
-    for i in top:
-        below = owner[first[i]:i + 1]
-        ws = sorted(set(int(x) for x in below[below >= 0]))
-        groups[i] = ws or list(range(workers))
-    t_back_of = {}
+    half_ok = half
     holding = {}   # a tiled top node: the workers holding its tiles
-    top_set = set(int(i) for i in top)
     tile_of = {}
 
     def front_pos(i, c):
@@ -417,7 +413,7 @@ def tiled_graph(tree, k, workers, step_s, back_s, update_s, build_s, rates, tile
                         if b > a:
                             continue
                         nb = int((ca == b).sum())
-                        half = a == b and (r0, r1) == (c0, c1)
+                        half = half_ok and a == b and (r0, r1) == (c0, c1)
                         nbytes = 8.0 * na * nb / (2 if half else 1)
                         into.setdefault((int(a), int(b)), []).append((t, nbytes))
         if not big:
@@ -466,6 +462,51 @@ def tiled_graph(tree, k, workers, step_s, back_s, update_s, build_s, rates, tile
                    cuts[b][1] - m) for a in range(mt, nt) for b in range(mt, a + 1)]
         # (its factor: every own-column tile's last task)
         last_step[i] = [last[(a, b)] for a in range(nt) for b in range(min(a + 1, mt))]
+    return holding
+
+
+def tiled_graph(tree, k, workers, step_s, back_s, update_s, build_s, rates, tile=2048,
+                task_s=0.0, plan=None):
+    """The iteration for ``workers`` workers (one core each) as designed for many workers:
+    the subtrees of :func:`~sapgo.solve.tree.parallel_plan` on their workers (each node's
+    ``step_s``), the top fronts larger than one tile factored tile by tile on the workers
+    below them (``build_s`` of their own points split over those workers; the kernels at
+    ``rates``, :func:`kernel_rates`, plus ``task_s`` a task), smaller top fronts as one task
+    on the first of them; the Schur updates sent as lower triangles, tile by tile; back
+    substitution (``back_s``) and point update (``update_s``) down the tree; the sums to
+    worker 0. Arrays per node."""
+    from .tree import parallel_plan
+
+    per, top = plan or parallel_plan(tree, k, workers)
+    f_all = node_figures(tree, k)["f"].astype(np.int64)
+    first = tree.first
+    n_nodes = tree.n_nodes
+    owner = np.full(n_nodes, -1, np.int64)   # a part's nodes: its worker
+    for w, nodes in enumerate(_part_nodes(per)):
+        owner[nodes] = w
+    g = Graph()
+    start = g.add("start", 0, 0.0)
+    # out[i]: how node i's update leaves it: [(task, rows lo, rows hi, cols lo, cols hi)]
+    # in its boundary's scalar rows (a task holding that block of the update)
+    out = {}
+    last_step = {}
+    for w, nodes in enumerate(_part_nodes(per)):
+        t = start
+        for i in nodes:
+            t = g.add("subtree", w, step_s[i], [(t, 0)])
+            last_step[i] = t
+            f = int(f_all[i])
+            out[i] = [(t, 0, f, 0, f)]
+    # the top nodes' worker groups: the workers of the parts below them
+    groups = {}
+    for i in top:
+        below = owner[first[i]:i + 1]
+        ws = sorted(set(int(x) for x in below[below >= 0]))
+        groups[i] = ws or list(range(workers))
+    t_back_of = {}
+    holding = _top_graph(g, tree, k, top, groups, out, last_step, start, step_s, build_s,
+                         rates, tile, task_s)
+    top_set = set(int(i) for i in top)
     # back substitution down the tree: the top nodes on their groups, then the parts
     ends = []
     for i in sorted(top, reverse=True):
