@@ -77,13 +77,18 @@ def test_two_workers_give_the_threaded_solution(case, blocks, miscalibrated_squa
     # both workers built, factored, back-substituted, updated and inverted a part of the
     # tree
     tops = ("top_panel", "_t_potrf", "_t_trsm", "_t_update", "_t_add") if tiled else ()
-    for step in ("part_step", "part_solve", "part_update", "part_quality") + tops:
+    for step in ("part_step", "part_solve", "part_update", "part_quality",
+                 "part_report") + tops:
         assert {w for name, w in tasks if name == step} == set(
             client.scheduler_info()["workers"]), step
     assert any(name == "top_node" for name, _ in tasks) != tiled   # (small top fronts)
     assert sd.solver == "tree" and sd.converged and sd.iterations == sr.iterations
     assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-10)
     assert_same_solution(path, ref, rtol=1e-10)
+    # the report's sums over the points and observations, the workers' parts merged
+    for key in ("check_points", "control_points", "reliability", "strip_comparison",
+                "truth", "precision", "excluded_points", "n_excluded_points"):
+        assert_same_report(getattr(sd, key), getattr(sr, key), key)
     # the high correlations found on the workers: the threaded run's (to rounding)
     cd, cr = sd.correlations, sr.correlations
     assert cd["counts"] == cr["counts"]
@@ -96,6 +101,22 @@ def test_two_workers_give_the_threaded_solution(case, blocks, miscalibrated_squa
         # sum W'W in another order: 1e-10 of the solution is 1e-9 of its sigmas)
         for a, b in zip(sd.calibration, sr.calibration):
             assert a["sigma"] == pytest.approx(b["sigma"], rel=1e-9 if tiled else 1e-10)
+
+
+def assert_same_report(a, b, where, rel=1e-9):
+    """Two reports' parts (dicts, lists, numbers) equal, numbers to ``rel``."""
+    if isinstance(b, dict):
+        assert isinstance(a, dict) and set(a) == set(b), where
+        for k in b:
+            assert_same_report(a[k], b[k], f"{where}.{k}", rel)
+    elif isinstance(b, (list, tuple)):
+        assert len(a) == len(b), where
+        for j, (x, y) in enumerate(zip(a, b)):
+            assert_same_report(x, y, f"{where}[{j}]", rel)
+    elif isinstance(b, float):
+        assert a == pytest.approx(b, rel=rel, abs=1e-12), where
+    else:
+        assert a == b, where
 
 
 def test_a_tiled_update_travels_as_its_scratch_file(tmp_path):
@@ -143,7 +164,7 @@ def test_the_trace_holds_every_node_and_task(blocks, tmp_path, client, monkeypat
     its = {len(v) for v in dist.TRACE["nodes"].values()}
     assert its == {s.iterations}
     kinds = [r["kind"] for r in dist.TRACE["rounds"]]
-    assert kinds == ["step", "back", "update"] * s.iterations + ["quality"]
+    assert kinds == ["step", "back", "update"] * s.iterations + ["quality", "report"]
     for r in dist.TRACE["rounds"]:
         assert [t["part"] for t in r["tasks"]] == list(range(len(per)))
         assert all(t["seconds"] > 0 and t["bytes_in"] > 0 and t["bytes_out"] > 0

@@ -1338,6 +1338,72 @@ def _blunder_check(p, blk, alpha):
     return out
 
 
+class ReportSums:
+    """The report's statistics over a project's points and their image observations,
+    accumulated by point ranges (:meth:`add`) and merged (:meth:`merge`: a Dask worker's
+    part): the observations' reliability (with the precision), the check points and the
+    control's residuals, the errors against the truth, the strips' comparison and the
+    excluded points."""
+
+    def __init__(self, p, blk, opts, reliability=None):
+        self.reliability = reliability
+        self.checks = check_point_statistics()
+        self.truth = truth_statistics() if p.has_truth else None
+        self.strips = StripComparison(p.read_field("stations", "strip"), blk.station_active,
+                                      p.frame())
+        self.excluded = []   # (point index, id), the first LISTED_IDS
+        self.n_excluded = 0
+
+    def add(self, p, blk, opts, xyz, quality, a, b):
+        """Points ``a .. b`` (adjusted coordinates ``xyz``, by point index) and their
+        observations (``quality``, by observation index, or None without the precision)."""
+        for a0 in range(a, b, opts.chunk_points):
+            b0 = min(b, a0 + opts.chunk_points)
+            pts = p.read("points", a0, b0)
+            adj = np.asarray(xyz[a0:b0])
+            chunk = PointChunk(p, a0, b0, adj, blk.camera, blk.cam_sigma, None, blk.rejected,
+                               blk.rejected_points)
+            if self.reliability is not None and chunk.o1 > chunk.o0:
+                o0, o1 = chunk.o0, chunk.o1
+                ob = p.read("observations", o0, o1)
+                act = ob["status"] == STATUS_ACTIVE
+                if len(blk.rejected):
+                    act &= ~np.isin(np.arange(o0, o1), blk.rejected)
+                sig = np.where(ob["sigma"] > 0, ob["sigma"],
+                               blk.cam_sigma[blk.camera[ob["station"]]])
+                self.reliability.add(np.asarray(quality[o0:o1]), sig, act)
+            self.strips.add(chunk, blk.eo, blk.camera, blk.cams)
+            act = pts["status"] == STATUS_ACTIVE
+            out = np.flatnonzero(~act)
+            self.n_excluded += len(out)
+            self.excluded.extend((a0 + int(j), int(pts["id"][j]))
+                                 for j in out[:LISTED_IDS - len(self.excluded)])
+            self.checks.add(pts[act], adj[act],
+                            control_rotations(pts["kind"][act], pts["control"][act], blk.frame))
+            if self.truth is not None:
+                self.truth.add_points(p.read_field("truth/points", "xyz", a0, b0)[act],
+                                      adj[act])
+
+    def travel(self):
+        """What goes back from a worker: the sums, not the stations' strips."""
+        self.strips.strip = None
+        return self
+
+    def merge(self, other):
+        """Add ``other``'s sums (another part's points)."""
+        if self.reliability is not None:
+            self.reliability.merge(other.reliability)
+        self.checks.merge(other.checks)
+        if self.truth is not None:
+            self.truth.points.merge(other.truth.points)
+        self.strips.merge(other.strips)
+        self.excluded = sorted(self.excluded + other.excluded)[:LISTED_IDS]
+        self.n_excluded += other.n_excluded
+
+    def excluded_ids(self):
+        return [i for _, i in sorted(self.excluded)[:LISTED_IDS]]
+
+
 def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts, order_info,
             run, timings, t_start, resumed_from):
     """Write the adjusted values and the report into a copy of the project, then replace it.
@@ -1365,34 +1431,19 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
                                                       last["sigma0"], correlations)
         _note_planted(p_read, blk, quality, run)
         reliability = reliability_statistics(opts.snooping_alpha)
-    for a, b in (p_read.chunks("observations", opts.chunk_points) if not no_precision
-                 else ()):
-        ob = p_read.read("observations", a, b)
-        act = ob["status"] == STATUS_ACTIVE
-        if len(blk.rejected):
-            act &= ~np.isin(np.arange(a, b), blk.rejected)
-        sig = np.where(ob["sigma"] > 0, ob["sigma"], blk.cam_sigma[blk.camera[ob["station"]]])
-        reliability.add(quality[a:b], sig, act)
+    # the report's sums over the points and their observations: each Dask part's points on
+    # its worker, the rest here
+    sums = ReportSums(p_read, blk, opts, reliability)
+    rest = [(0, p_read.n_points)]
+    if getattr(opts, "client", None) is not None and getattr(work, "_dask_plan", None):
+        from .solve.distributed import distributed_report
+
+        rest = distributed_report(opts.client, p_read, work, blk, opts, sums)
+    for a, b in rest:
+        sums.add(p_read, blk, opts, xyz_ds, quality, a, b)
     timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t_prec
-    checks = check_point_statistics()
-    truth = truth_statistics() if p_read.has_truth else None
-    strips = StripComparison(p_read.read_field("stations", "strip"), blk.station_active,
-                             p_read.frame())
-    excluded_points, n_excluded_points = [], 0
-    for a, b in p_read.chunks("points", opts.chunk_points):
-        pts = p_read.read("points", a, b)
-        adj = xyz_ds[a:b]
-        strips.add(PointChunk(p_read, a, b, adj, blk.camera, blk.cam_sigma, None,
-                              blk.rejected, blk.rejected_points), blk.eo, blk.camera,
-                   blk.cams)
-        act = pts["status"] == STATUS_ACTIVE
-        ids = pts["id"][~act]
-        n_excluded_points += len(ids)
-        excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
-        checks.add(pts[act], adj[act],
-                   control_rotations(pts["kind"][act], pts["control"][act], blk.frame))
-        if truth is not None:
-            truth.add_points(p_read.read_field("truth/points", "xyz", a, b)[act], adj[act])
+    checks, truth, strips = sums.checks, sums.truth, sums.strips
+    excluded_points, n_excluded_points = sums.excluded_ids(), sums.n_excluded
     if truth is not None:
         for a, b in p_read.chunks("truth/stations", opts.chunk_points):
             act = blk.station_active[a:b]

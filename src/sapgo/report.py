@@ -37,6 +37,14 @@ class _Rms:
         self.max_xy = max(self.max_xy, float(np.hypot(d[:, 0], d[:, 1]).max()))
         self.max_z = max(self.max_z, float(np.abs(d[:, 2]).max()))
 
+    def merge(self, other):
+        """Add ``other``'s differences."""
+        self.n += other.n
+        self.ss += other.ss
+        self.s += other.s
+        self.max_xy = max(self.max_xy, other.max_xy)
+        self.max_z = max(self.max_z, other.max_z)
+
     def result(self):
         if self.n == 0:
             return {"n": 0, "sx": None, "sy": None, "sz": None, "sxy": None}
@@ -70,6 +78,12 @@ class check_point_statistics:
         d = np.where(mask, diff, 0.0)
         self.ctrl_n += mask.sum(axis=0)
         self.ctrl_ss += (d * d).sum(axis=0)
+
+    def merge(self, other):
+        """Add ``other``'s points."""
+        self.check.merge(other.check)
+        self.ctrl_n += other.ctrl_n
+        self.ctrl_ss += other.ctrl_ss
 
     def result(self):
         return self.check.result()
@@ -249,6 +263,13 @@ class reliability_statistics:
         # a bounded sample for the quantiles: every k-th value once there are many
         step = max(1, self.n // 200000)
         self.mdb.append(fin[::step].astype(np.float32))
+
+    def merge(self, other):
+        """Add ``other``'s observations (its sample of the blunders joins this one's)."""
+        self.n += other.n
+        self.sum_r += other.sum_r
+        self.uncontrolled += other.uncontrolled
+        self.mdb.extend(other.mdb)
 
     def result(self):
         if not self.n:

@@ -141,6 +141,14 @@ class StripComparison:
             for c in range(3):
                 acc[1 + c] += float(s[c])
 
+    def merge(self, other):
+        """Add ``other``'s pairs of strips."""
+        for key, (n, *ss) in other.acc.items():
+            acc = self.acc.setdefault(key, [0, 0.0, 0.0, 0.0])
+            acc[0] += n
+            for c in range(3):
+                acc[1 + c] += ss[c]
+
     def result(self):
         """``{"axes", "pairs": [{"strips": [a, b], "n", "sigma_m": [..]}], "weighted_average":
         {"n", "sigma_m"}}`` (strip numbers as in ``/stations.strip``); None without pairs."""

@@ -33,13 +33,15 @@ import sys
 import time
 
 import numpy as np
+from numba import njit
 
 from ..errors import SapgoError
 
 __all__ = ["TRACE", "TRAFFIC", "client_seconds", "cluster", "distributed_quality",
-           "distributed_solve", "distributed_step", "distributed_update", "part_solve",
+           "distributed_report", "distributed_solve", "distributed_step", "distributed_top",
+           "distributed_update", "part_report",
            "note_nodes", "part_quality", "part_solve", "part_step", "part_update",
-           "extend_add_tiles", "tile_cuts", "tile_pieces", "tiled_cholesky",
+           "extend_add_tiles", "tile_cuts", "tile_grid", "tile_pieces", "tiled_cholesky",
            "tiled_cholesky_dense", "worker_addresses"]
 
 #: Seconds to wait for a scheduler given by its address.
@@ -177,8 +179,6 @@ def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, 
     :attr:`~sapgo.solve.fronts.TreeSolver.trace`). ``progress``: the key under which its
     points done go to the client's bar (:class:`_Progress`)."""
     from ..blas import blas_limits
-    from ..project import Project
-    from ..work import Work
     from .fronts import FactorFile, TreeSolver, factor_layout
     from .tree import FACTOR_FILE, _run_nodes
 
@@ -186,9 +186,7 @@ def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, 
     k, ng = blk.npar, blk.n_border
     n = len(blk.station_ids)
     t0 = time.perf_counter()
-    with Project(path, "r") as p:
-        work = Work(work_dir, p, band_width, create=False, block=k, n_border=ng)
-        work.state = state
+    with _OnWorker(path, work_dir, band_width, state, blk) as (p, work):
         file = FactorFile(work.dir / FACTOR_FILE, factor_layout(tree, k), n_rhs=1 + ng)
         try:
             solver = TreeSolver(tree, k, None, opts.pivot_tolerance, file=file, n_border=ng,
@@ -210,7 +208,6 @@ def part_step(path, work_dir, band_width, state, blk, opts, tree, plan, w, lam, 
             updates = {int(i): v for i, v in solver.updates.items()}
         finally:
             file.close()
-            work.close()
     nodes = np.concatenate([np.arange(a, b) for a, b in per[w]])
     return {"updates": updates, "update_nodes": sorted(updates), "nodes": nodes,
             "yy": solver.yy[nodes],
@@ -227,15 +224,18 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration,
     ``(diags, border sums, seconds)`` per part as the threaded step's."""
     client = opts.client
     wopts = dataclasses.replace(opts, client=None, progress=False)
-    # the project's path, the work directory and the block (its stations' orientations:
-    # 48 bytes a station) travel once a step; the tree's arrays are scattered once a run
+    # the block (its stations' orientations and their vectors) goes to each worker once a
+    # step, for the parts' and the top's tasks; the tree's arrays are scattered once a run
     # and kept by the workers
     tree_f = getattr(work, "_tree_future", None)
+    n_workers = len(worker_addresses(client))
     if tree_f is None or getattr(work, "_tree_id", None) is not tree:
-        _count(*[tree] * len(worker_addresses(client)), key="to_workers")   # (to each)
+        _count(*[tree] * n_workers, key="to_workers")   # (to each)
         tree_f = client.scatter(tree, broadcast=True)
         work._tree_future, work._tree_id = tree_f, tree
     wblk = dataclasses.replace(blk, tree=None)   # (the tree is on the workers already)
+    _count(*[wblk] * n_workers, key="to_workers")
+    wblk = work._blk_future = client.scatter(wblk, broadcast=True)
     work._dask_plan = (per, top)
     if TRACE["on"]:
         TRACE["plan"] = ([list(r) for r in per], [int(i) for i in top])
@@ -252,7 +252,6 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration,
     # the solver's seconds of each worker (its parts one after the other): the busiest one
     # counts, as the busiest thread's does in the threaded step
     seconds = [0.0] * len(per)
-    n_workers = len(worker_addresses(client))
     for w, r in enumerate(results):
         solver.yy[r["nodes"]] = r["yy"]
         solver._ww[w] = r["ww"]
@@ -388,24 +387,16 @@ def part_update(path, work_dir, band_width, state, blk, opts, delta, ranges, cam
     their new coordinates and residuals into the shared work buffers; returns the sums
     (``stats``, ``robust``) and the task's ``seconds``."""
     from ..adjust import update_range
-    from ..project import Project
-    from ..work import Work
 
     t0 = time.perf_counter()
     stats, robust = np.zeros(11), np.zeros(2, np.int64)
-    with Project(path, "r") as p:
-        work = Work(work_dir, p, band_width, create=False, block=blk.npar,
-                    n_border=blk.n_border)
-        work.state = state
-        try:
-            bar = _Progress(progress) if progress else None
-            for a, b in ranges:
-                update_range(p, work, blk, delta, opts, a, b, stats, robust, cams_new, lam,
-                             dtheta, iteration, bar)
-            if bar is not None:
-                bar.flush()
-        finally:
-            work.close()
+    with _OnWorker(path, work_dir, band_width, state, blk) as (p, work):
+        bar = _Progress(progress) if progress else None
+        for a, b in ranges:
+            update_range(p, work, blk, delta, opts, a, b, stats, robust, cams_new, lam,
+                         dtheta, iteration, bar)
+        if bar is not None:
+            bar.flush()
     return {"stats": stats, "robust": robust, "seconds": time.perf_counter() - t0}
 
 
@@ -445,11 +436,9 @@ def part_quality(path, work_dir, band_width, state, blk, opts, tree, ranges, hel
     stations' variances per range (``var``), the high correlations found (``correlations``,
     a :class:`~sapgo.report.HighCorrelations` or None) and the task's ``seconds``."""
     from ..blas import blas_limits
-    from ..project import Project
     from ..quality import QUALITY_COLUMNS
     from ..rawfile import RawArray
     from ..report import HighCorrelations
-    from ..work import Work
     from .fronts import FactorFile, TreeSolver, factor_layout
     from .tree import FACTOR_FILE, quality_visitor
 
@@ -458,9 +447,7 @@ def part_quality(path, work_dir, band_width, state, blk, opts, tree, ranges, hel
     n = len(blk.station_ids)
     var = np.zeros((n, k))
     correlations = HighCorrelations(threshold) if threshold is not None else None
-    with Project(path, "r") as p:
-        work = Work(work_dir, p, band_width, create=False, block=k, n_border=ng)
-        work.state = state
+    with _OnWorker(path, work_dir, band_width, state, blk) as (p, work):
         files = []
         try:
             d = work.dir
@@ -483,7 +470,6 @@ def part_quality(path, work_dir, band_width, state, blk, opts, tree, ranges, hel
         finally:
             for f in files:
                 f.close()
-            work.close()
     return {"var": [var[int(tree.lo[a]):int(tree.hi[b - 1])] for a, b in ranges],
             "correlations": correlations, "seconds": time.perf_counter() - t0}
 
@@ -521,6 +507,46 @@ def distributed_quality(client, p, work, blk, opts, tree, per, held, sigma0, til
 
 
 
+def part_report(path, work_dir, band_width, state, blk, opts, ranges, precision):
+    """On a worker: the report's sums (:class:`sapgo.adjust.ReportSums`) over its part's
+    points (``ranges``) and their observations, the quality read from the shared work
+    files (``precision``). Returns ``{"sums", "seconds"}``."""
+    from ..adjust import ReportSums
+    from ..quality import QUALITY_COLUMNS
+    from ..rawfile import RawArray
+    from ..report import reliability_statistics
+
+    t0 = time.perf_counter()
+    with _OnWorker(path, work_dir, band_width, state, blk) as (p, work):
+        quality = (RawArray(work.dir / "quality.bin", (p.n_observations, len(QUALITY_COLUMNS)))
+                   if precision else None)
+        try:
+            sums = ReportSums(p, blk, opts, reliability_statistics(opts.snooping_alpha)
+                              if precision else None)
+            for a, b in ranges:
+                sums.add(p, blk, opts, work.xyz_current, quality, a, b)
+        finally:
+            if quality is not None:
+                quality.close()
+    return {"sums": sums.travel(), "seconds": time.perf_counter() - t0}
+
+
+def distributed_report(client, p, work, blk, opts, sums):
+    """The report's sums of each part's points on its worker (:func:`part_report`), added
+    into ``sums``. Returns the point ranges left to the client (the top nodes')."""
+    per, top = work._dask_plan
+    pt = blk.tree.pt_start
+    wopts = dataclasses.replace(opts, client=None, progress=False)
+    wblk = dataclasses.replace(blk, tree=None)
+    ranges = [[(int(pt[a]), int(pt[b])) for a, b in r] for r in per]
+    results = _round(client, "report", part_report,
+                     [(str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts,
+                       ranges[w], sums.reliability is not None) for w in range(len(per))])
+    for res in results:
+        sums.merge(res["sums"])
+    return [(int(pt[i]), int(pt[i + 1])) for i in sorted(top)]
+
+
 # -- a front factored tile by tile across the workers -----------------------------------
 #
 # The building block of the top fronts tiled across workers (the design the scale-out replay
@@ -550,22 +576,23 @@ def tile_pieces(rows, cols, cuts):
 
 def _t_add(tile, r0, c0, *pieces):
     """``tile`` (rows from ``r0``, columns from ``c0`` of the front) plus the pieces
-    ``(rows, cols, block)`` (places in the front)."""
-    out = np.array(tile, copy=True)
+    ``(rows, cols, block)`` (places in the front; :func:`_add_lower`)."""
+    out = np.array(tile, copy=True, order="F")
     for rows, cols, block in pieces:
-        out[np.ix_(rows - r0, cols - c0)] += _lower(rows, cols, block)
+        _add_lower(out, r0, c0, rows, cols, block)
     return out
 
 
-def _lower(rows, cols, block):
-    """``block`` at places ``rows`` x ``cols`` of a front with what falls above the
-    front's diagonal zeroed: an update's strict upper triangle is not set (its diagonal
-    blocks are in full; the rest may be anything, NaN included)."""
-    if rows[0] < cols[-1]:   # (places ascending: else nothing above the diagonal)
-        above = rows[:, None] < cols[None, :]
-        if above.any():
-            return np.where(above, 0.0, block)
-    return block
+@njit(cache=True, nogil=True)
+def _add_lower(out, r0, c0, rows, cols, block):
+    """``out[rows - r0, cols - c0] += block`` where the front's row is not above its column:
+    an update's strict upper triangle is not set (its diagonal blocks are in full; the rest
+    may be anything, NaN included)."""
+    for j in range(len(cols)):
+        c = cols[j]
+        for i in range(len(rows)):
+            if rows[i] >= c:
+                out[rows[i] - r0, c - c0] += block[i, j]
 
 
 def extend_add_tiles(client, tiles, cuts, updates):
@@ -578,15 +605,21 @@ def extend_add_tiles(client, tiles, cuts, updates):
     return _add_blocks(client, tiles, cuts, blocks, _tile_places(client))
 
 
+def tile_grid(n):
+    """``(rows, cols)`` of the grid of ``n`` workers a front's tiles are dealt over, as
+    square as ``n`` allows, the longer side down the rows: the tiles below a diagonal tile
+    (one column, factored after it, ``trsm``) go to as many workers as there are rows."""
+    c = int(np.sqrt(n))
+    while n % c:
+        c -= 1
+    return n // c, c
+
+
 def _tile_places(client):
     """``where(i, j)``: the submit options placing tile ``(i, j)``'s tasks on one worker,
-    2-D block-cyclic over the cluster's workers (a grid as square as their number)."""
+    2-D block-cyclic over the cluster's workers (:func:`tile_grid`)."""
     addresses = worker_addresses(client)
-    w = len(addresses)
-    r = int(np.sqrt(w))
-    while w % r:
-        r -= 1
-    c = w // r
+    r, c = tile_grid(len(addresses))
 
     def where(i, j):
         return {"workers": [addresses[(i % r) * c + (j % c)]], "allow_other_workers": True,
@@ -832,20 +865,18 @@ def _front_part(env, blk, opts, tree, i, lam, priors, damping, c0, c1):
 
 
 def top_panel(path, work_dir, band_width, state, blk, opts, tree, i, lam, priors, damping,
-              c0, c1):
-    """On a worker: a column panel of a tiled top front (:func:`_front_part`) as ``{"a":
-    (n - c0) x w, "b": its rows of the right-hand side (w x 1), "bord": the border's rows
-    (n x ng, first panel), "border": the border's sums (first panel) or None}``."""
+              c0, c1, rows):
+    """On a worker: a column panel of a tiled top front (:func:`_front_part`) as ``{"tiles":
+    its tiles, rows ``rows`` (``(r0, r1)`` from ``c0``), "b": its rows of the right-hand side
+    (w x 1), "bord": the border's rows (n x ng, first panel), "border": the border's sums
+    (first panel) or None}``."""
     t0 = time.perf_counter()
     with _OnWorker(path, work_dir, band_width, state, blk) as env:
         a, b, sums = _front_part(env, blk, opts, tree, i, lam, priors, damping, c0, c1)
-    return {"a": a, "b": np.ascontiguousarray(b[c0:c1, :1]),
+    return {"tiles": [a[r0 - c0:r1 - c0] for r0, r1 in rows],
+            "b": np.ascontiguousarray(b[c0:c1, :1]),
             "bord": np.ascontiguousarray(b[:, 1:]) if c0 == 0 else None, "border": sums,
             "seconds": time.perf_counter() - t0}
-
-
-def _t_rows(res, r0, r1):
-    return np.asfortranarray(res["a"][r0:r1])
 
 
 def _t_rrow(rhs, bord, c0, c1):
@@ -898,7 +929,7 @@ def top_node(path, work_dir, band_width, state, blk, opts, tree, i, lam, priors,
         for rows, cols, block in pieces:
             inner = rows < n
             if inner.all():
-                a[np.ix_(rows, cols)] += _lower(rows, cols, block)
+                _add_lower(a, 0, 0, rows, cols, block)
             else:   # (rows of the right-hand sides: b')
                 b[cols, (rows - n)[:, None]] += block
         own = a[:, :m]
@@ -958,9 +989,9 @@ def distributed_top(client, p, work, blk, opts, tree, solver, top, parts, lam, d
     tile = max(k, k * (TOP_TILE // k))
     layout = factor_layout(tree, k)
     wopts = dataclasses.replace(opts, client=None, progress=False)
-    wblk = dataclasses.replace(blk, tree=None)
     tree_f = work._tree_future
-    common = (str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts, tree_f)
+    common = (str(p.path), str(work.dir), work.band_width, work.state, work._blk_future,
+              wopts, tree_f)
     inputs = _top_inputs(p, work, blk, opts, tree, top, lam, diag)
     addresses = worker_addresses(client)
     blocks = {}      # node -> its update's blocks for the parent
@@ -1068,17 +1099,16 @@ def _submit_top(client, blk, tree, top, common, inputs, blocks, home, layout, to
         nt = len(cuts)
         mt = sum(1 for a0, _ in cuts if a0 < m)
         panels = [client.submit(top_panel, *common, i, lam, priors, damping, c0, c1,
-                                key=_key("top_panel", tag), **where(j, j))
+                                cuts[j:-1], key=_key("top_panel", tag), **where(j, j))
                   for j, (c0, c1) in enumerate(cuts[:-1])]
         bord = (client.submit(_dig, panels[0], ("bord",), key=_key("_dig", tag))
                 if ng else None)
         borders.append(client.submit(_dig, panels[0], ("border",), key=_key("_dig", tag)))
         tiles = {}
         for j, (c0, c1) in enumerate(cuts[:-1]):
-            for r in range(j, nt - 1):
-                tiles[(r, j)] = client.submit(_t_rows, panels[j], cuts[r][0] - c0,
-                                              cuts[r][1] - c0, key=_key("_t_rows", tag),
-                                              **where(j, j))
+            for r in range(j, nt - 1):   # (views of the panel, where it is)
+                tiles[(r, j)] = client.submit(_dig, panels[j], ("tiles", r - j),
+                                              key=_key("_dig", tag))
             rhs = client.submit(_dig, panels[j], ("b",), key=_key("_dig", tag))
             tiles[(nt - 1, j)] = client.submit(_t_rrow, rhs, bord, c0, c1,
                                                key=_key("_t_rrow", tag), **where(nt - 1, j))

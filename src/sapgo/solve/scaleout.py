@@ -353,14 +353,6 @@ def built_graph(tree, plan, step_s, part_back_s, part_update_s, top_update_s, to
     return g
 
 
-def _grid(n):
-    """A ``rows x cols`` grid of ``n`` workers, as square as ``n`` allows."""
-    r = int(np.sqrt(n))
-    while n % r:
-        r -= 1
-    return r, n // r
-
-
 def _top_graph(g, tree, k, top, groups, out, last_step, start, step_s, build_s, rates,
                tile, task_s, half=True):
     """The top nodes' tasks (:func:`tiled_graph`, :func:`built_graph`): a front of at most
@@ -371,7 +363,7 @@ def _top_graph(g, tree, k, top, groups, out, last_step, start, step_s, build_s, 
     blocks of its update) sent to the tiles they land on (``half``: a diagonal block as its
     lower triangle). Fills ``out`` and ``last_step`` for the top nodes; returns the workers
     holding each tiled node's tiles."""
-    from .distributed import tile_cuts
+    from .distributed import tile_cuts, tile_grid
 
     fig = node_figures(tree, k)
     m_all, f_all = fig["m"].astype(np.int64), fig["f"].astype(np.int64)
@@ -395,7 +387,7 @@ def _top_graph(g, tree, k, top, groups, out, last_step, start, step_s, build_s, 
         mt = sum(1 for a, _ in cuts if a < m)
         nt = len(cuts)
         starts = np.array([a for a, _ in cuts])
-        pr, pc = _grid(len(grp))
+        pr, pc = tile_grid(len(grp))
 
         def own(a, b):
             return grp[(a % pr) * pc + (b % pc)] if big else grp[0]

@@ -313,7 +313,7 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
                 points_diagonal(p, work, blk, opts, tree, top, diag)
             distributed_top(client, p, work, blk, opts, tree, solver, top, work._dask_parts,
                             lam, diag, cb[len(per)])
-            work._dask_parts = None   # (the parts' updates go)
+            work._dask_parts = work._blk_future = None   # (the parts' updates go)
             file.close()   # (opened again: what the workers wrote, seen on any filesystem)
             file = FactorFile(work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
             solver.file = file
