@@ -557,7 +557,7 @@ def replay_table(out):
         return ""
     inp = out.get("replay_inputs", {})
     lines = ["", "Replay of the 1-worker runs' traces (the iteration as built: parts on the "
-             "workers, the top on the client):", "",
+             "workers, the top fronts on the workers too):", "",
              "| block | run | replayed s/iteration | measured s/iteration | error |",
              "|---|---|---|---|---|"]
     for name, rp in rows:
