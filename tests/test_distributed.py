@@ -348,6 +348,41 @@ def test_a_tiled_front_names_its_failing_pivot(client):
         tiled_cholesky_dense(client, a, 150, 64)
 
 
+def test_parts_with_tiled_fronts_hand_their_updates_to_the_top(blocks, tmp_path, client,
+                                                               monkeypatch):
+    """The parts' fronts tiled for a small memory budget (panels of 2 stations): a subtree
+    root's update larger than a panel stays in its scratch file on the worker, the top's
+    tasks cut their pieces from it; the client substitutes back through and inverts the top
+    from the records the workers wrote. The threaded solution and precision."""
+    import sapgo.solve.tree as tree_mod
+    from sapgo.solve import distributed as dist
+    from test_tree import SMALL_TILES
+
+    plan = tree_mod.work_plan
+    plans = []
+
+    def small(*a, **kw):
+        plans.append(plan(*a, **kw)[:3] + (SMALL_TILES,))
+        return plans[-1]
+
+    monkeypatch.setattr(tree_mod, "work_plan", small)
+    monkeypatch.setattr(dist, "TOP_TILE", 24)
+    opts = dataclasses.replace(TIGHT, progress=False, chunk_points=40)
+    ref, path, sr, sd, tasks = _both(blocks["square"], tmp_path, opts, client)
+    per, top, _, tile = plans[-1]
+    from sapgo.project import Project
+
+    with Project(path, "r") as p:
+        tree = p.tree()
+    # a part's subtree root with an update larger than a panel: a scratch file
+    roots = [b - 1 for r in per for _, b in r]
+    assert any(8 * (6 * len(tree.bnd(i))) ** 2 > tile[1] for i in roots)
+    assert sd.converged and sd.iterations == sr.iterations
+    assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-10)
+    assert_same_solution(path, ref, rtol=1e-10)
+    assert not list(tmp_path.glob("*.work"))   # (the scratch files went with the run's)
+
+
 @pytest.mark.parametrize("tile", [None, 12])
 def test_a_datum_defect_in_the_top_names_the_threaded_runs_station(blocks, tmp_path, client,
                                                                    monkeypatch, tile):
