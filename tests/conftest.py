@@ -67,6 +67,20 @@ def rewrite(path, rec):
                   rec["station_priors"], rec["truth"])
 
 
+def collinear_control(path):
+    """Leave 3 full control points, on one straight line: they pass the count check but
+    leave the rotation about that line free (a datum defect only the pivot finds)."""
+    rec = read_records(path)
+    pt = rec["points"]
+    ctrl = np.flatnonzero(pt["kind"] == 1)
+    pt["kind"][ctrl[3:]] = 4
+    line = pt["control"][ctrl[0]]
+    for i, j in enumerate(ctrl[:3]):
+        pt["control"][j] = line + i * np.array([1000.0, 10.0, 0.0])
+        pt["xyz"][j] = pt["control"][j]
+    rewrite(path, rec)
+
+
 def digest(path):
     """SHA-256 of a file: a project left as it was has the same digest."""
     return hashlib.sha256(path.read_bytes()).hexdigest()

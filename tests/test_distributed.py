@@ -389,22 +389,14 @@ def test_a_datum_defect_in_the_top_names_the_threaded_runs_station(blocks, tmp_p
     """Three control points on a line leave a rotation free: the pivot that fails on the
     workers (in a top front's task, or in one of its tiles) names the station the threaded
     run names."""
-    from conftest import read_records, rewrite
+    from conftest import collinear_control
     from sapgo.errors import DatumDefectError
     from sapgo.solve import distributed as dist
 
     if tile:
         monkeypatch.setattr(dist, "TOP_TILE", tile)
     _, ref = ordered_pair(blocks["square"], tmp_path, leaf=4, name="ref")
-    rec = read_records(ref)
-    pt = rec["points"]
-    ctrl = np.flatnonzero(pt["kind"] == 1)
-    pt["kind"][ctrl[3:]] = 4
-    line = pt["control"][ctrl[0]]
-    for i, j in enumerate(ctrl[:3]):
-        pt["control"][j] = line + i * np.array([1000.0, 10.0, 0.0])
-        pt["xyz"][j] = pt["control"][j]
-    rewrite(ref, rec)
+    collinear_control(ref)
     path = tmp_path / "d.h5"
     shutil.copy(ref, path)
     opts = dataclasses.replace(TIGHT, progress=False)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import sapgo
-from conftest import assert_one_line_error, digest, read_records, rewrite, run_cli
+from conftest import (assert_one_line_error, collinear_control, digest, read_records,
+                      rewrite, run_cli)
 from sapgo.errors import DataError, DatumDefectError, ProjectFormatError
 
 
@@ -62,17 +63,8 @@ def test_block_without_control(small_block, capsys):
 
 
 def test_collinear_control_is_a_datum_defect_found_by_the_pivot(small_block):
-    # 3 full control points on one straight line pass the count check, but leave the
-    # rotation about that line free: the factorisation must find it and say so
-    rec = read_records(small_block)
-    pt = rec["points"]
-    ctrl = np.flatnonzero(pt["kind"] == 1)
-    pt["kind"][ctrl[3:]] = 4
-    line = pt["control"][ctrl[0]]
-    for i, j in enumerate(ctrl[:3]):
-        pt["control"][j] = line + i * np.array([1000.0, 10.0, 0.0])
-        pt["xyz"][j] = pt["control"][j]
-    rewrite(small_block, rec)
+    # the factorisation must find the free rotation and say so
+    collinear_control(small_block)
     with pytest.raises(DatumDefectError, match="datum defect") as e:
         sapgo.adjust(small_block, sapgo.Options(progress=False))
     assert "station id" in str(e.value)
