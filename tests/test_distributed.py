@@ -79,8 +79,7 @@ def test_two_workers_give_the_threaded_solution(case, blocks, miscalibrated_squa
     tops = ("top_panel", "_t_potrf", "_t_trsm", "_t_update", "_t_add") if tiled else ()
     for step in ("part_step", "part_solve", "part_update", "part_quality",
                  "part_report") + tops:
-        assert {w for name, w in tasks if name == step} == set(
-            client.scheduler_info()["workers"]), step
+        assert {w for name, w in tasks if name == step} == set(client.nthreads()), step
     assert any(name == "top_node" for name, _ in tasks) != tiled   # (small top fronts)
     assert sd.solver == "tree" and sd.converged and sd.iterations == sr.iterations
     assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-10)

@@ -49,8 +49,11 @@ CONNECT_TIMEOUT = 30
 
 
 def worker_addresses(client):
-    """The cluster's worker addresses, sorted (the parts' fixed placement)."""
-    workers = sorted(client.scheduler_info()["workers"])
+    """The cluster's worker addresses, sorted (the parts' fixed placement). Asked of the
+    scheduler directly (``nthreads``): ``Client.scheduler_info()`` returns a cache that the
+    client's periodic refresh can overwrite with an empty worker list between its fetch and
+    its return."""
+    workers = sorted(client.nthreads())
     if not workers:
         raise SapgoError("the Dask cluster has no workers")
     return workers
