@@ -41,14 +41,16 @@ def blocks(tmp_path_factory):
 
 def _both(src, tmp_path, opts, client, leaf=4):
     """The threaded and the distributed adjustment of copies of ``src`` ordered for a tree
-    of small leaves; the distributed run's tasks as (name, worker)."""
+    of small leaves; the distributed run's tasks as (name, worker, whether its inputs
+    travelled to it)."""
     _, ref = ordered_pair(src, tmp_path, leaf=leaf, name="ref")
     path = tmp_path / "dist.h5"
     shutil.copy(ref, path)
     sr = sapgo.adjust(ref, opts)
     with distributed.get_task_stream(client) as ts:
         sd = sapgo.adjust(path, dataclasses.replace(opts, client=client))
-    tasks = {(d["key"].split("-")[0], d["worker"]) for d in ts.data}
+    tasks = {(d["key"].split("-")[0], d["worker"],
+              any(x["action"] == "transfer" for x in d["startstops"])) for d in ts.data}
     return ref, path, sr, sd, tasks
 
 
@@ -79,8 +81,11 @@ def test_two_workers_give_the_threaded_solution(case, blocks, miscalibrated_squa
     tops = ("top_panel", "_t_potrf", "_t_trsm", "_t_update", "_t_add") if tiled else ()
     for step in ("part_step", "part_solve", "part_update", "part_quality",
                  "part_report") + tops:
-        assert {w for name, w in tasks if name == step} == set(client.nthreads()), step
-    assert any(name == "top_node" for name, _ in tasks) != tiled   # (small top fronts)
+        assert {w for name, w, _ in tasks if name == step} == set(client.nthreads()), step
+    assert any(name == "top_node" for name, _, _ in tasks) != tiled   # (small top fronts)
+    # a piece of an update is cut where the update is: nothing moves to the cutting task
+    assert any(name == "_t_take" for name, _, _ in tasks)
+    assert not any(moved for name, _, moved in tasks if name == "_t_take")
     assert sd.solver == "tree" and sd.converged and sd.iterations == sr.iterations
     assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-10)
     assert_same_solution(path, ref, rtol=1e-10)
@@ -326,6 +331,10 @@ def test_a_tile_piece_is_where_the_block_lands():
 
     cuts = tile_cuts(5, 12, 3)   # own 0-3, 3-5; boundary 5-8, 8-11, 11-12
     assert cuts == [(0, 3), (3, 5), (5, 8), (8, 11), (11, 12)]
+    # as few tiles as needed, of equal size in whole stations: no sliver of a tile
+    assert tile_cuts(2106, 5000, 2048, 6) == [(0, 1056), (1056, 2106), (2106, 3558),
+                                              (3558, 5000)]
+    assert tile_cuts(12, 12, 5, 6) == [(0, 6), (6, 12)]
     places = np.array([1, 4, 6, 7, 11])
     p = tile_pieces(places, places, cuts)
     assert set(p) == {(a, b) for a in (0, 1, 2, 4) for b in (0, 1, 2, 4) if b <= a}

@@ -556,11 +556,19 @@ def distributed_report(client, p, work, blk, opts, sums):
 # simulates, :func:`sapgo.solve.scaleout.tiled_graph`): the same cuts, kernels, placement
 # and dependencies, here as Dask tasks whose data Dask moves between the workers.
 
-def tile_cuts(m, n, tile):
+def tile_cuts(m, n, tile, unit=1):
     """Row ranges of a front of ``n`` rows whose first ``m`` are eliminated: the own rows,
-    then the boundary rows, each cut in tiles of at most ``tile`` rows."""
-    return ([(a, min(a + tile, m)) for a in range(0, m, tile)] +
-            [(a, min(a + tile, n)) for a in range(m, n, tile)])
+    then the boundary rows, each cut in as few tiles of at most ``tile`` rows as it needs,
+    of equal size in whole ``unit`` (a station's parameters; ``tile`` a multiple of it),
+    the last no longer than the others: 2 100 rows in tiles of 2 048 are two of 1 050, not
+    2 048 and a sliver that would leave one worker the whole of the work."""
+    tile = max(unit, unit * (tile // unit))
+    out = []
+    for a0, a1 in ((0, m), (m, n)):
+        q = -(-(a1 - a0) // tile)
+        size = unit * -(-(a1 - a0) // (unit * q)) if q else 0
+        out += [(a, min(a + size, a1)) for a in range(a0, a1, size or 1)]
+    return out
 
 
 def tile_pieces(rows, cols, cuts):
@@ -604,7 +612,7 @@ def extend_add_tiles(client, tiles, cuts, updates):
     its rows' places in the front); each tile's piece cut out where the update is
     (:func:`tile_pieces`, so that only the piece travels) and added on the tile's worker.
     Returns the tiles (futures where something was added)."""
-    blocks = [(np.asarray(pl), np.asarray(pl), u, None) for u, pl in updates]
+    blocks = [(np.asarray(pl), np.asarray(pl), u, None, None) for u, pl in updates]
     return _add_blocks(client, tiles, cuts, blocks, _tile_places(client))
 
 
@@ -666,7 +674,21 @@ def _t_trsm(a, low):
 
 
 def _t_update(a, x, y):
-    return a - x @ y.T
+    """``a - x y'``; a diagonal tile (``y`` None: ``a - x x'``) by BLAS ``syrk``, half the
+    flops, into a copy of ``a`` whose strict upper triangle is left as it was (not used:
+    :func:`_t_potrf` and :func:`_add_lower` read the lower one). The arrays are taken in
+    the layout they come in (C-ordered ones as their Fortran-ordered transposes), so BLAS
+    copies nothing."""
+    if y is not None:
+        return a - x @ y.T
+    from scipy.linalg import blas
+
+    ct = not a.flags.f_contiguous     # (work on a' = the same lower triangle, as upper)
+    c = np.array(a.T if ct else a, order="F", copy=True)
+    xt = not x.flags.f_contiguous     # (x' is Fortran-ordered: x x' = (x')' x')
+    out = blas.dsyrk(-1.0, x.T if xt else x, beta=1.0, c=c, trans=int(xt), lower=int(not ct),
+                     overwrite_c=1)
+    return out.T if ct else out
 
 
 def tiled_cholesky(client, tiles, cuts, mt, origs=None, tol=0.0, tag="", base=(0, 1)):
@@ -693,8 +715,8 @@ def tiled_cholesky(client, tiles, cuts, mt, origs=None, tol=0.0, tag="", base=(0
         for j in range(k + 1, nt):
             for i in range(j, nt):
                 cur[(i, j)] = client.submit(_t_update, cur[(i, j)], cur[(i, k)],
-                                            cur[(j, k)], key=_key("_t_update", tag),
-                                            **where(i, j))
+                                            cur[(j, k)] if i != j else None,
+                                            key=_key("_t_update", tag), **where(i, j))
     return cur
 
 
@@ -784,19 +806,29 @@ def _t_take(obj, key, r, c):
     return np.ascontiguousarray(u[np.ix_(r, c)])
 
 
+def _take(client, u, key, r, c, at, tag=""):
+    """The task cutting the piece ``[r, c]`` of ``_dig(u, key)`` on the worker ``at``
+    holding ``u`` (None: where Dask likes). Pinned: left to itself, the scheduler may run
+    it on an idle worker and move all of ``u`` there (a part's result, its updates whole)
+    to cut a piece of it."""
+    where = {"workers": [at], "allow_other_workers": True} if at else {}
+    return client.submit(_t_take, u, key, r, c, pure=False, key=_key("_t_take", tag),
+                         **where)
+
+
 def _add_blocks(client, tiles, cuts, blocks, where, tag=""):
-    """Add ``blocks`` (``(rows, cols, u, key)``: the block ``_dig(u, key)`` at places
-    ``rows`` x ``cols`` of the front, ``u`` an array or a future) into the front's lower
-    ``tiles`` over ``cuts``: each tile's piece cut where the block is (only the piece
-    travels), added on the tile's worker. Returns the tiles (futures where added)."""
+    """Add ``blocks`` (``(rows, cols, u, key, at)``: the block ``_dig(u, key)`` at places
+    ``rows`` x ``cols`` of the front, ``u`` an array or a future on the worker ``at``) into
+    the front's lower ``tiles`` over ``cuts``: each tile's piece cut where the block is
+    (only the piece travels), added on the tile's worker. Returns the tiles (futures where
+    added)."""
     out = dict(tiles)
     adds = {}
-    for rows, cols, u, key in blocks:
+    for rows, cols, u, key, at in blocks:
         rows, cols = np.asarray(rows), np.asarray(cols)
         for (a, b), (r, c) in tile_pieces(rows, cols if cols is not rows else rows,
                                           cuts).items():
-            piece = client.submit(_t_take, u, key, r, c, pure=False,
-                                  key=_key("_t_take", tag))
+            piece = _take(client, u, key, r, c, at, tag)
             adds.setdefault((a, b), []).append((rows[r], cols[c], piece))
     for (a, b), pieces in adds.items():   # (Dask resolves the futures in the tuples)
         out[(a, b)] = client.submit(_t_add, out[(a, b)], cuts[a][0], cuts[b][0], *pieces,
@@ -1002,9 +1034,10 @@ def distributed_top(client, p, work, blk, opts, tree, solver, top, parts, lam, d
     for w, (fut, nodes) in enumerate(parts):
         for c in nodes:
             f = k * len(tree.bnd(c))
-            blocks[c] = [(np.arange(f), np.arange(f), fut, ("updates", c, 0)),
-                         (f + np.arange(nr), np.arange(f), fut, ("updates", c, 1, "T"))]
             home[c] = addresses[w % len(addresses)]
+            blocks[c] = [(np.arange(f), np.arange(f), fut, ("updates", c, 0), home[c]),
+                         (f + np.arange(nr), np.arange(f), fut, ("updates", c, 1, "T"),
+                          home[c])]
     stream = contextlib.nullcontext()
     if TRACE["on"]:
         from distributed import get_task_stream
@@ -1075,7 +1108,8 @@ def _submit_top(client, blk, tree, top, common, inputs, blocks, home, layout, to
             if c in blocks:
                 ext = np.concatenate([_scalar(np.searchsorted(fr, tree.bnd(c)), k),
                                       n + np.arange(nr)])
-                mine += [(ext[r], ext[cc], u, key) for r, cc, u, key in blocks.pop(c)]
+                mine += [(ext[r], ext[cc], u, key, at)
+                         for r, cc, u, key, at in blocks.pop(c)]
         tag = f"n{i}-"
         if n <= tile:
             cuts = [(0, n), (n, n + nr)]
@@ -1084,21 +1118,20 @@ def _submit_top(client, blk, tree, top, common, inputs, blocks, home, layout, to
             target = (home[max(kids, key=lambda c: len(tree.bnd(c)))] if kids else
                       addresses[i % len(addresses)])
             pieces = []
-            for rows, cols, u, key in mine:
+            for rows, cols, u, key, at in mine:
                 for (a, b), (r, cc) in tile_pieces(rows, cols, cuts).items():
-                    piece = client.submit(_t_take, u, key, r, cc, pure=False,
-                                          key=_key("_t_take", tag))
+                    piece = _take(client, u, key, r, cc, at, tag)
                     pieces.append((rows[r], cols[cc], piece))
             fut = client.submit(top_node, *common, i, lam, priors, damping, layout,
                                 tol, *pieces, key=_key("top_node", tag),
                                 workers=[target], allow_other_workers=True, pure=False)
             ys[i] = [(0, client.submit(_dig, fut, ("y1",), key=_key("_dig", tag)))]
             borders.append(client.submit(_dig, fut, ("border",), key=_key("_dig", tag)))
-            blocks[i] = [(np.arange(f), np.arange(f), fut, ("u",)),
-                         (f + np.arange(nr), np.arange(f), fut, ("ubT",))]
+            blocks[i] = [(np.arange(f), np.arange(f), fut, ("u",), target),
+                         (f + np.arange(nr), np.arange(f), fut, ("ubT",), target)]
             home[i] = target
             continue
-        cuts = tile_cuts(m, n, tile) + [(n, n + nr)]
+        cuts = tile_cuts(m, n, tile, k) + [(n, n + nr)]
         nt = len(cuts)
         mt = sum(1 for a0, _ in cuts if a0 < m)
         panels = [client.submit(top_panel, *common, i, lam, priors, damping, c0, c1,
@@ -1129,7 +1162,8 @@ def _submit_top(client, blk, tree, top, common, inputs, blocks, home, layout, to
         ys[i] = [(cuts[j][0], client.submit(_dig, out[(nt - 1, j)], ("T",),
                                             key=_key("_dig", tag))) for j in range(mt)]
         blocks[i] = [(np.arange(cuts[r][0], cuts[r][1]) - m,
-                      np.arange(cuts[j][0], cuts[j][1]) - m, out[(r, j)], None)
+                      np.arange(cuts[j][0], cuts[j][1]) - m, out[(r, j)], None,
+                      where(r, j)["workers"][0])
                      for j in range(mt, nt) for r in range(j, nt)
                      if (r, j) != (nt - 1, nt - 1)]
         home[i] = where(nt - 1, nt - 1)["workers"][0]

@@ -383,7 +383,7 @@ def _top_graph(g, tree, k, top, groups, out, last_step, start, step_s, build_s, 
         m, f = int(m_all[i]), int(f_all[i])
         big = m + f > tile
         # the tiles' row ranges: own rows, then boundary rows, each cut in tiles
-        cuts = tile_cuts(m, m + f, tile) if big else [(0, m + f)]
+        cuts = tile_cuts(m, m + f, tile, k) if big else [(0, m + f)]
         mt = sum(1 for a, _ in cuts if a < m)
         nt = len(cuts)
         starts = np.array([a for a, _ in cuts])
