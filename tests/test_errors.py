@@ -154,7 +154,20 @@ def test_point_in_the_plane_of_a_photo(small_block, capsys):
     rec["points"]["xyz"][j] = rec["stations"]["eo"][s, 3:]
     rewrite(small_block, rec)
     code, _, err = run_cli(capsys, "adjust", small_block)
-    assert_one_line_error(code, err, f"point id {rec['points']['id'][j]}", "behind a photo")
+    assert_one_line_error(code, err, f"point id {rec['points']['id'][j]}", "behind photo(s)",
+                          f"id {rec['stations']['id'][s]}", "check its approximate")
+
+
+def test_a_mirrored_frame_is_named(small_block, capsys):
+    """Z pointing down (the block's heights negated, the photos as they were): every point
+    lies behind its photos, and the message points at the axes, not at one point."""
+    rec = read_records(small_block)
+    for name, field, col in (("points", "xyz", 2), ("points", "control", 2),
+                             ("stations", "eo", 5)):
+        rec[name][field][:, col] *= -1.0
+    rewrite(small_block, rec)
+    code, _, err = run_cli(capsys, "adjust", small_block)
+    assert_one_line_error(code, err, "behind photo(s)", "mirrored", "right-handed")
 
 
 def test_order_validates_references(small_block, capsys):

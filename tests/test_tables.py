@@ -89,6 +89,37 @@ def test_tables_agree_with_the_solution(snooped, tmp_path, capsys):
             assert r["dZ_m"] == ""
 
 
+def test_a_one_ray_control_point_is_active_with_its_sigmas(tmp_path, capsys):
+    """A weighted full control point seen on one photo is determined (its control fixes
+    it): points.csv gives it active, with the sigmas the adjustment stored."""
+    from conftest import read_records, rewrite
+
+    from sapgo.project import KIND_CONTROL
+
+    path = tmp_path / "b.h5"
+    sapgo.generate_block(path, strips=3, photos_per_strip=8, control_points=8,
+                         control_sigma=0.05, progress=False)
+    rec = read_records(path)
+    pt, ob = rec["points"], rec["observations"]
+    j = int(np.flatnonzero(pt["kind"] == KIND_CONTROL)[0])
+    pid = int(pt["id"][j])
+    mine = np.flatnonzero(ob["point"] == j)
+    assert len(mine) >= 2
+    rec["observations"] = np.delete(ob, mine[1:])   # (one ray left)
+    rewrite(path, rec)
+    s = sapgo.adjust(path, sapgo.Options(progress=False))
+    assert s.converged
+    code, text, err = run_cli(capsys, "report", path, "--quiet", "--csv", tmp_path / "csv")
+    assert code == 0, err
+    with Project(path) as p:
+        sig = p.solution("point_sigma")[np.flatnonzero(p.read("points")["id"] == pid)[0]]
+    row = next(r for r in read_csv(tmp_path / "csv" / "points.csv")
+               if int(r["point_id"]) == pid)
+    assert row["kind"] == "control" and int(row["n_rays"]) == 1 and sig[0] > 0
+    assert row["status"] == "active"
+    assert float(row["sX_m"]) == pytest.approx(sig[0], rel=1e-5)
+
+
 def test_tables_in_a_geographic_crs(block_cache, tmp_path):
     """A project imported in longitude, latitude, height gets them with 9 decimals."""
     from test_frames import block_in_crs

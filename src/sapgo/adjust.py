@@ -536,6 +536,38 @@ def _init_rows(band, rhs, base, lo, hi, blk, priors):
         rhs[s - base, :6] += w @ (-_prior_residual(rec, blk.eo[s]))
 
 
+def _behind_depths(chunk, blk, rays):
+    """The camera-frame z (negative: in front) of the chunk's observations ``rays``."""
+    from .frames import rotation_matrices
+
+    s = chunk.obs_station[rays]
+    owner = np.searchsorted(chunk.pt_start, rays, side="right") - 1
+    m = rotation_matrices(blk.eo[s, :3])
+    return np.einsum("nj,nj->n", m[:, 2, :], chunk.xyz[owner] - blk.eo[s, 3:6])
+
+
+def _behind_message(p, chunk, j, pid, blk):
+    """A point behind a photo: which photos, and when most of its chunk's rays point
+    backwards too, the hint that the frame or the axes are mirrored."""
+    a = int(chunk.pt_start[j])
+    mine = a + np.flatnonzero(chunk.obs_active[a:a + int(chunk.nobs[j])])
+    st = sorted({int(p.read("stations", int(s), int(s) + 1)["id"][0])
+                 for s in chunk.obs_station[mine[_behind_depths(chunk, blk, mine) >= 0]]})
+    photos = ", ".join(map(str, st[:5])) + (", ..." if len(st) > 5 else "")
+    text = (f"point id {pid} lies behind photo(s) id {photos or '?'} at its current "
+            f"coordinates")
+    rays = np.flatnonzero(chunk.obs_active)[:20000]
+    share = float(np.mean(_behind_depths(chunk, blk, rays) >= 0)) if len(rays) else 0.0
+    if share > 0.5:
+        return (f"{text}, and so do {share:.0%} of the rays of the points around it: are "
+                f"the axes mirrored (northing before easting, Z down, image y down, or the "
+                f"rotations of another convention)? sapgo takes X, Y, Z right-handed (east, "
+                f"north, up), image x to the right and y up, and a camera looking down its "
+                f"-z axis (docs/theory.md section 1)")
+    return (f"{text}: check its approximate coordinates and the photos' approximate "
+            f"orientation")
+
+
 def _point_error(p, chunk, j, status, blk):
     rec = p.read("points", chunk.start + j, chunk.start + j + 1)[0]
     pid = int(rec["id"])
@@ -548,10 +580,7 @@ def _point_error(p, chunk, j, status, blk):
             f"changed after ordering; run 'sapgo order' again"
         )
     if status == BEHIND_CAMERA:
-        return SapgoError(
-            f"point id {pid} lies behind a photo at its current coordinates: check its "
-            f"approximate coordinates and the photos' approximate orientation"
-        )
+        return SapgoError(_behind_message(p, chunk, j, pid, blk))
     if CONTROL_MASK[rec["kind"]].any():
         return SingularNormalsError(
             f"point id {pid} cannot be determined: its rays are (nearly) parallel and its "

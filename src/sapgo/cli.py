@@ -95,16 +95,23 @@ def cmd_import(args):
     if args.sigma_image is not None and args.format != "colmap":
         raise ParameterError("--sigma-image applies to --format colmap (a cameras file gives "
                              "each camera's sigma_image, a BAL problem has 1 pixel)")
-    if args.format == "bal":
-        from .formats.bal import import_bal
-
+    if args.format in ("bal", "bundler"):
+        if args.format == "bal":
+            from .formats.bal import import_bal as load
+        else:
+            from .formats.bundler import import_bundler as load
+        name, example = {"bal": ("the BAL file", "problem.txt"),
+                         "bundler": ("the Bundler file", "bundle.out")}[args.format]
         if len(args.paths) != 2:
-            raise ParameterError("--format bal takes the BAL file and the project to create: "
-                                 "sapgo import --format bal problem.txt block.h5")
-        r = import_bal(args.paths[0], args.paths[1], force=args.force,
-                       intrinsics="fixed" if args.fixed_intrinsics else "adjusted")
+            raise ParameterError(f"--format {args.format} takes {name} and the project to "
+                                 f"create: sapgo import --format {args.format} {example} "
+                                 f"block.h5")
+        r = load(args.paths[0], args.paths[1], force=args.force,
+                 intrinsics="fixed" if args.fixed_intrinsics else "adjusted")
+        skipped = (f" ({r['not_reconstructed']} camera(s) not reconstructed left out)"
+                   if r.get("not_reconstructed") else "")
         print(f"imported {r['path']}: {r['photos']} photos (one camera each, f, k1, k2 "
-              f"{'held' if args.fixed_intrinsics else 'adjusted'}), {r['points']} "
+              f"{'held' if args.fixed_intrinsics else 'adjusted'}){skipped}, {r['points']} "
               f"points, {r['observations']} image observations (pixels); a free network; "
               f"initial cost {r['initial_cost']:.6e}")
         return 0
@@ -293,6 +300,13 @@ def cmd_export(args):
         print(f"wrote {'the adjusted' if args.adjusted else 'the input'} BAL problem "
               f"{args.directory}: {r['cameras']} cameras, {r['points']} points, "
               f"{r['observations']} observations")
+    elif args.format == "bundler":
+        from .formats.bundler import export_bundler
+
+        r = export_bundler(args.project, args.directory, adjusted=args.adjusted)
+        print(f"wrote {'the adjusted' if args.adjusted else 'the input'} Bundler file "
+              f"{args.directory}: {r['cameras']} cameras ({r['photos']} photos), "
+              f"{r['points']} points, {r['observations']} observations")
     elif args.adjusted:
         r = export_adjusted(args.project, args.directory, angles=args.angles,
                             orientation=args.orientation)
@@ -553,18 +567,21 @@ def build_parser():
                                       "measurements, control)",
                        description="Import a block from whitespace-separated text files into "
                                    "a new project (formats: docs/formats.md), a BAL problem "
-                                   "(--format bal FILE OUTPUT) or a COLMAP text model "
+                                   "(--format bal FILE OUTPUT), a Bundler file (--format "
+                                   "bundler bundle.out OUTPUT) or a COLMAP text model "
                                    "(--format colmap MODEL_DIR OUTPUT [--control FILE]). "
                                    "Each file option may be "
                                    "repeated. The measurements are sorted within the memory "
                                    "budget, so their files may be in any order.")
     m.add_argument("paths", nargs="+", metavar="[FILE] OUTPUT",
-                   help="the project file to create (e.g. block.h5); with --format bal the BAL "
-                        "file first, with --format colmap the model's directory first")
-    m.add_argument("--format", choices=("text", "bal", "colmap"), default="text",
+                   help="the project file to create (e.g. block.h5); with --format bal or "
+                        "bundler the file first, with --format colmap the model's directory "
+                        "first")
+    m.add_argument("--format", choices=("text", "bal", "bundler", "colmap"), default="text",
                    help="text (default: the files below), bal (a 'Bundle Adjustment in the "
                         "Large' problem: one camera per photo whose f, k1, k2 are adjusted "
-                        "with it, pixels, a free network adjusted by Levenberg-Marquardt) or "
+                        "with it, pixels, a free network adjusted by Levenberg-Marquardt), "
+                        "bundler (a Bundler v0.3/v0.4 bundle.out: the same camera model) or "
                         "colmap (COLMAP's text model: cameras.txt, images.txt, points3D.txt; "
                         "pixels; a free network, or with --control aligned to the control "
                         "and adjusted with it)")
@@ -572,7 +589,7 @@ def build_parser():
                    help="with --format colmap: standard error of the image coordinates, "
                         "pixels (default 1)")
     m.add_argument("--fixed-intrinsics", action="store_true",
-                   help="with --format bal: hold each photo's f, k1, k2 fixed")
+                   help="with --format bal or bundler: hold each photo's f, k1, k2 fixed")
     m.add_argument("--cameras", action="append", default=[], metavar="FILE",
                    help="id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2] "
                         "(mm)")
@@ -687,13 +704,16 @@ def build_parser():
     e = sub.add_parser("export", help="write a project as text files (inputs, or with "
                                       "--adjusted the adjusted photos and points)")
     e.add_argument("project")
-    e.add_argument("directory", help="output directory (created); with --format bal the file")
-    e.add_argument("--format", choices=("text", "bal", "colmap"), default="text",
-                   help="text files (default), one BAL problem file, or a COLMAP text model "
+    e.add_argument("directory", help="output directory (created); with --format bal or "
+                                     "bundler the file")
+    e.add_argument("--format", choices=("text", "bal", "bundler", "colmap"), default="text",
+                   help="text files (default), one BAL problem file, one Bundler v0.3 "
+                        "bundle.out, or a COLMAP text model "
                         "(cameras.txt, images.txt, points3D.txt in the directory)")
     e.add_argument("--adjusted", action="store_true",
                    help="adjusted_photos.txt and adjusted_points.txt in the user's CRS (with "
-                        "--format bal or colmap: the adjusted values in that format)")
+                        "--format bal, bundler or colmap: the adjusted values in that "
+                        "format)")
     e.add_argument("--pixel-size", type=float, metavar="UM",
                    help="with --format colmap: the pixel size in micrometres, to write a "
                         "project whose image coordinates are in mm in pixels")

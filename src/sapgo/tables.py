@@ -28,7 +28,15 @@ import numpy as np
 
 from .errors import DataError
 from .normals import control_rotations
-from .project import KIND_NAMES, STATUS_ACTIVE, STATUS_REJECTED, Project
+from .ordering import MIN_RAYS_PASS
+from .project import (
+    KIND_CONTROL,
+    KIND_NAMES,
+    KIND_VERTICAL,
+    STATUS_ACTIVE,
+    STATUS_REJECTED,
+    Project,
+)
 from .report import minimal_detectable_blunder, noncentrality, weakest_redundancy
 
 RAD2DEG = 180.0 / math.pi
@@ -128,8 +136,12 @@ def write_tables(project_path, out_dir, chunk=TABLE_CHUNK, alpha=None, power=0.8
                 known = (pts["kind"] >= 1) & (pts["kind"] <= 4)
                 rot = control_rotations(pts["kind"], pts["control"], frame)
                 diff = np.einsum("nij,nj->ni", rot, xyz - pts["control"])
+                # (a full or vertical control point is determined by one ray, others by
+                # two: sapgo.ordering's rule)
+                need = np.where((pts["kind"] == KIND_CONTROL) | (pts["kind"] == KIND_VERTICAL),
+                                1, MIN_RAYS_PASS)
                 status = np.where(pts["status"] != STATUS_ACTIVE, "excluded",
-                                  np.where(n_rays >= 2, "active", "rejected"))
+                                  np.where(n_rays >= need, "active", "rejected"))
                 kind = [KIND_NAMES.get(int(k), str(int(k))) for k in pts["kind"].tolist()]
                 user = frame.to_user(xyz) if user_names else np.zeros((len(pts), 0))
                 _write(fp, ["%d", "%s", "%s", "%.6f", "%.6f", "%.6f"] + user_fmts

@@ -145,7 +145,7 @@ def read_bal(path):
     if len(bad):
         k = rest_lines[9 * int(bad[0]) + 6]
         raise DataError(f"{path}:{k + 1}: camera {int(bad[0])}: focal length "
-                        f"{cams[bad[0], 6]!r} is not positive")
+                        f"{float(cams[bad[0], 6]):g} is not positive")
     return {"cameras": cams, "points": pts, "obs_camera": cam_i.astype(np.int64),
             "obs_point": pt_i.astype(np.int64), "obs_xy": obs[:, 2:].copy()}
 
@@ -167,40 +167,58 @@ def rodrigues_vector(m):
 def bal_to_sapgo(cams):
     """Stations ``(omega, phi, kappa, Xc, Yc, Zc)`` and camera rows ``(f, x0, y0, k1, k2, k3,
     p1, p2)`` in image units (pixels) of BAL cameras (n x 9)."""
+    return snavely_to_sapgo(rodrigues(cams[:, :3]), cams[:, 3:6], cams[:, 6:9])
+
+
+def snavely_to_sapgo(r, t, fk):
+    """:func:`bal_to_sapgo` of cameras given as rotation matrices ``r`` (n x 3 x 3, world to
+    camera), translations ``t`` (n x 3) and ``(f, k1, k2)`` rows ``fk`` (Bundler's and BAL's
+    camera model, Snavely et al. 2006)."""
     from ..frames import opk_of
 
-    r = rodrigues(cams[:, :3])
-    centre = -np.einsum("nji,nj->ni", r, cams[:, 3:6])
+    centre = -np.einsum("nji,nj->ni", r, t)
     eo = np.column_stack([opk_of(r), centre])
-    f = cams[:, 6]
-    rows = np.column_stack([f, np.zeros_like(f), np.zeros_like(f), cams[:, 7] / f ** 2,
-                            cams[:, 8] / f ** 4, np.zeros((len(f), 3))])
+    f = fk[:, 0]
+    rows = np.column_stack([f, np.zeros_like(f), np.zeros_like(f), fk[:, 1] / f ** 2,
+                            fk[:, 2] / f ** 4, np.zeros((len(f), 3))])
     return eo, rows
 
 
 def sapgo_to_bal(eo, rows):
     """The inverse of :func:`bal_to_sapgo` (cameras without k3, p1, p2 and principal point)."""
+    r, t, fk = sapgo_to_snavely(eo, rows)
+    return np.column_stack([rodrigues_vector(r), t, fk])
+
+
+def sapgo_to_snavely(eo, rows):
+    """The inverse of :func:`snavely_to_sapgo`: ``(r, t, fk)``."""
     from ..frames import rotation_matrices
 
     r = rotation_matrices(eo[:, :3])
     t = -np.einsum("nij,nj->ni", r, eo[:, 3:])
     f = rows[:, 0]
-    return np.column_stack([rodrigues_vector(r), t, f, rows[:, 3] * f ** 2,
-                            rows[:, 4] * f ** 4])
+    return r, t, np.column_stack([f, rows[:, 3] * f ** 2, rows[:, 4] * f ** 4])
+
+
+def snavely_cost(r, t, fk, pts, obs_camera, obs_point, obs_xy):
+    """``1/2 sum |projection - observation|^2`` of the Snavely camera model (Bundler, BAL)
+    with rotation matrices ``r``: ``P = R X + t``, ``p = -P[:2] / P[2]``, projection
+    ``f (1 + k1 |p|^2 + k2 |p|^4) p``."""
+    c, j = obs_camera, obs_point
+    p = np.einsum("nij,nj->ni", r[c], pts[j]) + t[c]
+    q = -p[:, :2] / p[:, 2:3]
+    r2 = (q * q).sum(axis=1)
+    d = 1.0 + fk[c, 1] * r2 + fk[c, 2] * r2 * r2
+    proj = fk[c, 0][:, None] * d[:, None] * q
+    return 0.5 * float(((proj - obs_xy) ** 2).sum())
 
 
 def bal_cost(data):
     """The BAL cost ``1/2 sum |projection - observation|^2`` with the file's values, computed
     directly from the BAL camera model (the reference for sapgo's conversion)."""
-    cams, pts = data["cameras"], data["points"]
-    r = rodrigues(cams[:, :3])
-    c, j = data["obs_camera"], data["obs_point"]
-    p = np.einsum("nij,nj->ni", r[c], pts[j]) + cams[c, 3:6]
-    q = -p[:, :2] / p[:, 2:3]
-    r2 = (q * q).sum(axis=1)
-    d = 1.0 + cams[c, 7] * r2 + cams[c, 8] * r2 * r2
-    proj = cams[c, 6][:, None] * d[:, None] * q
-    return 0.5 * float(((proj - data["obs_xy"]) ** 2).sum())
+    cams = data["cameras"]
+    return snavely_cost(rodrigues(cams[:, :3]), cams[:, 3:6], cams[:, 6:9], data["points"],
+                        data["obs_camera"], data["obs_point"], data["obs_xy"])
 
 
 def write_bal(path, cams, pts, obs_camera, obs_point, obs_xy):
@@ -220,42 +238,62 @@ def import_bal(path, out, force=False, intrinsics="adjusted"):
     9-parameter stations, or held ``"fixed"``), the points as pass
     points with the file's coordinates as approximations, image units pixels with sigma 1
     (the project attribute ``image_unit`` is ``"px"``). Returns a summary dict."""
-    import json
+    out = _check_out(out, force, intrinsics)
+    d = read_bal(path)
+    eo, rows = bal_to_sapgo(d["cameras"])
+    n = write_snavely_project(out, {"command": "import", "format": "bal", "file": str(path)},
+                              eo, rows, np.arange(len(eo)), d["points"], d["obs_camera"],
+                              d["obs_point"], d["obs_xy"], intrinsics)
+    return {"path": str(out), "cameras": len(eo), "photos": len(eo),
+            "points": len(d["points"]), "observations": n, "initial_cost": bal_cost(d)}
 
+
+def _check_out(out, force, intrinsics):
     from ..errors import ParameterError
-    from ..project import (
-        CAMERA_DTYPE,
-        OBSERVATION_DTYPE,
-        POINT_DTYPE,
-        PRIOR_DTYPE,
-        STATION_DTYPE,
-        append_history,
-        write_project,
-    )
 
     if intrinsics not in ("adjusted", "fixed"):
         raise ParameterError(f"intrinsics {intrinsics!r}: adjusted or fixed")
     out = Path(out)
     if out.exists() and not force:
         raise ParameterError(f"{out} exists: use --force to replace it")
-    d = read_bal(path)
-    cams, pts = d["cameras"], d["points"]
-    n_cam, n_pt = len(cams), len(pts)
-    eo, rows = bal_to_sapgo(cams)
+    return out
+
+
+def write_snavely_project(out, creator, eo, rows, station_ids, pts, obs_camera, obs_point,
+                          obs_xy, intrinsics, extra=None):
+    """A new project ``out`` of a Snavely-model block (BAL, Bundler): one photo and one
+    camera per station (``eo``, camera ``rows`` in pixels, ids ``station_ids``; observations
+    name stations by their index in these), the points as pass points (ids their indices)
+    with their coordinates as approximations, image sigma 1 pixel, a free network whose
+    points may lie behind a photo. ``extra(file)`` writes format-specific groups. Returns the
+    number of observations."""
+    import json
+
+    from ..project import (
+        CAMERA_DTYPE,
+        OBSERVATION_DTYPE,
+        POINT_DTYPE,
+        PRIOR_DTYPE,
+        STATION_DTYPE,
+        ProjectWriter,
+        append_history,
+    )
+
+    n_cam, n_pt = len(eo), len(pts)
     # observations grouped by point (a stable sort keeps the file's order within a point)
-    order = np.argsort(d["obs_point"], kind="stable")
-    oc, op, xy = d["obs_camera"][order], d["obs_point"][order], d["obs_xy"][order]
+    order = np.argsort(obs_point, kind="stable")
+    oc, op, xy = obs_camera[order], obs_point[order], obs_xy[order]
     # a camera's format: the square that holds its observations
     half = np.zeros(n_cam)
     np.maximum.at(half, oc, np.abs(xy).max(axis=1))
     camera = np.zeros(n_cam, CAMERA_DTYPE)
-    camera["id"] = np.arange(n_cam)
+    camera["id"] = station_ids
     for k, name in enumerate(("focal_length", "x0", "y0", "k1", "k2", "k3", "p1", "p2")):
         camera[name] = rows[:, k]
     camera["format_x"] = camera["format_y"] = 2.0 * np.ceil(np.maximum(half, 1.0))
     camera["sigma_image"] = 1.0
     station = np.zeros(n_cam, STATION_DTYPE)
-    station["id"] = np.arange(n_cam)
+    station["id"] = station_ids
     station["camera"] = np.arange(n_cam)
     station["strip"] = -1
     station["eo"] = eo
@@ -274,13 +312,19 @@ def import_bal(path, out, force=False, intrinsics="adjusted"):
     obs = np.zeros(len(oc), OBSERVATION_DTYPE)
     obs["point"], obs["station"] = op, oc
     obs["x"], obs["y"] = xy[:, 0], xy[:, 1]
-    creator = {"command": "import", "format": "bal", "file": str(path)}
-    write_project(out, camera, station, point, obs, np.zeros(0, PRIOR_DTYPE),
-                  attrs={"creator": json.dumps(creator), "image_unit": "px", "datum": "free",
-                         "points_behind": "allowed", "station_intrinsics": intrinsics,
-                         "history": append_history("[]", creator)})
-    return {"path": str(out), "cameras": n_cam, "photos": n_cam, "points": n_pt,
-            "observations": len(obs), "initial_cost": bal_cost(d)}
+    attrs = {"creator": json.dumps(creator), "image_unit": "px", "datum": "free",
+             "points_behind": "allowed", "station_intrinsics": intrinsics,
+             "history": append_history("[]", creator)}
+    with ProjectWriter(out, attrs) as w:
+        w.append("cameras", camera)
+        w.append("stations", station)
+        w.append("station_priors", np.zeros(0, PRIOR_DTYPE))
+        w.append("points", point)
+        w.append("observations", obs)
+        if extra is not None:
+            extra(w.file)
+        w.finish()
+    return len(obs)
 
 
 def export_bal(project_path, out_path, adjusted=True):
@@ -288,30 +332,41 @@ def export_bal(project_path, out_path, adjusted=True):
     a BAL camera with its camera's f, k1, k2 (principal point, k3, p1 and p2 must be 0);
     cameras and points in the order of their ids, observations by point and camera; excluded
     ones left out."""
+    b = snavely_block(project_path, adjusted, "BAL")
+    write_bal(out_path, sapgo_to_bal(b["eo"], b["rows"]), b["xyz"], b["obs_camera"],
+              b["obs_point"], b["obs_xy"])
+    return {"cameras": len(b["eo"]), "points": len(b["xyz"]),
+            "observations": len(b["obs_camera"])}
+
+
+def snavely_block(project_path, adjusted, fmt):
+    """A project's active photos, points and observations for a Snavely-model file (BAL,
+    Bundler; ``fmt`` names it in errors): every photo with its camera's f, k1, k2 (principal
+    point, k3, p1 and p2 must be 0); photos and points in the order of their ids (an
+    import's ids are the file's indices, so a file comes back in its own order),
+    observations by point and photo. A dict of ``eo``, ``rows``, ``station_ids``, ``xyz``,
+    ``point_ids``, ``obs_camera``, ``obs_point`` (indices in these), ``obs_xy`` and
+    ``obs_records`` (the observations' records)."""
+    from ..geometry import camera_array
     from ..project import STATUS_ACTIVE, Project
 
     with Project(project_path) as p:
         st, pt, ob = p.read("stations"), p.read("points"), p.read("observations")
-        cams = p.cameras()
-        eo = st["eo"] + (p.solution("station_corr") if adjusted else 0.0)
-        xyz = pt["xyz"] + (p.solution("point_corr") if adjusted else 0.0)
-    from ..geometry import camera_array
-
-    rows = camera_array(cams)
-    if adjusted:
-        with Project(project_path) as p:
+        rows = camera_array(p.cameras())
+        eo, xyz = st["eo"], pt["xyz"]
+        if adjusted:
+            eo = eo + p.solution("station_corr")
+            xyz = xyz + p.solution("point_corr")
             rows = rows + p.solution("camera_corr")
     rows = rows[st["camera"]]
     extra = np.abs(rows[:, [1, 2, 5, 6, 7]]).max(axis=1) > 0
     if extra.any():
         raise DataError(f"{project_path}: photo id {int(st['id'][np.argmax(extra)])}: its "
                         f"camera has a principal point, k3 or decentring distortion, which "
-                        f"BAL cannot hold")
+                        f"{fmt} cannot hold")
     live_st = st["status"] == STATUS_ACTIVE
     live_pt = pt["status"] == STATUS_ACTIVE
     keep = (ob["status"] == STATUS_ACTIVE) & live_pt[ob["point"]] & live_st[ob["station"]]
-    # cameras and points in the order of their ids (a BAL import's ids are the file's
-    # indices, so the file comes back in its own order)
     st_rec = np.flatnonzero(live_st)[np.argsort(st["id"][live_st], kind="stable")]
     pt_rec = np.flatnonzero(live_pt)[np.argsort(pt["id"][live_pt], kind="stable")]
     new_st = np.full(len(st), -1)
@@ -320,8 +375,7 @@ def export_bal(project_path, out_path, adjusted=True):
     new_pt[pt_rec] = np.arange(len(pt_rec))
     o = np.flatnonzero(keep)
     o = o[np.lexsort((new_st[ob["station"][o]], new_pt[ob["point"][o]]))]
-    write_bal(out_path, sapgo_to_bal(eo[st_rec], rows[st_rec]), xyz[pt_rec],
-              new_st[ob["station"][o]], new_pt[ob["point"][o]],
-              np.column_stack([ob["x"][o], ob["y"][o]]))
-    return {"cameras": int(live_st.sum()), "points": int(live_pt.sum()),
-            "observations": int(keep.sum())}
+    return {"eo": eo[st_rec], "rows": rows[st_rec], "station_ids": st["id"][st_rec],
+            "xyz": xyz[pt_rec], "point_ids": pt["id"][pt_rec],
+            "obs_camera": new_st[ob["station"][o]], "obs_point": new_pt[ob["point"][o]],
+            "obs_xy": np.column_stack([ob["x"][o], ob["y"][o]]), "obs_records": o}
