@@ -118,7 +118,12 @@ def test_round_trip_keeps_colours_keys_and_cameras_not_reconstructed(tmp_path, c
 
     final = json.loads((tmp_path / "r.json").read_text())["final_cost"]
     export_bundler(tmp_path / "all.h5", tmp_path / "out.out", adjusted=True)
-    assert bundler_cost(read_bundler(tmp_path / "out.out")) == pytest.approx(final, rel=1e-9)
+    out = read_bundler(tmp_path / "out.out")
+    assert bundler_cost(out) == pytest.approx(final, rel=1e-9)
+    # (the colours and keys went through the ordering and the commit)
+    full = read_bundler(tmp_path / "all.out")
+    np.testing.assert_array_equal(out["colors"], full["colors"])
+    np.testing.assert_array_equal(out["obs_key"], full["obs_key"])
     again = import_bundler(tmp_path / "out.out", tmp_path / "again.h5", intrinsics="fixed")
     assert again["initial_cost"] == pytest.approx(final, rel=1e-9)
 

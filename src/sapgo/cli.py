@@ -92,9 +92,29 @@ def cmd_order(args):
 
 
 def cmd_import(args):
-    if args.sigma_image is not None and args.format != "colmap":
-        raise ParameterError("--sigma-image applies to --format colmap (a cameras file gives "
-                             "each camera's sigma_image, a BAL problem has 1 pixel)")
+    if args.sigma_image is not None and args.format not in ("colmap", "opensfm"):
+        raise ParameterError("--sigma-image applies to --format colmap and opensfm (a "
+                             "cameras file gives each camera's sigma_image, a BAL problem "
+                             "has 1 pixel)")
+    if args.reconstruction is not None and args.format != "opensfm":
+        raise ParameterError("--reconstruction applies to --format opensfm")
+    if args.format == "opensfm":
+        from .formats.opensfm import import_opensfm
+
+        if len(args.paths) != 2:
+            raise ParameterError("--format opensfm takes the dataset (its directory, or its "
+                                 "reconstruction.json) and the project to create: sapgo "
+                                 "import --format opensfm DATASET block.h5")
+        r = import_opensfm(args.paths[0], args.paths[1], index=args.reconstruction or 0,
+                           sigma_image=1.0 if args.sigma_image is None else args.sigma_image,
+                           force=args.force)
+        many = (f" (reconstruction {r['index']} of {r['reconstructions']})"
+                if r["reconstructions"] > 1 else "")
+        print(f"imported {r['path']}{many}: {r['cameras']} cameras (held), {r['photos']} "
+              f"photos, {r['points']} points, {r['observations']} image observations "
+              f"(pixels); a free network; OpenSfM's mean reprojection error "
+              f"{r['mean_error_px']:.4g} px")
+        return 0
     if args.format in ("bal", "bundler"):
         if args.format == "bal":
             from .formats.bal import import_bal as load
@@ -300,6 +320,13 @@ def cmd_export(args):
         print(f"wrote {'the adjusted' if args.adjusted else 'the input'} BAL problem "
               f"{args.directory}: {r['cameras']} cameras, {r['points']} points, "
               f"{r['observations']} observations")
+    elif args.format == "opensfm":
+        from .formats.opensfm import export_opensfm
+
+        r = export_opensfm(args.project, args.directory, adjusted=args.adjusted)
+        print(f"wrote {'the adjusted' if args.adjusted else 'the input'} OpenSfM dataset "
+              f"{args.directory}: {r['cameras']} cameras, {r['photos']} shots, "
+              f"{r['points']} points, {r['observations']} observations")
     elif args.format == "bundler":
         from .formats.bundler import export_bundler
 
@@ -568,7 +595,8 @@ def build_parser():
                        description="Import a block from whitespace-separated text files into "
                                    "a new project (formats: docs/formats.md), a BAL problem "
                                    "(--format bal FILE OUTPUT), a Bundler file (--format "
-                                   "bundler bundle.out OUTPUT) or a COLMAP text model "
+                                   "bundler bundle.out OUTPUT), an OpenSfM dataset "
+                                   "(--format opensfm DIR OUTPUT) or a COLMAP text model "
                                    "(--format colmap MODEL_DIR OUTPUT [--control FILE]). "
                                    "Each file option may be "
                                    "repeated. The measurements are sorted within the memory "
@@ -577,17 +605,23 @@ def build_parser():
                    help="the project file to create (e.g. block.h5); with --format bal or "
                         "bundler the file first, with --format colmap the model's directory "
                         "first")
-    m.add_argument("--format", choices=("text", "bal", "bundler", "colmap"), default="text",
+    m.add_argument("--format", choices=("text", "bal", "bundler", "colmap", "opensfm"),
+                   default="text",
                    help="text (default: the files below), bal (a 'Bundle Adjustment in the "
                         "Large' problem: one camera per photo whose f, k1, k2 are adjusted "
                         "with it, pixels, a free network adjusted by Levenberg-Marquardt), "
-                        "bundler (a Bundler v0.3/v0.4 bundle.out: the same camera model) or "
+                        "bundler (a Bundler v0.3/v0.4 bundle.out: the same camera model), "
+                        "opensfm (reconstruction.json and tracks.csv: shared cameras, held; "
+                        "pixels; a free network) or "
                         "colmap (COLMAP's text model: cameras.txt, images.txt, points3D.txt; "
                         "pixels; a free network, or with --control aligned to the control "
                         "and adjusted with it)")
     m.add_argument("--sigma-image", type=float, metavar="PX",
-                   help="with --format colmap: standard error of the image coordinates, "
-                        "pixels (default 1)")
+                   help="with --format colmap or opensfm: standard error of the image "
+                        "coordinates, pixels (default 1)")
+    m.add_argument("--reconstruction", type=int, metavar="N",
+                   help="with --format opensfm: which reconstruction of the file (default 0, "
+                        "the first)")
     m.add_argument("--fixed-intrinsics", action="store_true",
                    help="with --format bal or bundler: hold each photo's f, k1, k2 fixed")
     m.add_argument("--cameras", action="append", default=[], metavar="FILE",
@@ -706,9 +740,11 @@ def build_parser():
     e.add_argument("project")
     e.add_argument("directory", help="output directory (created); with --format bal or "
                                      "bundler the file")
-    e.add_argument("--format", choices=("text", "bal", "bundler", "colmap"), default="text",
+    e.add_argument("--format", choices=("text", "bal", "bundler", "colmap", "opensfm"),
+                   default="text",
                    help="text files (default), one BAL problem file, one Bundler v0.3 "
-                        "bundle.out, or a COLMAP text model "
+                        "bundle.out, an OpenSfM dataset (a project imported from one) or a "
+                        "COLMAP text model "
                         "(cameras.txt, images.txt, points3D.txt in the directory)")
     e.add_argument("--adjusted", action="store_true",
                    help="adjusted_photos.txt and adjusted_points.txt in the user's CRS (with "

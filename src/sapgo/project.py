@@ -158,9 +158,10 @@ SOLUTION_LAYOUT = {
 }
 #: Optional groups of data that sapgo itself does not use, keyed by ids (not by record
 #: numbers), kept for a format's export: ``/colmap`` (a COLMAP model's names, camera models,
-#: 2D point indices, colours; docs/project-schema.md). ``sapgo order`` and ``adjust`` carry
-#: them over unchanged.
-KEYED_GROUPS = ("colmap",)
+#: 2D point indices, colours), ``/bundler`` (colours, keypoint indices), ``/opensfm``
+#: (names, camera types and sizes, colours, feature ids; docs/project-schema.md).
+#: ``sapgo order`` and ``adjust`` carry them over unchanged.
+KEYED_GROUPS = ("colmap", "bundler", "opensfm")
 #: Solution datasets that files of older versions may lack (read as zeros).
 SOLUTION_OPTIONAL = {"station_sigma", "point_sigma", "obs_quality", "camera_corr"}
 #: Solution datasets stored in single precision (the rest in double).

@@ -260,13 +260,16 @@ def _check_out(out, force, intrinsics):
 
 
 def write_snavely_project(out, creator, eo, rows, station_ids, pts, obs_camera, obs_point,
-                          obs_xy, intrinsics, extra=None):
-    """A new project ``out`` of a Snavely-model block (BAL, Bundler): one photo and one
-    camera per station (``eo``, camera ``rows`` in pixels, ids ``station_ids``; observations
-    name stations by their index in these), the points as pass points (ids their indices)
-    with their coordinates as approximations, image sigma 1 pixel, a free network whose
-    points may lie behind a photo. ``extra(file)`` writes format-specific groups. Returns the
-    number of observations."""
+                          obs_xy, intrinsics, extra=None, point_ids=None, cameras=None,
+                          sigma_image=1.0):
+    """A new project ``out`` of a block in pixels without control (BAL, Bundler, OpenSfM):
+    one photo and one camera per station (``eo``, camera ``rows`` in pixels, ids
+    ``station_ids``; observations name stations by their index in these), or with
+    ``cameras`` = ``(ids, rows, formats, station's camera index)`` those cameras, shared;
+    the points as pass points (ids ``point_ids``, else their indices) with their
+    coordinates as approximations, image sigma ``sigma_image`` pixels, a free network whose
+    points may lie behind a photo. ``extra(file)`` writes format-specific groups. Returns
+    the number of observations."""
     import json
 
     from ..project import (
@@ -283,23 +286,27 @@ def write_snavely_project(out, creator, eo, rows, station_ids, pts, obs_camera, 
     # observations grouped by point (a stable sort keeps the file's order within a point)
     order = np.argsort(obs_point, kind="stable")
     oc, op, xy = obs_camera[order], obs_point[order], obs_xy[order]
-    # a camera's format: the square that holds its observations
-    half = np.zeros(n_cam)
-    np.maximum.at(half, oc, np.abs(xy).max(axis=1))
-    camera = np.zeros(n_cam, CAMERA_DTYPE)
-    camera["id"] = station_ids
+    if cameras is None:
+        # a camera a photo, its format the square that holds its observations
+        half = np.zeros(n_cam)
+        np.maximum.at(half, oc, np.abs(xy).max(axis=1))
+        full = 2.0 * np.ceil(np.maximum(half, 1.0))
+        cameras = (station_ids, rows, np.column_stack([full, full]), np.arange(n_cam))
+    cam_ids, cam_rows, formats, st_cam = cameras
+    camera = np.zeros(len(cam_ids), CAMERA_DTYPE)
+    camera["id"] = cam_ids
     for k, name in enumerate(("focal_length", "x0", "y0", "k1", "k2", "k3", "p1", "p2")):
-        camera[name] = rows[:, k]
-    camera["format_x"] = camera["format_y"] = 2.0 * np.ceil(np.maximum(half, 1.0))
-    camera["sigma_image"] = 1.0
+        camera[name] = cam_rows[:, k]
+    camera["format_x"], camera["format_y"] = formats[:, 0], formats[:, 1]
+    camera["sigma_image"] = sigma_image
     station = np.zeros(n_cam, STATION_DTYPE)
     station["id"] = station_ids
-    station["camera"] = np.arange(n_cam)
+    station["camera"] = st_cam
     station["strip"] = -1
     station["eo"] = eo
     counts = np.bincount(op, minlength=n_pt)
     point = np.zeros(n_pt, POINT_DTYPE)
-    point["id"] = np.arange(n_pt)
+    point["id"] = np.arange(n_pt) if point_ids is None else point_ids
     point["xyz"] = pts
     point["n_obs"] = counts
     point["obs_start"] = np.concatenate([[0], np.cumsum(counts)[:-1]])
@@ -339,14 +346,16 @@ def export_bal(project_path, out_path, adjusted=True):
             "observations": len(b["obs_camera"])}
 
 
-def snavely_block(project_path, adjusted, fmt):
+def snavely_block(project_path, adjusted, fmt, any_camera=False):
     """A project's active photos, points and observations for a Snavely-model file (BAL,
     Bundler; ``fmt`` names it in errors): every photo with its camera's f, k1, k2 (principal
     point, k3, p1 and p2 must be 0); photos and points in the order of their ids (an
     import's ids are the file's indices, so a file comes back in its own order),
     observations by point and photo. A dict of ``eo``, ``rows``, ``station_ids``, ``xyz``,
     ``point_ids``, ``obs_camera``, ``obs_point`` (indices in these), ``obs_xy`` and
-    ``obs_records`` (the observations' records)."""
+    ``obs_records`` (the observations' records), ``camera_rows`` (every camera's) and
+    ``camera_of_station``. ``any_camera``: no check of the cameras (a format that holds
+    principal points and decentring distortion)."""
     from ..geometry import camera_array
     from ..project import STATUS_ACTIVE, Project
 
@@ -358,9 +367,10 @@ def snavely_block(project_path, adjusted, fmt):
             eo = eo + p.solution("station_corr")
             xyz = xyz + p.solution("point_corr")
             rows = rows + p.solution("camera_corr")
+    cam_rows = rows
     rows = rows[st["camera"]]
     extra = np.abs(rows[:, [1, 2, 5, 6, 7]]).max(axis=1) > 0
-    if extra.any():
+    if extra.any() and not any_camera:
         raise DataError(f"{project_path}: photo id {int(st['id'][np.argmax(extra)])}: its "
                         f"camera has a principal point, k3 or decentring distortion, which "
                         f"{fmt} cannot hold")
@@ -378,4 +388,5 @@ def snavely_block(project_path, adjusted, fmt):
     return {"eo": eo[st_rec], "rows": rows[st_rec], "station_ids": st["id"][st_rec],
             "xyz": xyz[pt_rec], "point_ids": pt["id"][pt_rec],
             "obs_camera": new_st[ob["station"][o]], "obs_point": new_pt[ob["point"][o]],
-            "obs_xy": np.column_stack([ob["x"][o], ob["y"][o]]), "obs_records": o}
+            "obs_xy": np.column_stack([ob["x"][o], ob["y"][o]]), "obs_records": o,
+            "camera_rows": cam_rows, "camera_of_station": st["camera"][st_rec]}
