@@ -180,3 +180,9 @@ def test_tracks_v0_and_the_reconstruction_index(tmp_path, capsys):
     code, out, err = run_cli(capsys, "import", "--format", "opensfm", tmp_path / "ds",
                              tmp_path / "y.h5", "--reconstruction", "3")
     assert_one_line_error(code, err, "1 reconstruction(s)", "0..0")
+
+
+def test_export_needs_an_opensfm_import(tmp_path, capsys, small_block):
+    code, out, err = run_cli(capsys, "export", small_block, tmp_path / "x", "--format",
+                             "opensfm")
+    assert_one_line_error(code, err, "not imported from OpenSfM")

@@ -367,6 +367,14 @@ def export_opensfm(project_path, out_dir, adjusted=True):
         cams, shots, pts, obs = (g[k][()] for k in ("cameras", "shots", "points",
                                                     "observations"))
     b = snavely_block(project_path, adjusted, "OpenSfM", any_camera=True)
+    for what, have, ids in (("photo", shots["id"], b["station_ids"]),
+                            ("point", pts["id"], b["point_ids"]),
+                            ("camera", np.arange(len(cams)), np.unique(b["camera_of_station"]))):
+        missing = np.setdiff1d(ids, have)
+        if len(missing):
+            raise DataError(f"{project_path}: {what} id {int(missing[0])} is not in /opensfm "
+                            f"(the project changed after its import): its OpenSfM name is "
+                            f"not known")
     dec = np.vectorize(lambda v: v.decode() if isinstance(v, bytes) else str(v), otypes=[object])
     cam_name, cam_type, shot_name = dec(cams["name"]), dec(cams["type"]), dec(shots["name"])
     pt_name = dec(pts["name"])
