@@ -693,3 +693,101 @@ def test_a_covariance_that_is_not_positive_definite_is_refused(exported, tmp_pat
     with pytest.raises(DataError, match=r"prior_cov.txt:3: the covariance of the prior of "
                                         r"photo \d+ is not positive definite"):
         import_text(tmp_path / "x.h5", prior_covariances=path, **files_of(d))
+
+
+# -- angle orders (--rotation) ---------------------------------------------------------
+
+def _compose(order, a):
+    """``M`` of one photo's three file angles, composed here from sapgo's elementary
+    rotations in the documented order (the reference for the import's conversion)."""
+    from sapgo.geometry import _elementary
+
+    first, second, third = a
+    w, p, k = {"opk": (first, second, third), "pok": (second, first, third),
+               "kpo": (third, second, first)}[order]
+    r1, r2, r3, _, _, _ = _elementary(w, p, k)
+    return {"opk": r3 @ r2 @ r1, "pok": r3 @ r1 @ r2, "kpo": r1 @ r2 @ r3}[order]
+
+
+@pytest.mark.parametrize("order", ["pok", "kpo"])
+def test_a_block_in_another_angle_order_adjusts_alike(exported, tmp_path, capsys, order):
+    """The block's photos and priors written phi-omega-kappa or kappa-phi-omega (by the
+    export), read with --rotation: the same orientations, prior weights and adjustment."""
+    from scipy.spatial.transform import Rotation
+
+    gen, d = exported
+    files = files_of(d)
+    files["control"] = [only_check_points(d)]
+    ref = tmp_path / "opk.h5"
+    import_text(ref, prior_covariances=priors_from_truth(gen, d, covariances=True), **files)
+    # the photos in the order, as the export writes them
+    od = tmp_path / order
+    code, _, err = run_cli(capsys, "export", ref, od, "--rotation", order)
+    assert code == 0, err
+    header = open(od / "photos.txt").readline()
+    assert {"pok": "phi omega kappa", "kpo": "kappa phi omega"}[order] in header
+    with Project(ref) as p:
+        st = p.read("stations")
+        pr = p.read("station_priors")
+    from sapgo.frames import rotation_matrices
+
+    m_ref = dict(zip(st["id"].tolist(), rotation_matrices(st["eo"][:, :3])))
+    for ln in open(od / "photos.txt"):
+        if ln.startswith("#"):
+            continue
+        t = ln.split()
+        np.testing.assert_allclose(_compose(order, np.radians([float(x) for x in t[3:6]])),
+                                   m_ref[int(t[0])], atol=1e-13)
+    # the priors in the order: values from the matrices, covariances carried over with the
+    # Jacobian of opk -> order (central differences of scipy's Euler angles, here)
+    seq = {"pok": "YXZ", "kpo": "ZYX"}[order]
+
+    def to_order(opk):
+        return Rotation.from_euler("XYZ", opk).as_euler(seq)
+
+    cov_path = tmp_path / f"prior_cov_{order}.txt"
+    with open(cov_path, "w") as f:
+        for rec in pr:
+            v, w = rec["value"], rec["weight"]
+            h = 1e-6
+            jac = np.column_stack([(to_order(v[:3] + h * e) - to_order(v[:3] - h * e)) / (2 * h)
+                                   for e in np.eye(3)])
+            t6 = np.eye(6)
+            t6[:3, :3] = jac
+            cov = t6 @ np.linalg.inv(w) @ t6.T
+            scale = np.array([ARCSEC] * 3 + [1.0] * 3)
+            cov = cov / np.outer(scale, scale)
+            vals = list(np.degrees(to_order(v[:3]))) + list(v[3:])
+            f.write(" ".join([str(int(st["id"][rec["station"]]))]
+                             + [repr(float(x)) for x in vals]
+                             + [repr(float(cov[i, j])) for i in range(6) for j in range(i, 6)])
+                    + "\n")
+    files["photos"] = [od / "photos.txt"]
+    out = tmp_path / f"{order}.h5"
+    code, _, err = run_cli(capsys, "import", out, "--rotation", order,
+                           "--prior-covariances", cov_path, *cli_args(files))
+    assert code == 0, err
+    with Project(out) as p:
+        st2, pr2 = p.read("stations"), p.read("station_priors")
+    np.testing.assert_allclose(rotation_matrices(st2["eo"][:, :3]),
+                               rotation_matrices(st["eo"][:, :3]), atol=1e-13)
+    dv = pr2["value"] - pr["value"]
+    dv[:, :3] = (dv[:, :3] + np.pi) % (2 * np.pi) - np.pi   # (kappa 181 deg = -179 deg)
+    assert np.abs(dv).max() < 1e-12
+    np.testing.assert_allclose(pr2["weight"], pr["weight"], rtol=1e-6,
+                               atol=1e-6 * np.abs(pr["weight"]).max())
+    s1 = sapgo.adjust(ref, sapgo.Options(progress=False))
+    s2 = sapgo.adjust(out, sapgo.Options(progress=False))
+    assert s2.sigma0 == pytest.approx(s1.sigma0, rel=1e-6)
+    (eo1, xyz1), (eo2, xyz2) = adjusted_by_id(ref), adjusted_by_id(out)
+    assert max(np.abs(xyz1[k] - xyz2[k]).max() for k in xyz1) < 1e-6
+    # adjusted photos written in the order read back to the same rotations
+    code, _, err = run_cli(capsys, "export", out, tmp_path / "adj", "--adjusted",
+                           "--rotation", order)
+    assert code == 0, err
+    for ln in open(tmp_path / "adj" / "adjusted_photos.txt"):
+        if not ln.startswith("#"):
+            t = ln.split()
+            m = _compose(order, np.radians([float(x) for x in t[3:6]]))
+            np.testing.assert_allclose(m, rotation_matrices(eo2[int(t[0])][:3])[0],
+                                       atol=1e-12)

@@ -147,7 +147,7 @@ def cmd_import(args):
         measurements=args.measurements, control=args.control, angles=args.angles,
         memory=args.memory, append=args.append, force=args.force, priors=args.priors,
         prior_covariances=args.prior_covariances, crs=args.crs, orientation=args.orientation,
-        photos_matrix=args.photos_matrix,
+        photos_matrix=args.photos_matrix, rotation=args.rotation,
     )
     for w in summary["warnings"]:
         _warn(w)
@@ -336,11 +336,12 @@ def cmd_export(args):
               f"{r['points']} points, {r['observations']} observations")
     elif args.adjusted:
         r = export_adjusted(args.project, args.directory, angles=args.angles,
-                            orientation=args.orientation)
+                            orientation=args.orientation, rotation=args.rotation)
         print(f"wrote {r['counts']['photos']} adjusted photos and {r['counts']['points']} "
               f"points to {args.directory}")
     else:
-        r = export_text(args.project, args.directory, angles=args.angles)
+        r = export_text(args.project, args.directory, angles=args.angles,
+                        rotation=args.rotation)
         print(f"wrote {', '.join(f'{n} {k}' for k, n in r['counts'].items())} to "
               f"{args.directory}")
     return 0
@@ -648,6 +649,12 @@ def build_parser():
     m.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg",
                    help="unit of omega, phi, kappa in the photos and priors files (default "
                         "deg)")
+    m.add_argument("--rotation", choices=("opk", "pok", "kpo"), default="opk",
+                   help="the order of the three angles in the photos' and priors' columns "
+                        "and how they compose: opk omega-phi-kappa M = R3(k) R2(p) R1(o) "
+                        "(default), pok phi-omega-kappa M = R3(k) R1(o) R2(p) (Y primary), "
+                        "kpo kappa-phi-omega M = R1(o) R2(p) R3(k); the priors' angle "
+                        "sigmas in the same order")
     m.add_argument("--crs", metavar="CRS",
                    help="coordinate reference system of the photos', control's and priors' X "
                         "Y Z: an EPSG or IAU code, WKT or PROJ string (EPSG:4978 geocentric, "
@@ -753,7 +760,11 @@ def build_parser():
     e.add_argument("--pixel-size", type=float, metavar="UM",
                    help="with --format colmap: the pixel size in micrometres, to write a "
                         "project whose image coordinates are in mm in pixels")
-    e.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg")
+    e.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg",
+                   help="unit of the photos' angles (default deg)")
+    e.add_argument("--rotation", choices=("opk", "pok", "kpo"), default="opk",
+                   help="the order of the photos' three angles (as sapgo import --rotation; "
+                        "default opk)")
     e.add_argument("--orientation", choices=("tangent", "geocentric"), default="tangent",
                    help="with --adjusted and a CRS: angles to the east-north-up frame at each "
                         "photo (default) or to the body-fixed axes")

@@ -125,6 +125,91 @@ def rotation_matrices(opk):
     return np.array([rotation_matrix(w, p, k) for w, p, k in opk]).reshape(-1, 3, 3)
 
 
+#: Orders of the three angles of a photo (``--rotation``; the files' columns in that order):
+#: ``opk`` ``M = R3(kappa) R2(phi) R1(omega)`` (sapgo's), ``pok`` (phi-omega-kappa, Y
+#: primary) ``M = R3(kappa) R1(omega) R2(phi)``, ``kpo`` (kappa-phi-omega) ``M = R1(omega)
+#: R2(phi) R3(kappa)``; ``R1``, ``R2``, ``R3`` the rotations of the frame about its x, y, z
+#: axes (docs/theory.md section 1). Each is the transpose of scipy's intrinsic Euler
+#: rotation of the same angles in the order given: ``M' = Rx Ry Rz`` for ``opk``.
+ROTATION_ORDERS = {"opk": "XYZ", "pok": "YXZ", "kpo": "ZYX"}
+
+
+def _check_order(order):
+    from .errors import ParameterError
+
+    if order not in ROTATION_ORDERS:
+        raise ParameterError(f"rotation order {order!r}: choose one of "
+                             f"{', '.join(ROTATION_ORDERS)}")
+
+
+def matrices_of_angles(a, order="opk"):
+    """``M`` (n x 3 x 3, object to image) of angles (n x 3, radians) in the file's order:
+    ``(omega, phi, kappa)``, ``(phi, omega, kappa)`` or ``(kappa, phi, omega)``."""
+    from scipy.spatial.transform import Rotation
+
+    _check_order(order)
+    a = np.asarray(a, np.float64).reshape(-1, 3)
+    return np.transpose(Rotation.from_euler(ROTATION_ORDERS[order], a).as_matrix()
+                        .reshape(-1, 3, 3), (0, 2, 1))
+
+
+def angles_of_matrices(m, order="opk"):
+    """The inverse of :func:`matrices_of_angles` (the middle angle in -90..90 degrees)."""
+    from scipy.spatial.transform import Rotation
+
+    _check_order(order)
+    m = np.asarray(m, np.float64).reshape(-1, 3, 3)
+    if order == "opk":
+        return opk_of(m)
+    import warnings
+
+    with warnings.catch_warnings():   # (gimbal lock: scipy warns and sets the third to 0)
+        warnings.simplefilter("ignore", UserWarning)
+        return Rotation.from_matrix(np.transpose(m, (0, 2, 1))).as_euler(
+            ROTATION_ORDERS[order])
+
+
+def opk_of_order(a, order="opk"):
+    """omega, phi, kappa (n x 3) of angles in ``order`` (``opk``: the same values)."""
+    a = np.asarray(a, np.float64).reshape(-1, 3)
+    if order == "opk":
+        return a.copy()
+    return opk_of(matrices_of_angles(a, order))
+
+
+def order_of_opk(opk, order="opk"):
+    """The inverse of :func:`opk_of_order`."""
+    opk = np.asarray(opk, np.float64).reshape(-1, 3)
+    if order == "opk":
+        return opk.copy()
+    return angles_of_matrices(rotation_matrices(opk), order)
+
+
+def prior_of_order(value, weight, order="opk"):
+    """Prior values (n x 6: three angles in ``order``, X, Y, Z) and weights (n x 6 x 6, the
+    angles' rows and columns in the same order) as omega, phi, kappa: the weights carried
+    over with the Jacobian ``T`` of the conversion, ``W = T^-T W T^-1`` (``T`` by central
+    differences, as :meth:`Frame.prior_from_user`)."""
+    value = np.asarray(value, np.float64).reshape(-1, 6)
+    weight = np.asarray(weight, np.float64).reshape(-1, 6, 6)
+    if order == "opk":
+        return value.copy(), weight.copy()
+    h = 1e-7
+    g = np.empty((len(value), 3, 3))
+    for k in range(3):
+        hi, lo = value[:, :3].copy(), value[:, :3].copy()
+        hi[:, k] += h
+        lo[:, k] -= h
+        d = opk_of_order(hi, order) - opk_of_order(lo, order)
+        g[:, :, k] = ((d + np.pi) % (2 * np.pi) - np.pi) / (2 * h)
+    t = np.broadcast_to(np.eye(6), (len(value), 6, 6)).copy()
+    t[:, :3, :3] = g
+    ti = np.linalg.inv(t)
+    w = np.transpose(ti, (0, 2, 1)) @ weight @ ti
+    return (np.column_stack([opk_of_order(value[:, :3], order), value[:, 3:]]),
+            0.5 * (w + np.transpose(w, (0, 2, 1))))
+
+
 def opk_of(m):
     """(omega, phi, kappa) of rotation matrices ``M = R3 R2 R1`` (n x 3 x 3)."""
     m = np.asarray(m, np.float64).reshape(-1, 3, 3)

@@ -57,8 +57,11 @@ from .frames import (
     ORIENTATIONS,
     SELENOCENTRIC,
     Frame,
+    _check_order,
     opk_of,
+    opk_of_order,
     parse_crs,
+    prior_of_order,
 )
 from .geometry import camera_array, intersect_points, undistort_points
 from .project import (
@@ -192,10 +195,11 @@ def ray_points(eo, xy, f, height, distance, sphere=None):
 
 class _Import:
     def __init__(self, out, files, angles, memory, work, existing, crs=None,
-                 orientation="tangent"):
+                 orientation="tangent", rotation="opk"):
         self.out = out
         self.files = files
         self.angles = angles
+        self.rotation = rotation
         self.crs = None if crs is None else parse_crs(crs)
         self.orientation = orientation
         self.frame = Frame()
@@ -314,8 +318,10 @@ class _Import:
                     ids.append(rec["id"])
                     cam.append(k)
                     strip.append(rec["strip"])
-                    if fmt is PHOTOS:
-                        opk = np.stack([rec[n] for n in ("omega", "phi", "kappa")], axis=1)
+                    if fmt is PHOTOS:   # (the columns in the order --rotation gives)
+                        opk = opk_of_order(np.stack([rec[n] for n in ("omega", "phi",
+                                                                      "kappa")], axis=1),
+                                           self.rotation)
                     else:
                         m = np.stack([rec[t] for t in MATRIX_TERMS], axis=1).reshape(-1, 3, 3)
                         opk = opk_of(m)
@@ -444,6 +450,7 @@ class _Import:
                     ids.append(rec["photo"])
                     v = np.stack([rec[n] for n in PRIOR_PARAMETERS], axis=1)
                     w = self._prior_weights(fmt, rec, loc)
+                    v, w = prior_of_order(v, w, self.rotation)
                     if self.crs is not None:
                         v, w = self.frame.prior_from_user(v, w, self.crs, self.orientation)
                     value.append(v)
@@ -846,7 +853,8 @@ class _Import:
                  kinds=dict.fromkeys(KIND_NAMES, 0))
         self.dup_examples, self.lonely_ids = [], []
         attrs = {}
-        entry = {"command": "import", "angles": self.angles, "append": bool(self.existing),
+        entry = {"command": "import", "angles": self.angles, "rotation": self.rotation,
+                 "append": bool(self.existing),
                  "crs": None if self.crs is None else self.crs.to_string(),
                  "orientation": self.orientation,
                  "files": {k: [str(f) for f in v] for k, v in self.files.items()}}
@@ -953,14 +961,17 @@ class _Import:
 
 def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles="deg",
                 memory=None, append=False, force=False, priors=(), prior_covariances=(),
-                crs=None, orientation="tangent", photos_matrix=()):
+                crs=None, orientation="tangent", photos_matrix=(), rotation="opk"):
     """Import a block from text files into the project ``out``; returns a summary dict.
 
     ``cameras``, ``photos``, ``measurements``, ``control``, ``priors`` (exposure-station
     priors with a sigma per parameter) and ``prior_covariances`` (with a full 6x6
     covariance) are paths or lists of paths (several files of a kind are read as one).
     ``angles``: the unit of the photos' and priors' omega, phi, kappa (``"deg"``, ``"gon"``
-    or ``"rad"``). ``crs``: the coordinate reference system of the photos' and control's
+    or ``"rad"``). ``rotation``: the order of those three angles in the photos' and
+    priors' columns and how they compose (:data:`sapgo.frames.ROTATION_ORDERS`: ``"opk"``
+    omega-phi-kappa, ``"pok"`` phi-omega-kappa, ``"kpo"`` kappa-phi-omega; the priors'
+    angle sigmas or covariances in the same order). ``crs``: the coordinate reference system of the photos' and control's
     X, Y, Z (EPSG or IAU code, WKT, PROJ string; default none: a local frame), in which case
     the block is computed in the local tangent frame at its centre (Earth) or in the
     selenocentric frame (Moon) and ``orientation`` says how omega, phi, kappa are given:
@@ -983,6 +994,7 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     """
     t0 = time.perf_counter()
     check_angles(angles)
+    _check_order(rotation)
     if orientation not in ORIENTATIONS:
         raise ParameterError(f"orientation {orientation!r}: one of {', '.join(ORIENTATIONS)}")
     memory = DEFAULT_MEMORY if memory is None else parse_memory(memory)
@@ -1020,7 +1032,8 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     work.mkdir(parents=True)
     try:
         summary = _Import(out, files, angles, memory, work,
-                          out if (append and exists) else None, crs, orientation).run()
+                          out if (append and exists) else None, crs, orientation,
+                          rotation).run()
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary["seconds"] = time.perf_counter() - t0

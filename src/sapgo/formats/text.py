@@ -594,7 +594,7 @@ def _nonzero_bits(a):
     return np.ascontiguousarray(a, np.float64).view(np.int64) != 0
 
 
-def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS):
+def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS, rotation="opk"):
     """Write a project's input records as ``cameras.txt``, ``photos.txt``,
     ``measurements.txt`` and ``control.txt`` in ``out_dir``.
 
@@ -603,9 +603,15 @@ def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS):
     files reproduces the records bitwise. Records are streamed in chunks of ``chunk``; per
     station vectors (ids) are held in core. Points of kind pass do not appear in
     ``control.txt``; observation statuses, station priors, approximate point coordinates and
-    solutions are not exported. Returns a dict with the paths and record counts.
+    solutions are not exported. ``rotation``: the order of the photos' three angles
+    (:data:`sapgo.frames.ROTATION_ORDERS`; other than ``"opk"`` they are converted and
+    read back to about 1e-15 rad, not bitwise). Returns a dict with the paths and record
+    counts.
     """
+    from ..frames import _check_order, order_of_opk
+
     check_angles(angles)
+    _check_order(rotation)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {k: out_dir / f"{k}.txt" for k in ("cameras", "photos", "measurements", "control")}
@@ -626,10 +632,14 @@ def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS):
         cam_ids = cams["id"]
         station_ids = p.read_field("stations", "id")
         with open(paths["photos"], "w") as f:
-            f.write(_HEADERS["photos"].format(angles=angles) + "\n")
+            f.write(_HEADERS["photos"].format(angles=angles).replace(
+                "omega phi kappa", {"opk": "omega phi kappa", "pok": "phi omega kappa",
+                                    "kpo": "kappa phi omega"}[rotation]) + "\n")
             for a, b in p.chunks("stations", chunk):
                 st = p.read("stations", a, b)
                 eo = st["eo"]
+                if rotation != "opk":
+                    eo = np.column_stack([order_of_opk(eo[:, :3], rotation), eo[:, 3:]])
                 ang = []
                 for k in range(3):
                     s, bad = angle_strings(eo[:, k], angles)
@@ -685,7 +695,7 @@ def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS):
 
 
 def export_adjusted(project_path, out_dir, angles="deg", orientation="tangent",
-                    chunk=CHUNK_RECORDS):
+                    chunk=CHUNK_RECORDS, rotation="opk"):
     """Write the adjusted photos and points of an adjusted project in the user's CRS:
     ``adjusted_photos.txt`` (``id camera strip omega phi kappa X Y Z``) and
     ``adjusted_points.txt`` (``id X Y Z kind n_obs``; excluded points are left out).
@@ -693,10 +703,16 @@ def export_adjusted(project_path, out_dir, angles="deg", orientation="tangent",
     For a project imported with a CRS the coordinates are converted back into it (a
     geographic CRS: longitude, latitude in degrees, ellipsoidal height) and the angles are
     given per ``orientation`` (``"tangent"``: to the east-north-up frame at each photo, or
-    ``"geocentric"``); for a local project they are the frame's. Streams in chunks.
+    ``"geocentric"``); for a local project they are the frame's. ``rotation``: the order
+    of the three angles (:data:`sapgo.frames.ROTATION_ORDERS`). Streams in chunks.
     Returns a dict with the paths and counts.
     """
+    from ..frames import _check_order, order_of_opk
+
     check_angles(angles)
+    _check_order(rotation)
+    names = {"opk": "omega phi kappa", "pok": "phi omega kappa",
+             "kpo": "kappa phi omega"}[rotation]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"photos": out_dir / "adjusted_photos.txt",
@@ -721,12 +737,13 @@ def export_adjusted(project_path, out_dir, angles="deg", orientation="tangent",
             where = f"; {crs.name}; angles {orientation}"
         cam_ids = p.cameras()["id"]
         with open(paths["photos"], "w") as f:
-            f.write(f"# adjusted photos: id camera strip omega phi kappa X Y Z  (angles in "
+            f.write(f"# adjusted photos: id camera strip {names} X Y Z  (angles in "
                     f"{angles}; X Y Z: {axes}{where})\n")
             for a, b in p.chunks("stations", chunk):
                 st = p.read("stations", a, b)
                 eo = st["eo"] + p.solution("station_corr", a, b)
-                opk = frame.opk_to_user(eo[:, :3], eo[:, 3:], orientation)
+                opk = order_of_opk(frame.opk_to_user(eo[:, :3], eo[:, 3:], orientation),
+                                   rotation)
                 xyz = frame.to_user(eo[:, 3:])
                 ang = (opk if angles == "rad" else
                        opk / float(_ANGLE_FACTOR[angles]))
