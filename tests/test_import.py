@@ -791,3 +791,75 @@ def test_a_block_in_another_angle_order_adjusts_alike(exported, tmp_path, capsys
             m = _compose(order, np.radians([float(x) for x in t[3:6]]))
             np.testing.assert_allclose(m, rotation_matrices(eo2[int(t[0])][:3])[0],
                                        atol=1e-12)
+
+
+# -- image coordinate conventions (--image-frames) -------------------------------------
+
+@pytest.mark.parametrize("frame", ["px topleft down", "mm bottomleft up", "px centre down"])
+def test_measurements_in_other_image_frames_adjust_alike(exported, tmp_path, capsys, frame):
+    """The block's measurements rewritten in pixels from the top-left corner with y down
+    (4.6 x 5.0 um pixels), in mm from the bottom-left corner, or in pixels from the centre
+    with y down, read with --image-frames: the same observations and adjustment."""
+    gen, d = exported
+    files = files_of(d)
+    ref = tmp_path / "ref.h5"
+    import_text(ref, **files)
+    unit, origin, axis = frame.split()
+    px, py = (4.6, 5.0) if unit == "px" else (1000.0, 1000.0)   # (um a unit)
+    cams = [ln.split() for ln in data_lines(d / "cameras.txt")]
+    fx, fy = float(cams[0][4]), float(cams[0][5])   # (the format, mm)
+    w, h = fx * 1000 / px, fy * 1000 / py
+    lines = []
+    for ln in data_lines(d / "measurements.txt"):
+        photo, point, x, y, sigma = ln.split()
+        u, v = float(x) * 1000 / px, float(y) * 1000 / py
+        if axis == "down":
+            v = -v
+        if origin == "topleft":
+            u, v = u + w / 2, v + h / 2
+        elif origin == "bottomleft":
+            u, v = u + w / 2, v + h / 2
+        s = float(sigma) * 1000 / float(np.sqrt(px * py))
+        lines.append(f"{photo} {point} {u!r} {v!r} {s!r}")
+    files["measurements"] = write_lines(tmp_path / "m.txt", lines)
+    size = ("-", "-") if origin == "centre" else (repr(w), repr(h))
+    pix = (repr(px), repr(py)) if unit == "px" else ("-", "-")
+    frames = write_lines(tmp_path / "frames.txt",
+                         [" ".join([c[0], unit, *pix, *size, origin, axis]) for c in cams])
+    out = tmp_path / "other.h5"
+    code, _, err = run_cli(capsys, "import", out, "--image-frames", frames,
+                           *cli_args(files))
+    assert code == 0, err
+    def observations(path):
+        rec = read_records(path)
+        st, pt, ob = rec["stations"], rec["points"], rec["observations"]
+        key = (st["id"][ob["station"]], pt["id"][ob["point"]])
+        o = np.lexsort((key[1], key[0]))
+        return np.column_stack([key[0][o], key[1][o]]), ob[o]
+
+    (ka, a), (kb, b) = observations(ref), observations(out)
+    np.testing.assert_array_equal(kb, ka)
+    np.testing.assert_allclose(b["x"], a["x"], atol=1e-9)
+    np.testing.assert_allclose(b["y"], a["y"], atol=1e-9)
+    np.testing.assert_allclose(b["sigma"], a["sigma"], rtol=1e-12)
+    s1 = sapgo.adjust(ref, sapgo.Options(progress=False))
+    s2 = sapgo.adjust(out, sapgo.Options(progress=False))
+    assert s2.sigma0 == pytest.approx(s1.sigma0, rel=1e-6)
+
+
+@pytest.mark.parametrize("line, words", [
+    ("99 px 4.6 4.6 6000 4000 topleft down", "camera 99 is not in the cameras"),
+    ("1 pixels 4.6 4.6 6000 4000 topleft down", "unit 'pixels'"),
+    ("1 px 4.6 4.6 - - topleft down", "width '-' must be a positive number"),
+    ("1 px - 4.6 6000 4000 centre down", "pixel_x '-'"),
+    ("1 px 4.6 4.6 6000 4000 middle down", "origin 'middle'"),
+    ("1 px 4.6 4.6 6000 4000 centre sideways", "y axis 'sideways'"),
+    ("1 px 4.6 4.6 6000 4000", "expected 8 columns"),
+])
+def test_bad_image_frames_name_the_line(exported, tmp_path, capsys, line, words):
+    gen, d = exported
+    frames = write_lines(tmp_path / "frames.txt", [line])
+    code, _, err = run_cli(capsys, "import", tmp_path / "x.h5", "--image-frames", frames,
+                           *cli_args(files_of(d)))
+    assert_one_line_error(code, err, "frames.txt:2", words)
+    assert not (tmp_path / "x.h5").exists()

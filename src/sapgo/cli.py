@@ -148,6 +148,7 @@ def cmd_import(args):
         memory=args.memory, append=args.append, force=args.force, priors=args.priors,
         prior_covariances=args.prior_covariances, crs=args.crs, orientation=args.orientation,
         photos_matrix=args.photos_matrix, rotation=args.rotation,
+        image_frames=args.image_frames,
     )
     for w in summary["warnings"]:
         _warn(w)
@@ -649,6 +650,11 @@ def build_parser():
     m.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg",
                    help="unit of omega, phi, kappa in the photos and priors files (default "
                         "deg)")
+    m.add_argument("--image-frames", action="append", default=[], metavar="FILE",
+                   help="per camera, how its photos' measurements are given: camera unit "
+                        "(mm|px) pixel_x pixel_y (um, '-' for mm) width height (in the unit) "
+                        "origin (centre|topleft|bottomleft) y_axis (up|down); cameras not "
+                        "listed: mm from the centre, y up")
     m.add_argument("--rotation", choices=("opk", "pok", "kpo"), default="opk",
                    help="the order of the three angles in the photos' and priors' columns "
                         "and how they compose: opk omega-phi-kappa M = R3(k) R2(p) R1(o) "

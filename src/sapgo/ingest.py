@@ -645,13 +645,15 @@ class _Import:
             return [(unknown, lambda i: f"photo {rec['photo'][i]} is not in the photos "
                                         f"file(s) (column 1)")]
 
+        frames = read_image_frames(self.files.get("image_frames", ()), self.cameras["id"])
         for path in self.files["measurements"]:
             for rec, loc in self._read(MEASUREMENTS, path, known_photo):
                 k = np.searchsorted(st_ids, rec["photo"])
                 r = np.empty(len(rec), MEAS_DTYPE)
                 r["point"] = rec["point"]
                 r["station"] = k
-                r["x"], r["y"], r["sigma"] = rec["x"], rec["y"], rec["sigma"]
+                r["x"], r["y"], r["sigma"] = frames.to_mm(self.stations["camera"][k],
+                                                          rec["x"], rec["y"], rec["sigma"])
                 r["loc"] = loc
                 sorter.add(r)
 
@@ -959,9 +961,97 @@ class _Import:
         }
 
 
+#: ``--image-frames``: where a unit, origin and y axis put the image centre, in the unit's
+#: coordinates with y up (multiples of the width and height).
+IMAGE_ORIGINS = {"centre": (0.0, 0.0), "topleft": (-0.5, 0.5), "bottomleft": (-0.5, -0.5)}
+IMAGE_UNITS = ("mm", "px")
+
+
+class ImageFrames:
+    """Per camera (by record), how its photos' measurements are turned into sapgo's
+    millimetres from the image centre with y up: ``x = (u + ox) * sx``, ``y = (fy v + oy) *
+    sy``, ``sigma * ss`` (the identity for cameras without a line)."""
+
+    def __init__(self, n):
+        self.sx, self.sy, self.ss = np.ones(n), np.ones(n), np.ones(n)
+        self.ox, self.oy, self.fy = np.zeros(n), np.zeros(n), np.ones(n)
+
+    def to_mm(self, cam, x, y, sigma):
+        return ((x + self.ox[cam]) * self.sx[cam],
+                (self.fy[cam] * y + self.oy[cam]) * self.sy[cam], sigma * self.ss[cam])
+
+
+def read_image_frames(paths, cam_ids):
+    """The ``--image-frames`` files: one line per camera ``camera unit pixel_x pixel_y width
+    height origin y_axis`` (unit ``mm`` or ``px``; pixel sizes in micrometres, ``-`` for mm;
+    width and height in the unit, ``-`` allowed with origin ``centre``; origin ``centre``,
+    ``topleft`` or ``bottomleft``, the image's corner itself, not a pixel's centre; y axis
+    ``up`` or ``down``). Returns :class:`ImageFrames` over the cameras' records. Errors
+    name the file and line."""
+    frames = ImageFrames(len(cam_ids))
+    seen = {}
+    for path in paths:
+        try:
+            lines = Path(path).read_text().splitlines()
+        except UnicodeDecodeError as exc:
+            raise DataError(f"{path}: not a text file ({exc.reason})") from None
+        for k, line in enumerate(lines, start=1):
+            t = line.split("#", 1)[0].split()
+            if not t:
+                continue
+            where = f"{path}:{k}"
+            if len(t) != 8:
+                raise DataError(f"{where}: expected 8 columns (camera unit pixel_x pixel_y "
+                                f"width height origin y_axis), got {len(t)}")
+            try:
+                cid = int(t[0])
+            except ValueError:
+                raise DataError(f"{where}: camera {t[0]!r} is not an id") from None
+            j = int(np.searchsorted(cam_ids, cid))
+            if j >= len(cam_ids) or cam_ids[j] != cid:
+                raise DataError(f"{where}: camera {cid} is not in the cameras file(s)")
+            if j in seen:
+                raise DataError(f"{where}: camera {cid} has a line already ({seen[j]})")
+            seen[j] = where
+            unit, origin, axis = t[1], t[6], t[7]
+            if unit not in IMAGE_UNITS:
+                raise DataError(f"{where}: unit {unit!r}: mm or px")
+            if origin not in IMAGE_ORIGINS:
+                raise DataError(f"{where}: origin {origin!r}: one of "
+                                f"{', '.join(IMAGE_ORIGINS)}")
+            if axis not in ("up", "down"):
+                raise DataError(f"{where}: y axis {axis!r}: up or down")
+
+            def number(tok, name, needed):
+                if tok == "-" and not needed:
+                    return None
+                try:
+                    v = float(tok)
+                except ValueError:
+                    v = float("nan")
+                if not (np.isfinite(v) and v > 0):
+                    raise DataError(f"{where}: {name} {tok!r} must be a positive number"
+                                    + ("" if needed else " or '-'"))
+                return v
+
+            px = number(t[2], "pixel_x", unit == "px")
+            py = number(t[3], "pixel_y", unit == "px")
+            w = number(t[4], "width", origin != "centre")
+            h = number(t[5], "height", origin != "centre")
+            cx, cy = IMAGE_ORIGINS[origin]
+            frames.ox[j] = cx * (w or 0.0)
+            frames.oy[j] = cy * (h or 0.0)
+            frames.fy[j] = -1.0 if axis == "down" else 1.0
+            if unit == "px":
+                frames.sx[j], frames.sy[j] = px / 1000.0, py / 1000.0
+                frames.ss[j] = np.sqrt(px * py) / 1000.0
+    return frames
+
+
 def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles="deg",
                 memory=None, append=False, force=False, priors=(), prior_covariances=(),
-                crs=None, orientation="tangent", photos_matrix=(), rotation="opk"):
+                crs=None, orientation="tangent", photos_matrix=(), rotation="opk",
+                image_frames=()):
     """Import a block from text files into the project ``out``; returns a summary dict.
 
     ``cameras``, ``photos``, ``measurements``, ``control``, ``priors`` (exposure-station
@@ -978,7 +1068,9 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     ``"tangent"`` (to the local east-north-up frame at each station) or ``"geocentric"``
     (to the body-fixed axes); see :mod:`sapgo.frames`. ``photos_matrix``: photos files whose
     orientation is a rotation matrix (object to image, row by row; relative to the same axes)
-    instead of three angles. ``memory``: the budget of the sorting phases (bytes or
+    instead of three angles. ``image_frames``: files giving, per camera, the unit, origin
+    and y axis of its photos' image measurements (:func:`read_image_frames`; cameras not
+    listed: mm from the image centre, y up). ``memory``: the budget of the sorting phases (bytes or
     ``"512M"``; default :data:`sapgo.extsort.DEFAULT_MEMORY`).
 
     If ``out`` exists, ``force=True`` replaces it and ``append=True`` adds the files to it:
@@ -1002,7 +1094,8 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     files = {"cameras": _as_list(cameras), "photos": _as_list(photos),
              "photos_matrix": _as_list(photos_matrix),
              "measurements": _as_list(measurements), "control": _as_list(control),
-             "priors": _as_list(priors), "prior_covariances": _as_list(prior_covariances)}
+             "priors": _as_list(priors), "prior_covariances": _as_list(prior_covariances),
+             "image_frames": _as_list(image_frames)}
     if append and force:
         raise ParameterError("--append and --force exclude each other: --append adds the files "
                              "to the project, --force replaces it")
