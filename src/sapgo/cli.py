@@ -91,6 +91,23 @@ def cmd_order(args):
     return 0
 
 
+def cmd_init(args):
+    from .init import initialise
+
+    r = initialise(args.project)
+    print(f"placed {r.photos_placed} of {r.photos} photos and intersected "
+          f"{r.points_intersected} points ({r.sweeps} sweeps of resection and intersection); "
+          f"next: sapgo adjust {args.project}")
+    if r.photos_not_placed:
+        _warn(f"{r.photos - r.photos_placed} photo(s) are not connected to two points of "
+              f"known X, Y and keep their values: ids "
+              f"{', '.join(map(str, r.photos_not_placed))}")
+    if r.points_not_intersected:
+        _warn(f"{r.points_not_intersected} point(s) could not be intersected (fewer than two "
+              f"rays, or rays under 1 degree) and keep approximate values")
+    return 0
+
+
 def cmd_import(args):
     if args.sigma_image is not None and args.format not in ("colmap", "opensfm"):
         raise ParameterError("--sigma-image applies to --format colmap and opensfm (a "
@@ -591,6 +608,18 @@ def build_parser():
     o.add_argument("--leaf-stations", type=int, default=None, metavar="N",
                    help="the partition tree's largest leaf (default 48 stations)")
     o.set_defaults(func=cmd_order)
+
+    ini = sub.add_parser("init", help="starting values of a near-vertical block's photos and "
+                                      "points from its control",
+                         description="Starting values of a near-vertical (aerial) block: "
+                                     "the photos as vertical photos from a planimetric "
+                                     "block adjustment over the control's X, Y, the points "
+                                     "intersected, then sweeps of resection and "
+                                     "intersection. The project's approximations are "
+                                     "replaced (a stored solution is dropped). Then: sapgo "
+                                     "adjust.")
+    ini.add_argument("project")
+    ini.set_defaults(func=cmd_init)
 
     m = sub.add_parser("import", help="import a block from text files (cameras, photos, image "
                                       "measurements, control)",
