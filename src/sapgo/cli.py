@@ -115,6 +115,20 @@ def cmd_import(args):
                              "has 1 pixel)")
     if args.reconstruction is not None and args.format != "opensfm":
         raise ParameterError("--reconstruction applies to --format opensfm")
+    if args.format == "photomodeler":
+        from .formats.photomodeler import import_photomodeler
+
+        if len(args.paths) != 2:
+            raise ParameterError("--format photomodeler takes the export and the project to "
+                                 "create: sapgo import --format photomodeler export.txt "
+                                 "block.h5")
+        r = import_photomodeler(args.paths[0], args.paths[1], force=args.force)
+        datum = ("a free network" if r["free"] else
+                 f"{r['control_points']} control points")
+        print(f"imported {r['path']}: {r['photos']} photos, {r['cameras']} camera(s) (held; "
+              f"the measurements freed of PhotoModeler's lens distortion), {r['points']} "
+              f"points, {r['observations']} image observations; {datum}")
+        return 0
     if args.format == "opensfm":
         from .formats.opensfm import import_opensfm
 
@@ -636,14 +650,17 @@ def build_parser():
                    help="the project file to create (e.g. block.h5); with --format bal or "
                         "bundler the file first, with --format colmap the model's directory "
                         "first")
-    m.add_argument("--format", choices=("text", "bal", "bundler", "colmap", "opensfm"),
+    m.add_argument("--format", choices=("text", "bal", "bundler", "colmap", "opensfm",
+                                        "photomodeler"),
                    default="text",
                    help="text (default: the files below), bal (a 'Bundle Adjustment in the "
                         "Large' problem: one camera per photo whose f, k1, k2 are adjusted "
                         "with it, pixels, a free network adjusted by Levenberg-Marquardt), "
                         "bundler (a Bundler v0.3/v0.4 bundle.out: the same camera model), "
                         "opensfm (reconstruction.json and tracks.csv: shared cameras, held; "
-                        "pixels; a free network) or "
+                        "pixels; a free network), photomodeler (PhotoModeler's text export "
+                        "as DBAT reads it: the camera held, its backward distortion applied "
+                        "to the measurements) or "
                         "colmap (COLMAP's text model: cameras.txt, images.txt, points3D.txt; "
                         "pixels; a free network, or with --control aligned to the control "
                         "and adjusted with it)")

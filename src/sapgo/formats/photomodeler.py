@@ -1,0 +1,275 @@
+"""PhotoModeler's text export, as DBAT reads it (Börlin and Grussenmeyer's Damped Bundle
+Adjustment Toolbox: ``loadpm.m``): read and import.
+
+Layout (whitespace-separated; a blank line ends a block)::
+
+    title
+    tolerance max_iterations width height        (width, height: the image's pixels,
+                                                  appended by hand, as DBAT asks)
+    9 default sigmas
+    c xp yp xs ys K1 K2 K3 P1 P2                 (the camera: mm; xp, yp from the image's
+                                                  top-left corner, y down; xs, ys its format)
+    10 sigmas of the camera
+    per photo (N: its number from 0, on every line):
+      N name                  N X Y Z kappa phi omega (degrees)       N 6 sigmas
+      N covariances (or a blank line)             N c xp yp xs ys K1 K2 K3 P1 P2
+      N 10 sigmas
+    <blank>
+    control points:   id X Y Z sX sY sZ ...      <blank>  (may be empty)
+    object points:    id X Y Z sX sY sZ ...      <blank>  (the approximations)
+    marked points:    photo id x y sx sy ...     <blank or end>  (pixels from the top-left,
+                                                  y down)
+
+Conventions (DBAT's ``prob2dbatstruct.m`` and camera model): ``M = R3(kappa) R2(phi)
+R1(omega)`` and the projection ``x0 - f u / w`` are sapgo's. PhotoModeler's K1-K3, P1, P2
+are a *backward* model: they correct a measured point ``m`` (mm, y up) into the ideal one,
+``m + w (K1 r^2 + K2 r^4 + K3 r^6) + (P1 (r^2 + 2 x^2) + 2 P2 x y, 2 P1 x y + P2 (r^2 +
+2 y^2))`` with ``w = (x, y) = m - (principal point)``. The import applies that correction to
+the measurements and gives sapgo a camera without distortion (held): exact for the
+calibration the file holds. Marked points' sigmas are taken as pixels.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataError, ParameterError
+
+__all__ = ["import_photomodeler", "pm_correct", "read_photomodeler"]
+
+
+def _floats(path, k, line, n, what, first_int=False):
+    """``n`` numbers of a line (after the photo number when ``first_int``)."""
+    t = line.split()
+    if first_int:
+        t = t[1:]
+    if len(t) < n:
+        raise DataError(f"{path}:{k + 1}: {what}: expected {n} numbers, got {len(t)}")
+    try:
+        v = [float(x) for x in t[:n]]
+    except ValueError:
+        bad = next(x for x in t[:n] if not _num(x))
+        raise DataError(f"{path}:{k + 1}: {what}: {bad!r} is not a number") from None
+    if not all(math.isfinite(x) for x in v):
+        raise DataError(f"{path}:{k + 1}: {what}: a value is not finite")
+    return v
+
+
+def _num(x):
+    try:
+        float(x)
+        return True
+    except ValueError:
+        return False
+
+
+def _photo_no(line):
+    t = line.split()
+    return int(t[0]) if t and t[0].lstrip("-").isdigit() else None
+
+
+def read_photomodeler(path):
+    """Read a PhotoModeler text export: a dict of ``size`` (width, height px), ``camera``
+    (c, xp, yp, xs, ys, K1, K2, K3, P1, P2), ``photos`` (number, name, X, Y, Z, kappa, phi,
+    omega in degrees, camera row), ``control`` and ``points`` (id, X, Y, Z, sX, sY, sZ) and
+    ``marked`` (photo, id, x, y, sx, sy; pixels). Errors name the file and line."""
+    path = Path(path)
+    try:
+        lines = path.read_text(errors="strict").splitlines()
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{path}: not a text file ({exc.reason})") from None
+    if len(lines) < 5:
+        raise DataError(f"{path}:{len(lines)}: the file ends early: 5 header lines expected")
+    head = lines[1].split()
+    if len(head) < 4:
+        raise DataError(f"{path}:2: expected 'tolerance iterations width height' (the image's "
+                        f"width and height in pixels appended by hand, as DBAT asks), got "
+                        f"{lines[1].strip()!r}")
+    w, h = _floats(path, 1, lines[1], 4, "header")[2:]
+    if not (w > 0 and h > 0):
+        raise DataError(f"{path}:2: the image's width and height must be positive pixels")
+    camera = _floats(path, 3, lines[3], 10, "camera")
+    photos = []
+    k = 5
+    while k < len(lines) and _photo_no(lines[k]) is not None and len(lines[k].split()) >= 2 \
+            and not _num(lines[k].split()[1]):
+        n = _photo_no(lines[k])
+        name = lines[k].split(None, 1)[1].strip()
+        if k + 5 >= len(lines):
+            raise DataError(f"{path}:{len(lines)}: the file ends in photo {n}'s block")
+        for j in (1, 2, 4, 5):
+            if _photo_no(lines[k + j]) != n:
+                raise DataError(f"{path}:{k + j + 1}: expected a line of photo {n}, got "
+                                f"{lines[k + j].strip()!r}")
+        pos = _floats(path, k + 1, lines[k + 1], 6, f"photo {n}", first_int=True)
+        cam = _floats(path, k + 4, lines[k + 4], 10, f"photo {n}'s camera", first_int=True)
+        photos.append((n, name, pos, cam))
+        k += 6
+    if not photos:
+        raise DataError(f"{path}:{k + 1}: no photo block (expected 'N name' after the 5 "
+                        f"header lines)")
+    # the blank line that ends the photos, then blocks of lines separated by blank lines
+    if k < len(lines) and lines[k].strip():
+        raise DataError(f"{path}:{k + 1}: expected a blank line after the photos, got "
+                        f"{lines[k].strip()!r}")
+    k += 1
+    blocks = [[]]
+    while k < len(lines) and len(blocks) <= 3:
+        if lines[k].strip():
+            blocks[-1].append(k)
+        else:
+            blocks.append([])
+        k += 1
+    while len(blocks) < 3:
+        blocks.append([])
+    control = [[int(lines[i].split()[0])] + _floats(path, i, lines[i], 6, "control point",
+                                                     first_int=True) for i in blocks[0]]
+    points = [[int(lines[i].split()[0])] + _floats(path, i, lines[i], 6, "object point",
+                                                    first_int=True) for i in blocks[1]]
+    marked = []
+    for i in blocks[2]:
+        t = lines[i].split()
+        if len(t) < 4 or not t[0].isdigit():
+            raise DataError(f"{path}:{i + 1}: marked point: expected 'photo id x y [sx sy]', "
+                            f"got {lines[i].strip()!r}")
+        v = _floats(path, i, lines[i], 5 if len(t) >= 6 else 3, "marked point",
+                    first_int=True)
+        if v[0] != int(v[0]):
+            raise DataError(f"{path}:{i + 1}: marked point: id {t[1]!r} is not an integer")
+        marked.append([int(t[0]), int(v[0]), v[1], v[2]] + (v[3:5] if len(v) == 5
+                                                             else [0.0, 0.0]))
+    return {"size": (w, h), "camera": camera, "photos": photos,
+            "control": np.array(control, np.float64).reshape(-1, 7),
+            "points": np.array(points, np.float64).reshape(-1, 7),
+            "marked": np.array(marked, np.float64).reshape(-1, 6), "lines": blocks}
+
+
+def pm_correct(x, y, camera):
+    """PhotoModeler's backward correction of measured points (mm from the image centre, y
+    up): the ideal points (see the module's comment). ``camera``: c, xp, yp, xs, ys, K1, K2,
+    K3, P1, P2 (xp, yp from the top-left corner, y down)."""
+    c, xp, yp, xs, ys, k1, k2, k3, p1, p2 = camera
+    x0, y0 = xp - xs / 2, ys / 2 - yp
+    u, v = x - x0, y - y0
+    r2 = u * u + v * v
+    radial = k1 * r2 + k2 * r2 * r2 + k3 * r2 ** 3
+    return (x + u * radial + p1 * (r2 + 2 * u * u) + 2 * p2 * u * v,
+            y + v * radial + 2 * p1 * u * v + p2 * (r2 + 2 * v * v))
+
+
+def import_photomodeler(path, out, force=False):
+    """Import a PhotoModeler text export into a new project ``out``: one camera per
+    distinct camera row of the photos (held; the measurements freed of its backward
+    distortion), photos with ids their numbers, the object points (ids theirs) as pass
+    points with their coordinates as approximations, the control points as full control
+    (a sigma at or below 0: fixed), or a free network without control. Returns a summary
+    dict."""
+    from ..project import (
+        CAMERA_DTYPE,
+        KIND_CONTROL,
+        OBSERVATION_DTYPE,
+        POINT_DTYPE,
+        PRIOR_DTYPE,
+        STATION_DTYPE,
+        ProjectWriter,
+        append_history,
+    )
+
+    out = Path(out)
+    if out.exists() and not force:
+        raise ParameterError(f"{out} exists: use --force to replace it")
+    d = read_photomodeler(path)
+    w, h = d["size"]
+    rows = [tuple(cam) for _, _, _, cam in d["photos"]]
+    uniq = sorted(set(rows), key=rows.index)
+    cam_of_photo = np.array([uniq.index(r) for r in rows], np.int64)
+    cams = np.array(uniq, np.float64)
+    camera = np.zeros(len(cams), CAMERA_DTYPE)
+    camera["id"] = np.arange(1, len(cams) + 1)
+    camera["focal_length"] = cams[:, 0]
+    camera["x0"], camera["y0"] = cams[:, 1] - cams[:, 3] / 2, cams[:, 4] / 2 - cams[:, 2]
+    camera["format_x"], camera["format_y"] = cams[:, 3], cams[:, 4]
+    pw, ph = cams[:, 3] / w, cams[:, 4] / h
+    camera["sigma_image"] = np.sqrt(pw * ph) * 0.1       # (0.1 px where a point has none)
+    ids = np.array([n for n, _, _, _ in d["photos"]], np.int64)
+    if len(np.unique(ids)) != len(ids):
+        raise DataError(f"{path}: photo numbers repeat")
+    pos = np.array([p for _, _, p, _ in d["photos"]], np.float64)
+    station = np.zeros(len(ids), STATION_DTYPE)
+    station["id"] = ids
+    station["camera"] = cam_of_photo
+    station["strip"] = -1
+    station["eo"][:, :3] = np.radians(pos[:, [5, 4, 3]])   # (kappa phi omega in the file)
+    station["eo"][:, 3:] = pos[:, :3]
+    # points: the object points, the control's values where given
+    pts = d["points"]
+    ctrl = d["control"]
+    all_ids = np.unique(np.concatenate([pts[:, 0], ctrl[:, 0]])).astype(np.int64)
+    n_pt = len(all_ids)
+    xyz = np.zeros((n_pt, 3))
+    xyz[np.searchsorted(all_ids, pts[:, 0].astype(np.int64))] = pts[:, 1:4]
+    kind = np.zeros(n_pt, np.int8)
+    control = np.zeros((n_pt, 3))
+    csig = np.zeros((n_pt, 3))
+    if len(ctrl):
+        at = np.searchsorted(all_ids, ctrl[:, 0].astype(np.int64))
+        kind[at] = KIND_CONTROL
+        control[at] = ctrl[:, 1:4]
+        csig[at] = np.maximum(ctrl[:, 4:7], 0.0)      # (<= 0: fixed, as DBAT reads it)
+        only = ~np.isin(ctrl[:, 0], pts[:, 0])
+        xyz[at[only]] = ctrl[only, 1:4]
+    m = d["marked"]
+    if not len(m):
+        raise DataError(f"{path}: no marked points (image measurements)")
+    st_rec = np.searchsorted(ids, m[:, 0].astype(np.int64))
+    bad = np.flatnonzero((st_rec >= len(ids)) | (ids[np.minimum(st_rec, len(ids) - 1)]
+                                                 != m[:, 0]))
+    if len(bad):
+        line = d["lines"][2][bad[0]] + 1
+        raise DataError(f"{path}:{line}: marked point on photo {int(m[bad[0], 0])}, which "
+                        f"has no photo block")
+    p_rec = np.searchsorted(all_ids, m[:, 1].astype(np.int64))
+    bad = np.flatnonzero((p_rec >= n_pt) | (all_ids[np.minimum(p_rec, n_pt - 1)] != m[:, 1]))
+    if len(bad):
+        line = d["lines"][2][bad[0]] + 1
+        raise DataError(f"{path}:{line}: marked point {int(m[bad[0], 1])} is not an object "
+                        f"or control point")
+    c = cam_of_photo[st_rec]
+    x = m[:, 2] * pw[c] - cams[c, 3] / 2
+    y = cams[c, 4] / 2 - m[:, 3] * ph[c]
+    x, y = pm_correct(x, y, cams[c].T)
+    sig = np.where((m[:, 4] > 0) & (m[:, 5] > 0), np.sqrt(m[:, 4] * m[:, 5] * pw[c] * ph[c]),
+                   0.0)
+    order = np.lexsort((st_rec, p_rec))
+    obs = np.zeros(len(m), OBSERVATION_DTYPE)
+    obs["point"], obs["station"] = p_rec[order], st_rec[order]
+    obs["x"], obs["y"], obs["sigma"] = x[order], y[order], sig[order]
+    counts = np.bincount(p_rec, minlength=n_pt)
+    point = np.zeros(n_pt, POINT_DTYPE)
+    point["id"] = all_ids
+    point["kind"] = kind
+    point["xyz"] = xyz
+    point["control"] = control
+    point["control_sigma"] = csig
+    point["n_obs"] = counts
+    point["obs_start"] = np.cumsum(counts) - counts
+    point["station_min"] = point["station_max"] = -1
+    free = not len(ctrl)
+    creator = {"command": "import", "format": "photomodeler", "file": str(path)}
+    attrs = {"creator": json.dumps(creator), "history": append_history("[]", creator)}
+    if free:
+        attrs.update(datum="free")
+    with ProjectWriter(out, attrs) as wr:
+        wr.append("cameras", camera)
+        wr.append("stations", station)
+        wr.append("station_priors", np.zeros(0, PRIOR_DTYPE))
+        wr.append("points", point)
+        wr.append("observations", obs)
+        wr.finish()
+    return {"path": str(out), "cameras": len(camera), "photos": len(station),
+            "points": n_pt, "control_points": int(len(ctrl)), "observations": len(obs),
+            "free": free}
