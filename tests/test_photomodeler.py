@@ -134,3 +134,33 @@ def test_malformed_exports_name_the_line(small_block, tmp_path, capsys, case, wh
                              tmp_path / "x.h5")
     assert_one_line_error(code, err, "pm.txt" + where, words)
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_export_and_import_again(small_block, tmp_path, capsys):
+    """A generated block written as a PhotoModeler export (10 um pixels), imported again:
+    the same observations and adjustment; with --adjusted the adjusted values go out."""
+    code, out, err = run_cli(capsys, "export", small_block, tmp_path / "pm.txt", "--format",
+                             "photomodeler", "--pixel-size", "10")
+    assert code == 0, err
+    from sapgo.formats.photomodeler import import_photomodeler
+
+    import_photomodeler(tmp_path / "pm.txt", tmp_path / "back.h5")
+    rec, back = read_records(small_block), read_records(tmp_path / "back.h5")
+    key = lambda r: np.lexsort((r["points"]["id"][r["observations"]["point"]],   # noqa
+                                r["stations"]["id"][r["observations"]["station"]]))
+    a, b = rec["observations"][key(rec)], back["observations"][key(back)]
+    np.testing.assert_allclose(b["x"], a["x"], atol=1e-9)
+    np.testing.assert_allclose(b["y"], a["y"], atol=1e-9)
+    s1 = sapgo.adjust(small_block, sapgo.Options(progress=False))
+    s2 = sapgo.adjust(tmp_path / "back.h5", sapgo.Options(progress=False))
+    assert s2.sigma0 == pytest.approx(s1.sigma0, rel=1e-6)
+    # the adjusted values written, read: the adjustment starts at its end
+    code, out, err = run_cli(capsys, "export", small_block, tmp_path / "adj.txt", "--format",
+                             "photomodeler", "--pixel-size", "10", "--adjusted")
+    assert code == 0, err
+    import_photomodeler(tmp_path / "adj.txt", tmp_path / "adj.h5")
+    s3 = sapgo.adjust(tmp_path / "adj.h5", sapgo.Options(progress=False))
+    assert s3.iterations <= 2 and s3.sigma0 == pytest.approx(s1.sigma0, rel=1e-6)
+    code, out, err = run_cli(capsys, "export", small_block, tmp_path / "x.txt", "--format",
+                             "photomodeler")
+    assert_one_line_error(code, err, "--pixel-size")

@@ -334,8 +334,8 @@ def cmd_report(args):
 def cmd_export(args):
     from .formats import export_adjusted, export_text
 
-    if args.pixel_size is not None and args.format != "colmap":
-        raise ParameterError("--pixel-size applies to --format colmap")
+    if args.pixel_size is not None and args.format not in ("colmap", "photomodeler"):
+        raise ParameterError("--pixel-size applies to --format colmap and photomodeler")
     if args.format == "colmap":
         from .formats.colmap import export_colmap
 
@@ -352,6 +352,16 @@ def cmd_export(args):
         print(f"wrote {'the adjusted' if args.adjusted else 'the input'} BAL problem "
               f"{args.directory}: {r['cameras']} cameras, {r['points']} points, "
               f"{r['observations']} observations")
+    elif args.format == "photomodeler":
+        from .formats.photomodeler import export_photomodeler
+
+        r = export_photomodeler(args.project, args.directory, adjusted=args.adjusted,
+                                pixel_size=args.pixel_size)
+        part = (f"; {r['partial_control']} horizontal or vertical control point(s) written "
+                f"as object points only" if r["partial_control"] else "")
+        print(f"wrote {'the adjusted' if args.adjusted else 'the input'} PhotoModeler export "
+              f"{args.directory}: {r['photos']} photos, {r['points']} points "
+              f"({r['control_points']} control), {r['observations']} marked points{part}")
     elif args.format == "opensfm":
         from .formats.opensfm import export_opensfm
 
@@ -799,7 +809,8 @@ def build_parser():
     e.add_argument("project")
     e.add_argument("directory", help="output directory (created); with --format bal or "
                                      "bundler the file")
-    e.add_argument("--format", choices=("text", "bal", "bundler", "colmap", "opensfm"),
+    e.add_argument("--format", choices=("text", "bal", "bundler", "colmap", "opensfm",
+                                        "photomodeler"),
                    default="text",
                    help="text files (default), one BAL problem file, one Bundler v0.3 "
                         "bundle.out, an OpenSfM dataset (a project imported from one) or a "
@@ -810,8 +821,9 @@ def build_parser():
                         "--format bal, bundler or colmap: the adjusted values in that "
                         "format)")
     e.add_argument("--pixel-size", type=float, metavar="UM",
-                   help="with --format colmap: the pixel size in micrometres, to write a "
-                        "project whose image coordinates are in mm in pixels")
+                   help="with --format colmap or photomodeler: the pixel size in "
+                        "micrometres, to write a project whose image coordinates are in mm "
+                        "in pixels")
     e.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg",
                    help="unit of the photos' angles (default deg)")
     e.add_argument("--rotation", choices=("opk", "pok", "kpo"), default="opk",

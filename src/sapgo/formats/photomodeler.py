@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import DataError, ParameterError
 
-__all__ = ["import_photomodeler", "pm_correct", "read_photomodeler"]
+__all__ = ["export_photomodeler", "import_photomodeler", "pm_correct", "read_photomodeler"]
 
 
 def _floats(path, k, line, n, what, first_int=False):
@@ -273,3 +273,99 @@ def import_photomodeler(path, out, force=False):
     return {"path": str(out), "cameras": len(camera), "photos": len(station),
             "points": n_pt, "control_points": int(len(ctrl)), "observations": len(obs),
             "free": free}
+
+
+def export_photomodeler(project_path, out_path, adjusted=False, pixel_size=None):
+    """Write a project (its inputs, or with ``adjusted`` its adjusted values) as a
+    PhotoModeler text export that :func:`import_photomodeler` and DBAT read: the image
+    measurements freed of the cameras' distortion and written in pixels of ``pixel_size``
+    micrometres (from the top-left corner, y down; the image's size on line 2), the cameras
+    without distortion (K, P 0: the measurements are ideal), photos by their ids (>= 0),
+    full control points as control (a sigma 0: fixed), every active point as an object
+    point. Horizontal and vertical control have no place in the format and go as object
+    points only. Image coordinates must be millimetres. Returns a dict of counts."""
+    from ..geometry import camera_array, undistort_points
+    from ..project import KIND_CONTROL, KIND_HORIZONTAL, KIND_VERTICAL, STATUS_ACTIVE, Project
+
+    if pixel_size is None or not (pixel_size > 0 and math.isfinite(pixel_size)):
+        raise ParameterError("--pixel-size UM (micrometres, positive) is needed: a "
+                             "PhotoModeler export gives the measurements in pixels")
+    with Project(project_path) as p:
+        if str(p.attr("image_unit", "mm") or "mm") != "mm":
+            raise ParameterError(f"{project_path}: the image coordinates are not in mm: a "
+                                 f"PhotoModeler export needs a camera in mm")
+        if adjusted and not p.has_solution:
+            raise DataError(f"{project_path}: the project has no adjusted solution: run "
+                            f"'sapgo adjust' first")
+        cams = camera_array(p.cameras())
+        st, pt, ob = p.read("stations"), p.read("points"), p.read("observations")
+        eo, xyz = st["eo"].copy(), pt["xyz"].copy()
+        if adjusted:
+            cams = cams + p.solution("camera_corr")
+            eo += p.solution("station_corr")
+            xyz += p.solution("point_corr")
+        formats = np.column_stack([p.cameras()["format_x"], p.cameras()["format_y"]])
+        sigma_cam = p.cameras()["sigma_image"]
+    if (st["id"] < 0).any():
+        raise DataError(f"{project_path}: photo id {int(st['id'][st['id'] < 0][0])}: "
+                        f"PhotoModeler numbers photos from 0")
+    pw = pixel_size / 1000.0
+    live = ((ob["status"] == STATUS_ACTIVE) & (pt["status"][ob["point"]] == STATUS_ACTIVE)
+            & (st["status"][ob["station"]] == STATUS_ACTIVE))
+    o = np.flatnonzero(live)
+    o = o[np.lexsort((pt["id"][ob["point"][o]], st["id"][ob["station"][o]]))]
+    cam_of = st["camera"].astype(np.int64)
+    xy = np.column_stack([ob["x"][o], ob["y"][o]]).astype(np.float64)
+    ideal = np.empty_like(xy)
+    undistort_points(xy, cam_of[ob["station"][o]], cams, ideal)
+    bad = np.flatnonzero(~np.isfinite(ideal).all(axis=1))
+    if len(bad):
+        raise DataError(f"{project_path}: the distortion of photo "
+                        f"{int(st['id'][ob['station'][o[bad[0]]]])}'s camera cannot be "
+                        f"inverted at one of its points")
+    c = cam_of[ob["station"][o]]
+    mx, my = ideal[:, 0] + cams[c, 1], ideal[:, 1] + cams[c, 2]
+    col, row = (mx + formats[c, 0] / 2) / pw, (formats[c, 1] / 2 - my) / pw
+    sig = np.where(ob["sigma"][o] > 0, ob["sigma"][o], sigma_cam[c]) / pw
+
+    def camline(k):
+        f, x0, y0 = cams[k, :3]
+        xs, ys = formats[k]
+        return " ".join(repr(float(v)) for v in (f, x0 + xs / 2, ys / 2 - y0, xs, ys)) \
+            + " 0 0 0 0 0"
+
+    if not (np.allclose(formats / pw, formats[0] / pw)):
+        raise DataError(f"{project_path}: the cameras' formats differ: a PhotoModeler export "
+                        f"holds one image size")
+    lines = [f"sapgo export of {Path(project_path).name}",
+             f" 0.0001 20 {float(formats[0, 0] / pw)!r} {float(formats[0, 1] / pw)!r}",
+             " 1 0.1 10 100 100 100 20 20 20", " " + camline(0), " " + " ".join(["0"] * 10)]
+    order = np.argsort(st["id"], kind="stable")
+    for s in order:
+        if st["status"][s] != STATUS_ACTIVE:
+            continue
+        n = int(st["id"][s])
+        om, ph, ka = np.degrees(eo[s, :3])
+        lines += [f"  {n} photo_{n}",
+                  f"  {n} " + " ".join(repr(float(v)) for v in (*eo[s, 3:], ka, ph, om)),
+                  f"  {n} 0 0 0 0 0 0", "", f"  {n} {camline(cam_of[s])}",
+                  f"  {n} " + " ".join(["0"] * 10)]
+    lines.append("")
+    act = pt["status"] == STATUS_ACTIVE
+    full = np.flatnonzero(act & (pt["kind"] == KIND_CONTROL))
+    for j in full:
+        lines.append(f"  {int(pt['id'][j])} " + " ".join(
+            repr(float(v)) for v in (*pt["control"][j], *pt["control_sigma"][j])))
+    lines.append("")
+    for j in np.flatnonzero(act)[np.argsort(pt["id"][act], kind="stable")]:
+        lines.append(f"  {int(pt['id'][j])} " + " ".join(repr(float(v)) for v in xyz[j])
+                     + " 0 0 0")
+    lines.append("")
+    lines += [f"  {int(st['id'][ob['station'][i]])} {int(pt['id'][ob['point'][i]])} "
+              f"{float(a)!r} {float(b)!r} {float(s)!r} {float(s)!r}"
+              for i, a, b, s in zip(o, col, row, sig)]
+    Path(out_path).write_text("\n".join(lines) + "\n")
+    return {"photos": int((st["status"] == STATUS_ACTIVE).sum()), "points": int(act.sum()),
+            "control_points": len(full), "observations": len(o),
+            "partial_control": int((act & np.isin(pt["kind"], (KIND_HORIZONTAL,
+                                                                KIND_VERTICAL))).sum())}
