@@ -645,8 +645,9 @@ def build_parser():
     ini.add_argument("project")
     ini.set_defaults(func=cmd_init)
 
-    m = sub.add_parser("import", help="import a block from text files (cameras, photos, image "
-                                      "measurements, control)",
+    m = sub.add_parser("import", help="import a block: text files (cameras, photos, image "
+                                      "measurements, control), BAL, Bundler, COLMAP, OpenSfM "
+                                      "or PhotoModeler",
                        description="Import a block from whitespace-separated text files into "
                                    "a new project (formats: docs/formats.md), a BAL problem "
                                    "(--format bal FILE OUTPUT), a Bundler file (--format "
@@ -805,7 +806,8 @@ def build_parser():
     r.set_defaults(func=cmd_report)
 
     e = sub.add_parser("export", help="write a project as text files (inputs, or with "
-                                      "--adjusted the adjusted photos and points)")
+                                      "--adjusted the adjusted photos and points), or as "
+                                      "BAL, Bundler, COLMAP, OpenSfM or PhotoModeler")
     e.add_argument("project")
     e.add_argument("directory", help="output directory (created); with --format bal or "
                                      "bundler the file")
