@@ -194,20 +194,30 @@ def prior_of_order(value, weight, order="opk"):
     weight = np.asarray(weight, np.float64).reshape(-1, 6, 6)
     if order == "opk":
         return value.copy(), weight.copy()
+    eye = np.broadcast_to(np.eye(3), (len(value), 3, 3))
+    return (np.column_stack([opk_of_order(value[:, :3], order), value[:, 3:]]),
+            carried_weights(weight, lambda a: opk_of_order(a, order), value[:, :3], eye))
+
+
+def carried_weights(weight, convert, angles, q):
+    """Station prior weights (n x 6 x 6) carried through a change of their parameters:
+    the angles by ``convert`` (n x 3 -> n x 3, its Jacobian by central differences), the
+    positions by the rotations ``q`` (n x 3 x 3; the cross terms left out), ``W' = T^-T W
+    T^-1``, symmetrised."""
     h = 1e-7
-    g = np.empty((len(value), 3, 3))
+    g = np.empty((len(angles), 3, 3))
     for k in range(3):
-        hi, lo = value[:, :3].copy(), value[:, :3].copy()
+        hi, lo = angles.copy(), angles.copy()
         hi[:, k] += h
         lo[:, k] -= h
-        d = opk_of_order(hi, order) - opk_of_order(lo, order)
+        d = convert(hi) - convert(lo)
         g[:, :, k] = ((d + np.pi) % (2 * np.pi) - np.pi) / (2 * h)
-    t = np.broadcast_to(np.eye(6), (len(value), 6, 6)).copy()
+    t = np.zeros((len(angles), 6, 6))
     t[:, :3, :3] = g
+    t[:, 3:, 3:] = q
     ti = np.linalg.inv(t)
     w = np.transpose(ti, (0, 2, 1)) @ weight @ ti
-    return (np.column_stack([opk_of_order(value[:, :3], order), value[:, 3:]]),
-            0.5 * (w + np.transpose(w, (0, 2, 1))))
+    return 0.5 * (w + np.transpose(w, (0, 2, 1)))
 
 
 def opk_of(m):
@@ -398,18 +408,6 @@ class Frame:
         r, _ = self._frame_rotation()
         q = (np.broadcast_to(r, (len(xyz), 3, 3)) if crs.is_geocentric
              else r @ np.transpose(self._station_rotations(xyz), (0, 2, 1)))
-        h = 1e-7
-        g = np.empty((len(xyz), 3, 3))
-        for k in range(3):
-            hi, lo = value[:, :3].copy(), value[:, :3].copy()
-            hi[:, k] += h
-            lo[:, k] -= h
-            d = (self.opk_from_user(hi, xyz, orientation)
-                 - self.opk_from_user(lo, xyz, orientation))
-            g[:, :, k] = ((d + np.pi) % (2 * np.pi) - np.pi) / (2 * h)
-        t = np.zeros((len(xyz), 6, 6))
-        t[:, :3, :3] = g
-        t[:, 3:, 3:] = q
-        ti = np.linalg.inv(t)
-        w = np.transpose(ti, (0, 2, 1)) @ weight @ ti
-        return np.column_stack([opk, xyz]), 0.5 * (w + np.transpose(w, (0, 2, 1)))
+        w = carried_weights(weight, lambda a: self.opk_from_user(a, xyz, orientation),
+                            value[:, :3].copy(), q)
+        return np.column_stack([opk, xyz]), w

@@ -266,15 +266,29 @@ class ProjectWriter:
         self.abort()
 
 
+def new_project_path(out, force):
+    """``out`` as a Path for a new project: refused when it is a directory, or exists
+    without ``force`` (one line each)."""
+    from .errors import ParameterError
+
+    out = Path(out)
+    if out.is_dir():
+        raise ParameterError(f"{out}: is a directory")
+    if out.exists() and not force:
+        raise ParameterError(f"{out} exists: use --force to replace it")
+    return out
+
+
 def write_project(path, cameras, stations, points, observations, priors=None, truth=None,
-                  attrs=None):
+                  attrs=None, extra=None):
     """Write a new project file atomically from whole record arrays (small blocks, tests).
 
     ``cameras``, ``stations``, ``points``, ``observations`` and ``priors`` are structured
     arrays of the record dtypes (or anything convertible); ``truth`` is an optional dict with
     ``stations`` and ``points`` structured arrays in record order. Points must already hold
-    ``obs_start``/``n_obs`` consistent with ``observations``. Large blocks are written with
-    :class:`ProjectWriter`.
+    ``obs_start``/``n_obs`` consistent with ``observations``. ``extra(file)`` writes a
+    format's own groups (:data:`KEYED_GROUPS`) into the new file. Large blocks are written
+    with :class:`ProjectWriter`.
     """
     with ProjectWriter(path, attrs, truth=truth is not None) as w:
         w.append("cameras", cameras)
@@ -285,6 +299,8 @@ def write_project(path, cameras, stations, points, observations, priors=None, tr
         if truth is not None:
             w.append("truth/stations", truth["stations"])
             w.append("truth/points", truth["points"])
+        if extra is not None:
+            extra(w.file)
         return w.finish()
 
 

@@ -52,31 +52,36 @@ def _is_number(x):
         return False
 
 
-def read_bal(path):
-    """Read a BAL problem (plain, ``.gz`` or ``.bz2``): ``dict(cameras (n x 9), points
-    (m x 3), obs_camera, obs_point (int64), obs_xy (k x 2))``. Errors name the file and
-    line."""
+def read_text(path):
+    """The text of a file, plain or compressed (``.gz``, ``.bz2``); a file that is not text
+    or cannot be read is one line naming it."""
     path = Path(path)
     try:
         if path.suffix == ".gz":
             import gzip
 
             with gzip.open(path, "rt") as f:
-                text = f.read()
-        elif path.suffix == ".bz2":
+                return f.read()
+        if path.suffix == ".bz2":
             import bz2
 
             with bz2.open(path, "rt") as f:
-                text = f.read()
-        else:
-            text = path.read_text()
+                return f.read()
+        return path.read_text()
     except UnicodeDecodeError as exc:
         raise DataError(f"{path}: not a text file ({exc.reason})") from None
     except (OSError, EOFError) as exc:
         if isinstance(exc, FileNotFoundError):
             raise
         raise DataError(f"{path}: cannot be read ({exc})") from None
-    lines = text.splitlines()
+
+
+def read_bal(path):
+    """Read a BAL problem (plain, ``.gz`` or ``.bz2``): ``dict(cameras (n x 9), points
+    (m x 3), obs_camera, obs_point (int64), obs_xy (k x 2))``. Errors name the file and
+    line."""
+    path = Path(path)
+    lines = read_text(path).splitlines()
     first = next((k for k, ln in enumerate(lines) if ln.strip()), None)
     if first is None:
         raise DataError(f"{path}: the file is empty")
@@ -250,13 +255,11 @@ def import_bal(path, out, force=False, intrinsics="adjusted"):
 
 def _check_out(out, force, intrinsics):
     from ..errors import ParameterError
+    from ..project import new_project_path
 
     if intrinsics not in ("adjusted", "fixed"):
         raise ParameterError(f"intrinsics {intrinsics!r}: adjusted or fixed")
-    out = Path(out)
-    if out.exists() and not force:
-        raise ParameterError(f"{out} exists: use --force to replace it")
-    return out
+    return new_project_path(out, force)
 
 
 def write_snavely_project(out, creator, eo, rows, station_ids, pts, obs_camera, obs_point,
@@ -276,10 +279,9 @@ def write_snavely_project(out, creator, eo, rows, station_ids, pts, obs_camera, 
         CAMERA_DTYPE,
         OBSERVATION_DTYPE,
         POINT_DTYPE,
-        PRIOR_DTYPE,
         STATION_DTYPE,
-        ProjectWriter,
         append_history,
+        write_project,
     )
 
     n_cam, n_pt = len(eo), len(pts)
@@ -322,15 +324,7 @@ def write_snavely_project(out, creator, eo, rows, station_ids, pts, obs_camera, 
     attrs = {"creator": json.dumps(creator), "image_unit": "px", "datum": "free",
              "points_behind": "allowed", "station_intrinsics": intrinsics,
              "history": append_history("[]", creator)}
-    with ProjectWriter(out, attrs) as w:
-        w.append("cameras", camera)
-        w.append("stations", station)
-        w.append("station_priors", np.zeros(0, PRIOR_DTYPE))
-        w.append("points", point)
-        w.append("observations", obs)
-        if extra is not None:
-            extra(w.file)
-        w.finish()
+    write_project(out, camera, station, point, obs, attrs=attrs, extra=extra)
     return len(obs)
 
 

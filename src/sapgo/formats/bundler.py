@@ -26,6 +26,7 @@ import numpy as np
 from ..errors import DataError
 from .bal import (
     _check_out,
+    read_text,
     sapgo_to_snavely,
     snavely_block,
     snavely_cost,
@@ -45,23 +46,6 @@ BUNDLER_OBSERVATION_DTYPE = np.dtype([("point_id", "<i8"), ("photo_id", "<i8"),
 #: Largest departure of a camera's ``R' R`` from the identity that is taken as rounding
 #: (Bundler writes 10 significant digits); the rotation is then made orthonormal.
 ROTATION_TOL = 1e-6
-
-
-def _read_text(path):
-    path = Path(path)
-    try:
-        if path.suffix == ".gz":
-            import gzip
-
-            with gzip.open(path, "rt") as f:
-                return f.read()
-        return path.read_text()
-    except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not a text file ({exc.reason})") from None
-    except (OSError, EOFError) as exc:
-        if isinstance(exc, FileNotFoundError):
-            raise
-        raise DataError(f"{path}: cannot be read ({exc})") from None
 
 
 def _numbers(path, lines, where, per_line, what):
@@ -87,12 +71,12 @@ def _numbers(path, lines, where, per_line, what):
 
 
 def read_bundler(path):
-    """Read a Bundler ``.out`` file (plain or ``.gz``): a dict of ``rotations`` (n x 3 x 3),
-    ``translations`` (n x 3), ``fk`` (n x 3: f, k1, k2), ``reconstructed`` (n: a camera
+    """Read a Bundler ``.out`` file (plain, ``.gz`` or ``.bz2``): a dict of ``rotations``
+    (n x 3 x 3), ``translations`` (n x 3), ``fk`` (n x 3: f, k1, k2), ``reconstructed`` (n: a camera
     not all zeros), ``points`` (m x 3), ``colors`` (m x 3), ``obs_camera``, ``obs_point``,
     ``obs_key`` (int64), ``obs_xy`` (k x 2) and ``version``. Errors name the file and line."""
     path = Path(path)
-    lines = _read_text(path).splitlines()
+    lines = read_text(path).splitlines()
     data = [k for k, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
     version = next((ln.strip()[1:].strip() for ln in lines if ln.lstrip().startswith("#")),
                    "")

@@ -546,18 +546,14 @@ def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=F
         KIND_VERTICAL,
         OBSERVATION_DTYPE,
         POINT_DTYPE,
-        PRIOR_DTYPE,
         STATION_DTYPE,
         STATUS_ACTIVE,
-        ProjectWriter,
         append_history,
+        new_project_path,
+        write_project,
     )
 
-    out = Path(out)
-    if out.is_dir():
-        raise ParameterError(f"{out}: is a directory")
-    if out.exists() and not force:
-        raise ParameterError(f"{out} exists: use --force to replace it")
+    out = new_project_path(out, force)
     if not (sigma_image > 0 and math.isfinite(sigma_image)):
         raise ParameterError(f"--sigma-image must be a positive number of pixels, found "
                              f"{sigma_image!r}")
@@ -726,18 +722,14 @@ def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=F
     attrs.update(frame.to_attrs())
     if free:
         attrs.update(datum="free", points_behind="allowed")
-    with ProjectWriter(out, attrs) as w:
-        w.append("cameras", camera)
-        w.append("stations", station)
-        w.append("station_priors", np.zeros(0, PRIOR_DTYPE))
-        w.append("points", point)
-        w.append("observations", obs)
-        g = w.file.create_group("colmap")
+    def extra(file):
+        g = file.create_group("colmap")
         g.attrs["model"] = str(model_dir)
         for name, data in (("cameras", g_cam), ("images", g_img), ("points", g_pt),
                            ("observations", g_obs), ("points2D", g_2d)):
             g.create_dataset(name, data=data)
-        w.finish()
+
+    write_project(out, camera, station, point, obs, attrs=attrs, extra=extra)
 
     by_kind = {KIND_NAMES[k]: int((kind == k).sum()) for k in KIND_NAMES}
     # as the text import: kept, and left out by ordering (sapgo.ordering: a pass, check or

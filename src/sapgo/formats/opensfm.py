@@ -282,11 +282,10 @@ def import_opensfm(path, out, index=0, sigma_image=1.0, force=False):
     import math
 
     from ..frames import opk_of
+    from ..project import new_project_path
     from .bal import write_snavely_project
 
-    out = Path(out)
-    if out.exists() and not force:
-        raise ParameterError(f"{out} exists: use --force to replace it")
+    out = new_project_path(out, force)
     if not (sigma_image > 0 and math.isfinite(sigma_image)):
         raise ParameterError(f"--sigma-image must be a positive number of pixels, found "
                              f"{sigma_image!r}")

@@ -173,15 +173,13 @@ def import_photomodeler(path, out, force=False):
         KIND_CONTROL,
         OBSERVATION_DTYPE,
         POINT_DTYPE,
-        PRIOR_DTYPE,
         STATION_DTYPE,
-        ProjectWriter,
         append_history,
+        new_project_path,
+        write_project,
     )
 
-    out = Path(out)
-    if out.exists() and not force:
-        raise ParameterError(f"{out} exists: use --force to replace it")
+    out = new_project_path(out, force)
     d = read_photomodeler(path)
     w, h = d["size"]
     rows = [tuple(cam) for _, _, _, cam in d["photos"]]
@@ -263,13 +261,7 @@ def import_photomodeler(path, out, force=False):
     attrs = {"creator": json.dumps(creator), "history": append_history("[]", creator)}
     if free:
         attrs.update(datum="free")
-    with ProjectWriter(out, attrs) as wr:
-        wr.append("cameras", camera)
-        wr.append("stations", station)
-        wr.append("station_priors", np.zeros(0, PRIOR_DTYPE))
-        wr.append("points", point)
-        wr.append("observations", obs)
-        wr.finish()
+    write_project(out, camera, station, point, obs, attrs=attrs)
     return {"path": str(out), "cameras": len(camera), "photos": len(station),
             "points": n_pt, "control_points": int(len(ctrl)), "observations": len(obs),
             "free": free}
