@@ -21,20 +21,36 @@ def rotation(omega, phi, kappa):
     return np.einsum("ij...,jk...,kl...->il...", r3, r2, r1)
 
 
+def _polynomial(u, v, dist):
+    """Brown's radial and decentring distortion and the affinity and shear of the x axis at
+    ``(u, v)``: ``dist`` = (k1, k2, k3, p1, p2[, b1, b2])."""
+    k1, k2, k3, p1, p2 = dist[:5]
+    b1, b2 = dist[5:7] if len(dist) > 5 else (0.0, 0.0)
+    r2 = u ** 2 + v ** 2
+    rad = k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+    return (u * rad + p1 * (r2 + 2 * u ** 2) + 2 * p2 * u * v + b1 * u + b2 * v,
+            v * rad + p2 * (r2 + 2 * v ** 2) + 2 * p1 * u * v)
+
+
 def project(eo, xyz, f, x0=0.0, y0=0.0, dist=None):
     """Collinearity for arrays: eo (..., 6), xyz (..., 3) -> (..., 2); ``dist`` = Brown's
-    (k1, k2, k3, p1, p2) added to the ideal image point (works for complex arguments)."""
+    (k1, k2, k3, p1, p2[, b1, b2]) added to the ideal image point (the forward model; works
+    for complex arguments)."""
     m = rotation(eo[..., 0], eo[..., 1], eo[..., 2])
     d = xyz - eo[..., 3:6]
     q = np.einsum("ij...,...j->...i", m, d)
     xi, yi = -f * q[..., 0] / q[..., 2], -f * q[..., 1] / q[..., 2]
     if dist is not None:
-        k1, k2, k3, p1, p2 = dist
-        r2 = xi ** 2 + yi ** 2
-        rad = k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
-        xi, yi = (xi + xi * rad + p1 * (r2 + 2 * xi ** 2) + 2 * p2 * xi * yi,
-                  yi + yi * rad + p2 * (r2 + 2 * yi ** 2) + 2 * p1 * xi * yi)
+        dx, dy = _polynomial(xi, yi, dist)
+        xi, yi = xi + dx, yi + dy
     return np.stack([x0 + xi, y0 + yi], axis=-1)
+
+
+def corrected(xy, x0, y0, dist):
+    """The backward model: measured image points ``xy`` (..., 2) corrected by the
+    distortion polynomial taken at them (from the principal point)."""
+    dx, dy = _polynomial(xy[..., 0] - x0, xy[..., 1] - y0, dist)
+    return np.stack([xy[..., 0] + dx, xy[..., 1] + dy], axis=-1)
 
 
 def jacobian_complex_step(eo, xyz, f, x0=0.0, y0=0.0, h=1e-30, dist=None):
@@ -85,54 +101,70 @@ def reduced_normals_dense(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma,
     return m, d
 
 
-#: Camera fields in sapgo's order (f, x0, y0, k1, k2, k3, p1, p2).
-CAMERA_FIELDS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2")
+#: Camera fields in sapgo's order (f, x0, y0, k1, k2, k3, p1, p2, b1, b2).
+CAMERA_FIELDS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2")
 
 
 def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma, ctrl_mask,
                             ctrl, ctrl_sigma, iterations=30, tol=1e-11, dist=None,
-                            calibrate=(), x0=0.0, y0=0.0):
+                            calibrate=(), x0=0.0, y0=0.0, model="forward",
+                            calibrate_per_photo=()):
     """Gauss-Newton on the full dense normal equations (no reduction, no band).
 
     Control components with sigma 0 are held at their control values. ``calibrate``: names
     of the (one) camera's fields adjusted too (self-calibration; raw units, derivatives by
-    complex step, the normal equations scaled to a unit diagonal). Returns adjusted
-    ``(eo, xyz, sigma0, iterations)``, and the camera row (f, x0, y0, k1, k2, k3, p1, p2) as
-    a fifth element and the
-    cofactors of the adjusted fields as a sixth when ``calibrate`` is given.
+    complex step, the normal equations scaled to a unit diagonal); ``calibrate_per_photo``:
+    fields adjusted per photo (each photo its own unknown). Returns adjusted ``(eo, xyz,
+    sigma0, iterations)``, and with calibration the camera row (f, x0, y0, k1, k2, k3, p1,
+    p2, b1, b2) as a fifth element (per photo, n x 10, with ``calibrate_per_photo``) and the
+    cofactors of the adjusted fields as a sixth (the shared ones, then per photo, photo by
+    photo). ``model`` "backward": the residual is the ideal projection minus the
+    measurement corrected by ``dist`` at it (:func:`corrected`).
     """
     eo = eo.astype(float).copy()
     xyz = xyz.astype(float).copy()
-    cam = np.array([f, x0, y0, *(dist if dist is not None else (0.0,) * 5)], dtype=float)
+    d7 = tuple(dist if dist is not None else (0.0,) * 5) + (0.0, 0.0)
+    ns, npnt = len(eo), len(xyz)
+    cs = np.tile(np.array([f, x0, y0, *d7[:7]], dtype=float), (ns, 1))   # a row per photo
     cal = [CAMERA_FIELDS.index(n) for n in calibrate]
-    ncal = len(cal)
+    per = [CAMERA_FIELDS.index(n) for n in calibrate_per_photo]
+    ncal, nper = len(cal), len(per)
+    ncam = ncal + ns * nper
     fixed = ctrl_mask & (ctrl_sigma == 0)
     xyz[fixed] = ctrl[fixed]
     weighted = ctrl_mask & (ctrl_sigma > 0)
-    ns, npnt = len(eo), len(xyz)
     free_pt = ~fixed.ravel()
-    index = np.concatenate([np.ones(6 * ns, bool), free_pt, np.ones(ncal, bool)])
+    index = np.concatenate([np.ones(6 * ns, bool), free_pt, np.ones(ncam, bool)])
     nobs = len(obs_station)
+    base = 6 * ns + 3 * npnt
 
-    def proj(e, x, c):
-        return project(e, x, c[0], c[1], c[2], dist=tuple(c[3:]))
+    def resid(e, x, c, o):   # computed minus observed (the backward model's: corrected)
+        if model == "backward":
+            return project(e, x, c[0], c[1], c[2]) - corrected(o, c[1], c[2], tuple(c[3:]))
+        return project(e, x, c[0], c[1], c[2], dist=tuple(c[3:])) - o
+
+    def step(c, k):
+        return 1e-30 * max(abs(c[k]), 1e-30)
 
     for it in range(1, iterations + 1):
-        jac = np.zeros((2 * nobs + weighted.sum(), 6 * ns + 3 * npnt + ncal))
+        jac = np.zeros((2 * nobs + weighted.sum(), base + ncam))
         res = np.zeros(jac.shape[0])
         for i in range(nobs):
             s, j = obs_station[i], obs_point[i]
+            cam = cs[s]
             a, b = jacobian_complex_step(eo[s], xyz[j], cam[0], cam[1], cam[2],
-                                         dist=tuple(cam[3:]))
+                                         dist=None if model == "backward" else tuple(cam[3:]))
             sw = 1.0 / obs_sigma[i]
             jac[2 * i:2 * i + 2, 6 * s:6 * s + 6] = a * sw
             jac[2 * i:2 * i + 2, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b * sw
-            for q, k in enumerate(cal):
+            cols = [(base + q, k) for q, k in enumerate(cal)]
+            cols += [(base + ncal + s * nper + q, k) for q, k in enumerate(per)]
+            for col, k in cols:
                 c = cam.astype(complex)
-                c[k] += 1e-30j * max(abs(cam[k]), 1e-30)
-                jac[2 * i:2 * i + 2, 6 * ns + 3 * npnt + q] = (
-                    proj(eo[s], xyz[j], c).imag / (1e-30 * max(abs(cam[k]), 1e-30)) * sw)
-            res[2 * i:2 * i + 2] = (proj(eo[s], xyz[j], cam) - obs_xy[i]) * sw
+                h = step(cam, k)
+                c[k] += 1j * h
+                jac[2 * i:2 * i + 2, col] = resid(eo[s], xyz[j], c, obs_xy[i]).imag / h * sw
+            res[2 * i:2 * i + 2] = resid(eo[s], xyz[j], cam, obs_xy[i]) * sw
         r = 2 * nobs
         for j, k in zip(*np.nonzero(weighted)):
             jac[r, 6 * ns + 3 * j + k] = 1.0 / ctrl_sigma[j, k]
@@ -146,20 +178,26 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
         dx = np.zeros(len(index))
         dx[index] = -scale * scipy.linalg.solve(n, g, assume_a="pos")
         eo += dx[:6 * ns].reshape(ns, 6)
-        xyz += dx[6 * ns:6 * ns + 3 * npnt].reshape(npnt, 3)
-        cam[cal] += dx[6 * ns + 3 * npnt:]
-        if np.abs(dx[:6 * ns + 3 * npnt]).max() < tol and (
-                not ncal or (np.abs(dx[6 * ns + 3 * npnt:]) <= 1e-12 * np.abs(cam[cal])).all()):
+        xyz += dx[6 * ns:base].reshape(npnt, 3)
+        dc = dx[base:]
+        cs[:, cal] += dc[:ncal]
+        if nper:
+            cs[:, per] += dc[ncal:].reshape(ns, nper)
+        moved = np.concatenate([cs[0, cal], cs[:, per].ravel()]) if ncam else np.zeros(0)
+        if np.abs(dx[:base]).max() < tol and (
+                not ncam or (np.abs(dc) <= 1e-12 * np.abs(moved)).all()):
             break
     # final residuals
-    v = proj(eo[obs_station], xyz[obs_point], cam) - obs_xy
+    v = np.array([resid(eo[s], xyz[j], cs[s], obs_xy[i])
+                  for i, (s, j) in enumerate(zip(obs_station, obs_point))])
     vpv = float(((v / obs_sigma[:, None]) ** 2).sum())
     vc = (xyz - ctrl)[weighted] / ctrl_sigma[weighted]
     vpv += float((vc ** 2).sum())
-    redundancy = 2 * nobs + weighted.sum() - 6 * ns - 3 * npnt + fixed.sum() - ncal
-    if ncal:  # and the camera parameters' cofactors (the inverse of the last normals)
+    redundancy = 2 * nobs + weighted.sum() - 6 * ns - 3 * npnt + fixed.sum() - ncam
+    if ncam:  # and the camera parameters' cofactors (the inverse of the last normals)
         q = scale[:, None] * np.linalg.inv(n) * scale[None, :]
-        return eo, xyz, np.sqrt(vpv / redundancy), it, cam, np.diag(q)[-ncal:]
+        return (eo, xyz, np.sqrt(vpv / redundancy), it, cs if nper else cs[0],
+                np.diag(q)[-ncam:])
     return eo, xyz, np.sqrt(vpv / redundancy), it
 
 

@@ -409,3 +409,36 @@ def test_robust_estimation_downweights_blunders_and_nears_the_clean_solution(tmp
     dev_ls = np.abs(ls - ref)[ok] / sig[ok]
     dev_rob = np.abs(rob - ref)[ok] / sig[ok]
     assert np.sqrt(np.mean(dev_rob ** 2)) < 0.7 * np.sqrt(np.mean(dev_ls ** 2))
+
+
+def test_a_project_of_an_older_version_adjusts_alike(small_block, tmp_path):
+    """A file written before cameras had affinity, shear and a distortion model (its
+    /cameras records 12 fields, /solution/camera_corr 8 columns) reads as the forward model
+    without affinity: it adjusts to the same result, and an old solution reads back."""
+    import h5py
+
+    old = tmp_path / "old.h5"
+    shutil.copy(small_block, old)
+    with h5py.File(old, "r+") as f:
+        cams = f["cameras"][()]
+        names = [n for n in cams.dtype.names if n not in ("b1", "b2", "distortion_model")]
+        narrow = np.zeros(len(cams), [(n, cams.dtype.fields[n][0]) for n in names])
+        for n in names:
+            narrow[n] = cams[n]
+        del f["cameras"]
+        f.create_dataset("cameras", data=narrow)
+    with Project(old) as p:
+        assert p.cameras().dtype == read_records(small_block)["cameras"].dtype
+        assert (p.cameras()["distortion_model"] == 0).all()
+    a = sapgo.adjust(small_block, sapgo.Options(progress=False))
+    b = sapgo.adjust(old, sapgo.Options(progress=False))
+    assert a.sigma0 == b.sigma0
+    with h5py.File(old, "r+") as f:
+        corr = f["solution/camera_corr"][()]
+        del f["solution/camera_corr"]
+        f["solution"].create_dataset("camera_corr", data=corr[:, :8] + 1.0)
+    with Project(old) as p:
+        got = p.solution("camera_corr")
+    assert got.shape == corr.shape
+    np.testing.assert_array_equal(got[:, :8], corr[:, :8] + 1.0)
+    assert (got[:, 8:] == 0).all()

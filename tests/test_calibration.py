@@ -19,26 +19,50 @@ from sapgo.solve.band import (
     border_solve,
     dense_to_band,
 )
-from sapgo.geometry import CALIBRATION_FIELDS, apply_calibration, camera_partials, project
+from sapgo.geometry import (
+    BACKWARD,
+    CALIBRATION_FIELDS,
+    FORWARD,
+    N_CALIBRATION,
+    N_CAMERA,
+    apply_calibration,
+    camera_array,
+    camera_partials,
+    observed,
+    project,
+)
 from sapgo.project import CONTROL_MASK, Project
 
 CALIB = ("f", "x0", "y0", "k1", "k2", "p1", "p2")
 TIGHT = dict(tol_position=1e-9, tol_angle=1e-11, max_iterations=40, progress=False)
 
 
-def test_camera_partials_equal_central_differences():
+@pytest.mark.parametrize("model", [FORWARD, BACKWARD])
+def test_camera_partials_equal_central_differences(model):
+    """Every border parameter's partial of an observation's residual (computed minus
+    observed, the backward model's observation corrected at the measurement) against
+    central differences of the residual, affinity and shear included."""
     eo = np.array([0.02, -0.03, 0.5, 100.0, 200.0, 3000.0])
-    c = np.array([152.0, 0.01, -0.02, 1e-5, -2e-9, 3e-13, 1e-5, -2e-5])
-    e = np.zeros((2, 8))
-    for xyz in ([400.0, -100.0, 150.0], [-900.0, 700.0, -50.0]):
-        assert camera_partials(eo, np.array(xyz), c, e)
+    c = np.zeros(N_CAMERA)
+    c[:10] = 152.0, 0.01, -0.02, 1e-5, -2e-9, 3e-13, 1e-5, -2e-5, 2e-4, -3e-4
+    c[10] = model
+    e = np.zeros((2, N_CALIBRATION))
+
+    def resid(cam, xyz, o):
+        x, y = project(eo, xyz, cam)
+        return np.array([x, y]) - np.array(observed(o[0], o[1], cam))
+
+    for xyz, o in (([400.0, -100.0, 150.0], (12.5, -7.25)), ([-900.0, 700.0, -50.0],
+                                                           (-40.0, 35.0))):
+        xyz = np.array(xyz)
+        assert camera_partials(eo, xyz, c, e, *o)
         h = 1e-6
-        num = np.zeros((2, 8))
-        for i in range(8):
-            d = np.zeros(8)
+        num = np.zeros((2, N_CALIBRATION))
+        for i in range(N_CALIBRATION):
+            d = np.zeros(N_CALIBRATION)
             d[i] = h
-            num[:, i] = (np.array(project(eo, np.array(xyz), apply_calibration(c, d)))
-                         - np.array(project(eo, np.array(xyz), apply_calibration(c, -d)))) / (2 * h)
+            num[:, i] = (resid(apply_calibration(c, d), xyz, o)
+                         - resid(apply_calibration(c, -d), xyz, o)) / (2 * h)
         np.testing.assert_allclose(e, num, rtol=1e-6, atol=1e-8)
 
 
@@ -148,9 +172,7 @@ def adjusted(path):
         st, pt = p.read("stations"), p.read("points")
         eo = st["eo"] + p.solution("station_corr")
         xyz = pt["xyz"] + p.solution("point_corr")
-        cam = np.array([p.cameras()[0][k] for k in ("focal_length", "x0", "y0", "k1", "k2",
-                                                      "k3", "p1", "p2")])
-        cam = cam + p.solution("camera_corr")[0]
+        cam = (camera_array(p.cameras()) + p.solution("camera_corr"))[0][:N_CALIBRATION]
     return eo[np.argsort(st["id"])], xyz[np.argsort(pt["id"])], cam
 
 
@@ -207,31 +229,42 @@ def test_calibrate_from_the_command_line_and_bad_options(miscalibrated, tmp_path
                         (["--calibrate", "f", "--calibrate-cameras", "7"], "camera id 7"),
                         (["--calibrate-cameras", "1"], "without calibrate"),
                         (["--calibrate", "f,f"], "named twice"),
-                        (["--calibrate", "f", "--calibrate-cameras", "x"], "integer ids")]:
+                        (["--calibrate", "f", "--calibrate-cameras", "x"], "integer ids"),
+                        (["--calibrate", "f,x0", "--calibrate-per-photo", "x0"],
+                         "x0 is named twice"),
+                        (["--calibrate-per-photo", "zoom"], "per photo of 'zoom'")]:
         code, out, err = run_cli(capsys, "adjust", miscalibrated, "--no-progress", *args)
         assert_one_line_error(code, err, words)
     assert open(miscalibrated, "rb").read() == before
 
 
 RUN = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "
-       "chunk_points=7, chunk_rows=2, max_iterations=30, calibrate=('f', 'k1', 'p1')))")
+       "chunk_points=7, chunk_rows=2, max_iterations=30, calibrate=('f', 'k1', 'p1'), "
+       "calibrate_per_photo=tuple(sys.argv[2:])))")
 
 
-@pytest.mark.parametrize("fault", ["solve:3", "checkpoint:4"])
-def test_a_killed_self_calibration_resumes_to_the_same_result(miscalibrated, tmp_path, fault):
+@pytest.mark.parametrize("fault, per_photo", [("solve:3", ()), ("checkpoint:4", ()),
+                                              ("checkpoint:4", ("x0", "y0"))])
+def test_a_killed_self_calibration_resumes_to_the_same_result(miscalibrated, tmp_path, fault,
+                                                              per_photo):
     ref = tmp_path / "ref.h5"
     shutil.copy(miscalibrated, ref)
-    subprocess.run([sys.executable, "-c", RUN, str(ref)], check=True, timeout=300)
-    r = subprocess.run([sys.executable, "-c", RUN, str(miscalibrated)], timeout=300,
-                       env=dict(os.environ, SAPGO_FAULT=fault), capture_output=True, text=True)
+    subprocess.run([sys.executable, "-c", RUN, str(ref), *per_photo], check=True, timeout=300)
+    r = subprocess.run([sys.executable, "-c", RUN, str(miscalibrated), *per_photo],
+                       timeout=300, env=dict(os.environ, SAPGO_FAULT=fault),
+                       capture_output=True, text=True)
     assert r.returncode == -signal.SIGKILL, r.stderr
     s = sapgo.adjust(miscalibrated, sapgo.Options(progress=False, chunk_points=7, chunk_rows=2,
                                                   max_iterations=30, resume=True,
-                                                  calibrate=("f", "k1", "p1")))
+                                                  calibrate=("f", "k1", "p1"),
+                                                  calibrate_per_photo=per_photo))
     assert s.resumed_from_iteration is not None
     a, b = adjusted(ref), adjusted(miscalibrated)
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)
+    with Project(ref) as p, Project(miscalibrated) as q:
+        np.testing.assert_array_equal(p.solution("photo_camera_corr"),
+                                      q.solution("photo_camera_corr"))
 
 
 def test_precision_with_self_calibration_equals_the_dense_inverse(miscalibrated):
@@ -258,9 +291,7 @@ def test_precision_with_self_calibration_equals_the_dense_inverse(miscalibrated)
     with Project(miscalibrated) as p:
         eo = st["eo"] + p.solution("station_corr")
         xyz = pt["xyz"] + p.solution("point_corr")
-        cam = np.array([p.cameras()[0][k] for k in ("focal_length", "x0", "y0", "k1", "k2",
-                                                      "k3", "p1", "p2")])
-        cam = cam + p.solution("camera_corr")[0]
+        cam = (camera_array(p.cameras()) + p.solution("camera_corr"))[0][:N_CALIBRATION]
         ssig, psig = p.solution("station_sigma"), p.solution("point_sigma")
     quality = RawArray(work_path(miscalibrated) / "quality.bin", (len(ob), 7), mode="r")[:]
     ns, npnt = len(st), len(pt)
@@ -362,3 +393,142 @@ def test_a_border_too_large_is_refused(miscalibrated, monkeypatch, capsys):
     code, out, err = run_cli(capsys, "adjust", miscalibrated, "--no-progress", "--calibrate",
                              "f,x0,y0,k1,k2")
     assert_one_line_error(code, err, "5 global unknowns (at most 4")
+
+
+@pytest.fixture
+def backward_block(block_cache, tmp_path):
+    """The 2 x 6 block of :func:`miscalibrated` with an affinity and shear put into its
+    measurements (b1 3e-4, b2 -2e-4), its camera of the backward model (PhotoModeler,
+    DBAT): distortion, affinity and shear all unknown (zero), f 0.03 mm off."""
+    dist = (-2.0e-8, 3.0e-13, 0.0, 1.5e-6, -1.0e-6)
+    path = tmp_path / "back.h5"
+    shutil.copy(block_cache("small-dist-calib", strips=2, photos_per_strip=6, control_points=6,
+                            distortion=dist), path)
+    rec = read_records(path)
+    ob = rec["observations"]
+    x, y = ob["x"].copy(), ob["y"].copy()
+    ob["x"] = x + 3e-4 * x - 2e-4 * y
+    cams = rec["cameras"]
+    cams["focal_length"] += 0.03
+    cams[["k1", "k2", "p1", "p2"]] = (0.0, 0.0, 0.0, 0.0)
+    cams["distortion_model"] = BACKWARD
+    rewrite(path, rec)
+    return path
+
+
+BACK_CALIB = ("f", "x0", "y0", "k1", "k2", "p1", "p2", "b1", "b2")
+
+
+def test_self_calibration_of_the_backward_model_with_affinity_equals_dense_least_squares(
+        backward_block):
+    """The backward (correction) model with affinity and shear, self-calibrated with the
+    block: the same orientations, points, camera, sigma0 and camera precision as a dense
+    Gauss-Newton over every unknown of that model (tests/naive.py, camera partials by
+    complex step); and it fits: the affinity put into the measurements comes back."""
+    rec = read_records(backward_block)
+    st, pt, ob = rec["stations"], rec["points"], rec["observations"]
+    cam0 = rec["cameras"][0]
+    eo_r, xyz_r, s0_r, _, cam_r, q_r = naive.dense_bundle_adjustment(
+        st["eo"], pt["xyz"], cam0["focal_length"], ob["station"], ob["point"],
+        np.column_stack([ob["x"], ob["y"]]), ob["sigma"],
+        CONTROL_MASK[pt["kind"]].astype(bool), pt["control"], pt["control_sigma"],
+        iterations=40, dist=(0.0,) * 7, calibrate=BACK_CALIB, model="backward")
+    s = sapgo.adjust(backward_block, sapgo.Options(calibrate=BACK_CALIB, **TIGHT))
+    assert s.converged
+    eo, xyz, cam = adjusted(backward_block)
+    eo_r, xyz_r = eo_r[np.argsort(st["id"])], xyz_r[np.argsort(pt["id"])]
+    assert np.abs(xyz - xyz_r).max() < 1e-6
+    assert np.abs(eo[:, 3:] - eo_r[:, 3:]).max() < 1e-6
+    assert np.abs(eo[:, :3] - eo_r[:, :3]).max() < 1e-9
+    np.testing.assert_allclose(cam, cam_r, rtol=1e-7, atol=1e-16)
+    assert s.sigma0 == pytest.approx(s0_r, rel=1e-8)
+    rows = {r["parameter"]: r for r in s.calibration}
+    assert list(rows) == list(BACK_CALIB)
+    for k, q in zip(BACK_CALIB, q_r):
+        i = CALIBRATION_FIELDS.index(k)
+        assert rows[k]["adjusted"] == pytest.approx(cam_r[i], rel=1e-7, abs=1e-16)
+        assert rows[k]["sigma"] == pytest.approx(s0_r * np.sqrt(q), rel=1e-5)
+    # the measurements' affinity is found (the correction undoes it: about -3e-4, +2e-4)
+    assert rows["b1"]["adjusted"] == pytest.approx(-3e-4, abs=5 * rows["b1"]["sigma"])
+    assert rows["b2"]["adjusted"] == pytest.approx(2e-4, abs=5 * rows["b2"]["sigma"])
+    # the tree reaches the same solution
+    tree = backward_block.with_name("tree.h5")
+    rewrite(tree, read_records(backward_block))
+    t = sapgo.adjust(tree, sapgo.Options(calibrate=BACK_CALIB, solver="tree", **TIGHT))
+    assert t.sigma0 == pytest.approx(s.sigma0, rel=1e-9)
+    np.testing.assert_allclose(adjusted(tree)[2], cam, rtol=1e-8, atol=1e-16)
+
+
+def test_a_held_backward_camera_equals_its_corrected_measurements(backward_block, tmp_path):
+    """Held, a backward camera's distortion corrects the measurements once and for all: the
+    block adjusts to the same solution as its measurements corrected beforehand with a
+    camera without distortion (what an import that applies the correction does)."""
+    rec = read_records(backward_block)
+    rec["cameras"][["k1", "k2", "p1", "p2", "b1", "b2"]] = (2e-8, -3e-13, -1.5e-6, 1e-6,
+                                                             2e-4, -1e-4)
+    rewrite(backward_block, rec)
+    row = camera_array(rec["cameras"])[0]
+    ob = rec["observations"]
+    xy = np.array([observed(x, y, row) for x, y in zip(ob["x"], ob["y"])])
+    ob["x"], ob["y"] = xy[:, 0], xy[:, 1]
+    rec["cameras"][["k1", "k2", "p1", "p2", "b1", "b2", "distortion_model"]] = (0,) * 7
+    plain = tmp_path / "plain.h5"
+    rewrite(plain, rec)
+    a = sapgo.adjust(backward_block, sapgo.Options(**TIGHT))
+    b = sapgo.adjust(plain, sapgo.Options(**TIGHT))
+    assert a.sigma0 == pytest.approx(b.sigma0, rel=1e-12)
+    ea, xa, _ = adjusted(backward_block)
+    eb, xb, _ = adjusted(plain)
+    np.testing.assert_allclose(xa, xb, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ea, eb, rtol=0, atol=1e-9)
+
+
+def test_principal_points_per_photo_with_shared_focal_length_and_distortion(miscalibrated):
+    """The principal point adjusted per photo (each photo's own x0, y0) while f and the
+    distortion are shared by the camera's photos: the same orientations, points, cameras,
+    sigma0 and precision as a dense Gauss-Newton with those unknowns; each photo's row is
+    in /solution/photo_camera_corr, the report names the photos."""
+    shared, own = ("f", "k1", "p1", "p2"), ("x0", "y0")
+    rec = read_records(miscalibrated)
+    st, pt, ob = rec["stations"], rec["points"], rec["observations"]
+    eo_r, xyz_r, s0_r, _, cams_r, q_r = naive.dense_bundle_adjustment(
+        st["eo"], pt["xyz"], rec["cameras"][0]["focal_length"], ob["station"], ob["point"],
+        np.column_stack([ob["x"], ob["y"]]), ob["sigma"],
+        CONTROL_MASK[pt["kind"]].astype(bool), pt["control"], pt["control_sigma"],
+        iterations=40, dist=(0.0,) * 5, calibrate=shared, calibrate_per_photo=own)
+    s = sapgo.adjust(miscalibrated, sapgo.Options(calibrate=shared, calibrate_per_photo=own,
+                                                  **TIGHT))
+    assert s.converged
+    eo, xyz, cam = adjusted(miscalibrated)
+    order_s, order_p = np.argsort(st["id"]), np.argsort(pt["id"])
+    assert np.abs(xyz - xyz_r[order_p]).max() < 1e-6
+    assert np.abs(eo[:, 3:] - eo_r[order_s, 3:]).max() < 1e-6
+    assert np.abs(eo[:, :3] - eo_r[order_s, :3]).max() < 1e-9
+    assert s.sigma0 == pytest.approx(s0_r, rel=1e-8)
+    with Project(miscalibrated) as p:
+        rows = camera_array(p.cameras())[p.read_field("stations", "camera")] \
+            + p.solution("photo_camera_corr")
+        ids = p.read_field("stations", "id")
+    rows = rows[np.argsort(ids)][:, :N_CALIBRATION]
+    np.testing.assert_allclose(rows, cams_r[order_s], rtol=1e-7, atol=1e-12)
+    # the shared fields are the camera's (camera_corr), alike in every photo's row
+    for k in shared:
+        i = CALIBRATION_FIELDS.index(k)
+        assert cam[i] == pytest.approx(cams_r[0, i], rel=1e-7)
+    rep = s.calibration
+    assert [r["parameter"] for r in rep[:len(shared)]] == list(shared)
+    per = [r for r in rep if "photo" in r]
+    assert len(per) == len(own) * len(st) and {r["photo"] for r in per} == set(st["id"])
+    q_own = q_r[len(shared):].reshape(len(st), len(own))
+    for r in per:
+        s_rec = int(np.flatnonzero(st["id"] == r["photo"])[0])
+        k = own.index(r["parameter"])
+        assert r["adjusted"] == pytest.approx(cams_r[s_rec, CALIBRATION_FIELDS.index(
+            r["parameter"])], abs=1e-9)
+        assert r["sigma"] == pytest.approx(s0_r * np.sqrt(q_own[s_rec, k]), rel=1e-5)
+    # the tree reaches the same solution
+    tree = miscalibrated.with_name("tree.h5")
+    rewrite(tree, read_records(miscalibrated))
+    t = sapgo.adjust(tree, sapgo.Options(calibrate=shared, calibrate_per_photo=own,
+                                         solver="tree", **TIGHT))
+    assert t.sigma0 == pytest.approx(s.sigma0, rel=1e-9)

@@ -5,10 +5,14 @@ import pytest
 
 import naive
 from sapgo.geometry import (
+    BACKWARD,
+    FORWARD,
+    N_CAMERA,
     camera_array,
     distortion,
     intersect,
     linearize,
+    observed,
     plain_camera,
     project,
     rotation_matrix,
@@ -18,10 +22,16 @@ from sapgo.geometry import (
 #: Brown coefficients of a distorting lens: about 0.06 mm radial and 0.05 mm decentring
 #: distortion at the corner of a 23 cm format.
 DIST = (-2.0e-8, 3.0e-13, -1.0e-18, 1.5e-6, -1.0e-6)
+#: ... with an affinity of 2e-4 and a shear of -3e-4 (0.02 mm and 0.03 mm at 10 cm).
+DIST7 = DIST + (2.0e-4, -3.0e-4)
 
 
-def camera(f=152.0, x0=0.0, y0=0.0, dist=DIST):
-    return np.array([f, x0, y0, *dist])
+def camera(f=152.0, x0=0.0, y0=0.0, dist=DIST, model=FORWARD):
+    """A kernel camera row: ``dist`` (k1, k2, k3, p1, p2[, b1, b2]) and the model."""
+    row = np.zeros(N_CAMERA)
+    row[:3 + len(dist)] = (f, x0, y0, *dist)
+    row[10] = model
+    return row
 
 
 @pytest.fixture
@@ -45,7 +55,7 @@ def test_rotation_is_orthonormal_and_matches_reference(rng):
         np.testing.assert_allclose(m, naive.rotation(w, p, k), atol=1e-15)
 
 
-@pytest.mark.parametrize("dist", [None, DIST])
+@pytest.mark.parametrize("dist", [None, DIST, DIST7])
 def test_projection_matches_reference(rng, dist):
     c = camera(152.0, 0.01, -0.02, dist or (0.0,) * 5)
     for _ in range(20):
@@ -55,7 +65,7 @@ def test_projection_matches_reference(rng, dist):
                                    rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("dist", [None, DIST])
+@pytest.mark.parametrize("dist", [None, DIST, DIST7])
 def test_partials_against_complex_step_and_finite_differences(rng, dist):
     c = camera(152.0, 0.02, -0.01, dist or (0.0,) * 5)
     a = np.empty((2, 6))
@@ -82,31 +92,52 @@ def test_partials_against_complex_step_and_finite_differences(rng, dist):
         np.testing.assert_allclose(np.hstack([a, b]), fd, rtol=1e-6, atol=1e-9)
 
 
-def test_distortion_jacobian_and_inverse(rng):
-    """The distortion's Jacobian against complex steps; undistort inverts it to 1e-12 mm over
-    the whole format."""
-    c = camera()
+@pytest.mark.parametrize("dist", [DIST, DIST7])
+def test_distortion_jacobian_and_inverse(rng, dist):
+    """The distortion's Jacobian (not symmetric with affinity and shear) against complex
+    steps; undistort inverts it to 1e-12 mm over the whole format."""
+    c = camera(dist=dist)
     h = 1e-30
     for xi, yi in rng.uniform(-115, 115, (200, 2)):
-        dx, dy, j00, j01, j11 = distortion(xi, yi, c)
+        dx, dy, j00, j01, j10, j11 = distortion(xi, yi, c)
 
         def warp(u, v):
-            k1, k2, k3, p1, p2 = DIST
-            r2 = u * u + v * v
-            rad = k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
-            return (u + u * rad + p1 * (r2 + 2 * u * u) + 2 * p2 * u * v,
-                    v + v * rad + p2 * (r2 + 2 * v * v) + 2 * p1 * u * v)
+            du, dv = naive._polynomial(u, v, dist)
+            return u + du, v + dv
 
         wx, wy = warp(xi, yi)
         assert (xi + dx, yi + dy) == pytest.approx((wx, wy), abs=1e-13)
         cx = warp(xi + 1j * h, yi)
         cy = warp(xi, yi + 1j * h)
-        np.testing.assert_allclose([[j00, j01], [j01, j11]],
+        np.testing.assert_allclose([[j00, j01], [j10, j11]],
                                    [[cx[0].imag / h, cy[0].imag / h],
                                     [cx[1].imag / h, cy[1].imag / h]], rtol=1e-12, atol=1e-15)
         ux, uy, ok = undistort(c[1] + wx, c[2] + wy, c)
         assert ok
         assert abs(ux - xi) < 1e-12 and abs(uy - yi) < 1e-12
+
+
+def test_the_backward_model_corrects_the_measurement(rng):
+    """A backward camera projects the ideal point (its partials those of a camera without
+    distortion), fits it to the measurement corrected at the measurement (as the reference
+    ``naive.corrected``), and its 'undistorted' point is that corrected measurement."""
+    back = camera(152.0, 0.02, -0.01, DIST7, BACKWARD)
+    ideal = camera(152.0, 0.02, -0.01, (0.0,) * 7)
+    a, b, a0, b0 = (np.empty((2, 6)), np.empty((2, 3)), np.empty((2, 6)), np.empty((2, 3)))
+    for _ in range(20):
+        eo, xyz = random_ray(rng)
+        assert project(eo, xyz, back) == project(eo, xyz, ideal)
+        x, y, w = linearize(eo, xyz, back, a, b)
+        assert (x, y, w) == linearize(eo, xyz, ideal, a0, b0)
+        np.testing.assert_array_equal(a, a0)
+        np.testing.assert_array_equal(b, b0)
+        m = rng.uniform(-110, 110, 2)
+        ref = naive.corrected(m, 0.02, -0.01, DIST7)
+        np.testing.assert_allclose(observed(m[0], m[1], back), ref, rtol=0, atol=1e-13)
+        assert observed(m[0], m[1], ideal) == (m[0], m[1])
+        ux, uy, ok = undistort(m[0], m[1], back)
+        assert ok
+        np.testing.assert_allclose([ux, uy], ref - [0.02, -0.01], rtol=0, atol=1e-13)
 
 
 def test_intersection_recovers_the_point(rng):

@@ -6,6 +6,7 @@ import pytest
 from conftest import assert_one_line_error, read_records, run_cli
 
 import sapgo
+from sapgo.geometry import BACKWARD, camera_array, observed
 from sapgo.project import KIND_CONTROL, KIND_PASS, Project
 
 #: PhotoModeler's camera: c xp yp xs ys (mm; principal point from the top-left, y down)
@@ -77,16 +78,20 @@ def test_a_block_in_photomodelers_format_adjusts_alike(small_block, tmp_path, ca
                              tmp_path / "pm.h5")
     assert code == 0, err
     back = read_records(tmp_path / "pm.h5")
-    # the measurements freed of PhotoModeler's distortion: the block's own, in mm
+    # the camera keeps PhotoModeler's distortion as sapgo's backward model, and the
+    # measurements it corrects are the block's own, in mm
+    cam = back["cameras"][0]
+    assert tuple(cam[k] for k in ("k1", "k2", "k3", "p1", "p2")) == K
+    assert cam["distortion_model"] == BACKWARD
+    assert cam["x0"] == pytest.approx(rec["cameras"][0]["x0"], abs=1e-12)
     key = lambda r: np.lexsort((r["points"]["id"][r["observations"]["point"]],   # noqa
                                 r["stations"]["id"][r["observations"]["station"]]))
     a, b = rec["observations"][key(rec)], back["observations"][key(back)]
-    np.testing.assert_allclose(b["x"], a["x"], atol=1e-9)
-    np.testing.assert_allclose(b["y"], a["y"], atol=1e-9)
+    row = camera_array(back["cameras"])[0]
+    fixed = np.array([observed(x, y, row) for x, y in zip(b["x"], b["y"])])
+    np.testing.assert_allclose(fixed[:, 0], a["x"], atol=1e-9)
+    np.testing.assert_allclose(fixed[:, 1], a["y"], atol=1e-9)
     np.testing.assert_allclose(b["sigma"], 0.6 * 230 / WIDTH, rtol=1e-12)
-    cam = back["cameras"][0]
-    assert cam["k1"] == cam["p1"] == 0.0 and cam["x0"] == pytest.approx(
-        rec["cameras"][0]["x0"], abs=1e-12)
     np.testing.assert_allclose(back["stations"]["eo"], rec["stations"]["eo"], rtol=1e-12,
                                atol=1e-12)
     assert (back["points"]["kind"] == rec["points"]["kind"]

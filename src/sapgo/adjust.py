@@ -46,7 +46,9 @@ from .errors import DatumDefectError, ProjectFormatError, SapgoError, SingularNo
 from .geometry import (
     CALIBRATION_FIELDS,
     CALIBRATION_POWERS,
+    FORWARD,
     INTRINSICS,
+    N_CALIBRATION,
     camera_array,
 )
 from .normals import (
@@ -157,6 +159,10 @@ class Options:
     calibrate: tuple = ()
     #: The camera ids self-calibrated (None: every camera with a photo).
     calibrate_cameras: tuple | None = None
+    #: Self-calibration: the camera fields adjusted per photo (each photo of a calibrated
+    #: camera its own value, e.g. the principal point of a camera that refocuses), beside the
+    #: shared ones of ``calibrate`` (any of those fields; not both).
+    calibrate_per_photo: tuple = ()
     #: The linear solver: "band" (recursive partitioning of the band: long strips), "tree"
     #: (the partition tree of nested dissection: any block shape) or "auto" (the project's
     #: order as ``sapgo order`` chose it by predicted cost; an unordered project is ordered
@@ -198,11 +204,25 @@ class Options:
                              f"be adjusted are {', '.join(CALIBRATION_FIELDS)}")
         if len(set(self.calibrate)) != len(self.calibrate):
             raise SapgoError("self-calibration: a camera parameter is named twice")
+        if isinstance(self.calibrate_per_photo, str):
+            self.calibrate_per_photo = tuple(
+                x for x in self.calibrate_per_photo.replace(",", " ").split() if x)
+        self.calibrate_per_photo = tuple(self.calibrate_per_photo)
+        bad = [x for x in self.calibrate_per_photo if x not in CALIBRATION_FIELDS]
+        if bad:
+            raise SapgoError(f"self-calibration per photo of {bad[0]!r}: the camera "
+                             f"parameters that can be adjusted are "
+                             f"{', '.join(CALIBRATION_FIELDS)}")
+        both = [x for x in self.calibrate_per_photo if x in self.calibrate]
+        if both or len(set(self.calibrate_per_photo)) != len(self.calibrate_per_photo):
+            raise SapgoError(f"self-calibration: {(both or self.calibrate_per_photo)[0]} is "
+                             f"named twice (a parameter is shared by a camera's photos or "
+                             f"adjusted per photo, not both)")
         if self.calibrate_cameras is not None:
             self.calibrate_cameras = tuple(int(c) for c in self.calibrate_cameras)
             if len(set(self.calibrate_cameras)) != len(self.calibrate_cameras):
                 raise SapgoError("self-calibration: a camera id is named twice")
-            if not self.calibrate:
+            if not self.calibrate and not self.calibrate_per_photo:
                 raise SapgoError("calibrate_cameras without calibrate: name the camera "
                                  "parameters to adjust")
         return self
@@ -301,8 +321,12 @@ class _Block:
     #: self-calibration: ``cal[camera, field]`` is the border column of a camera's field
     #: (:data:`sapgo.geometry.CALIBRATION_FIELDS`), -1 where held; ``border`` lists
     #: ``(camera index, field index)`` by column
-    cal: np.ndarray = dataclasses.field(default_factory=lambda: np.full((0, 8), -1, np.int64))
+    cal: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.full((0, N_CALIBRATION), -1, np.int64))
     border: list = dataclasses.field(default_factory=list)
+    #: the camera record of every camera row (rows beyond the project's cameras: a photo's
+    #: own row, for parameters calibrated per photo, :func:`_set_calibration`)
+    row_camera: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
     #: the border's cofactors ``S^-1`` of the last accepted step (ng x ng)
     border_cov: np.ndarray | None = None
     #: the factor in the work files is not the undamped one of the current state (a
@@ -395,17 +419,30 @@ MAX_BORDER = 256
 
 def _set_calibration(blk: _Block, p: Project, opts: Options):
     """The border of a self-calibration (``Options.calibrate``): a column per adjusted field
-    of every calibrated camera that has an active photo."""
-    blk.cal = np.full((len(blk.cams), 8), -1, np.int64)
+    of every calibrated camera that has an active photo. Fields calibrated per photo
+    (``Options.calibrate_per_photo``) give each active photo of a calibrated camera a camera
+    row of its own (appended to ``blk.cams``; ``blk.row_camera`` says whose), with a column
+    of its own for those fields and the camera's columns for the shared ones."""
+    n_cam = len(blk.cams)
+    blk.row_camera = np.arange(n_cam, dtype=np.int64)
+    blk.cal = np.full((n_cam, N_CALIBRATION), -1, np.int64)
     blk.border = []
-    if not opts.calibrate:
+    if blk.npar == 9:
+        odd = np.flatnonzero((blk.cams[:, 8:10] != 0.0).any(axis=1)
+                             | (blk.cams[:, 10] != FORWARD))
+        if len(odd):
+            raise SapgoError(f"{p.path}: the photos' own intrinsics (station_intrinsics) "
+                             f"are adjusted with the forward distortion model without "
+                             f"affinity; camera id {int(p.cameras()['id'][odd[0]])} has "
+                             f"another")
+    if not opts.calibrate and not opts.calibrate_per_photo:
         return
     if blk.npar != 6:
         raise SapgoError(f"{p.path}: the photos' own intrinsics are adjusted already "
                          f"(station_intrinsics): self-calibration of shared cameras does not "
                          f"go with it; import with the intrinsics fixed")
     ids = p.cameras()["id"]
-    used = np.zeros(len(blk.cams), bool)
+    used = np.zeros(n_cam, bool)
     used[blk.camera[blk.station_active]] = True
     if opts.calibrate_cameras is None:
         chosen = np.flatnonzero(used)
@@ -420,31 +457,60 @@ def _set_calibration(blk: _Block, p: Project, opts: Options):
                 raise SapgoError(f"{p.path}: self-calibration of camera id {cid}: none of "
                                  f"its photos can be adjusted")
             chosen.append(int(hit[0]))
-    if len(chosen) * len(opts.calibrate) > MAX_BORDER:
+    chosen = np.asarray(chosen, np.int64)
+    photos = (np.flatnonzero(blk.station_active & np.isin(blk.camera, chosen))
+              if opts.calibrate_per_photo else np.zeros(0, np.int64))
+    total = len(chosen) * len(opts.calibrate) + len(photos) * len(opts.calibrate_per_photo)
+    if total > MAX_BORDER:
         raise SapgoError(
             f"{p.path}: self-calibration of {len(chosen)} cameras x {len(opts.calibrate)} "
-            f"parameters = {len(chosen) * len(opts.calibrate)} global unknowns (at most "
-            f"{MAX_BORDER}: the border is dense); choose the cameras with "
-            f"--calibrate-cameras, or, with a camera per photo, adjust the photos' own "
-            f"intrinsics (import a BAL problem without --fixed-intrinsics)")
+            f"parameters and {len(photos)} photos x {len(opts.calibrate_per_photo)} = "
+            f"{total} global unknowns (at most {MAX_BORDER}: the border is dense); choose "
+            f"the cameras with --calibrate-cameras, or, with a camera per photo, adjust the "
+            f"photos' own intrinsics (import a BAL problem without --fixed-intrinsics)")
     for c in chosen:
         for name in opts.calibrate:
             f = CALIBRATION_FIELDS.index(name)
             blk.cal[c, f] = len(blk.border)
             blk.border.append((int(c), f))
+    if len(photos):   # a camera row per photo: the camera's shared columns, its own ones
+        rows = n_cam + np.arange(len(photos))
+        cams = blk.camera[photos].astype(np.int64)
+        blk.cams = np.ascontiguousarray(np.vstack([blk.cams, blk.cams[cams]]))
+        blk.cam_sigma = np.ascontiguousarray(np.concatenate([blk.cam_sigma,
+                                                             blk.cam_sigma[cams]]))
+        blk.cal = np.vstack([blk.cal, blk.cal[cams]])
+        blk.row_camera = np.concatenate([blk.row_camera, cams])
+        blk.camera = blk.camera.copy()
+        blk.camera[photos] = rows
+        for r in rows:
+            for name in opts.calibrate_per_photo:
+                f = CALIBRATION_FIELDS.index(name)
+                blk.cal[r, f] = len(blk.border)
+                blk.border.append((int(r), f))
 
 
 def _border_names(blk: _Block, p: Project):
-    """``"camera <id> <field>"`` of every border column (for messages and the report)."""
+    """``"camera <id> <field>"`` (``"photo <id> <field>"`` for a field calibrated per photo)
+    of every border column (for messages and the report)."""
     ids = p.cameras()["id"]
-    return [f"camera {int(ids[c])} {CALIBRATION_FIELDS[f]}" for c, f in blk.border]
+    n_cam = len(ids)
+    names = []
+    for c, f in blk.border:
+        if c < n_cam:
+            names.append(f"camera {int(ids[c])} {CALIBRATION_FIELDS[f]}")
+        else:
+            s = int(np.flatnonzero(blk.camera == c)[0])
+            names.append(f"photo {int(blk.station_ids[s])} {CALIBRATION_FIELDS[f]}")
+    return names
 
 
 def _border_step(blk: _Block, theta):
-    """Per camera, the step of its 8 border parameters (zero where held): cameras x 8."""
-    dtheta = np.zeros((len(blk.cams), 8))
-    for col, (c, f) in enumerate(blk.border):
-        dtheta[c, f] = theta[col]
+    """Per camera row, the step of its border parameters (zero where held): rows x
+    :data:`~sapgo.geometry.N_CALIBRATION` (a shared column moves every row it is in)."""
+    dtheta = np.zeros((len(blk.cams), N_CALIBRATION))
+    on = blk.cal >= 0
+    dtheta[on] = np.asarray(theta)[blk.cal[on]]
     return dtheta
 
 
@@ -471,9 +537,13 @@ def _calibration_report(p: Project, blk: _Block, run, sigma0):
         scale = float(blk.cams[c, 0]) ** int(CALIBRATION_POWERS[f])
         sig = (sigma0 * math.sqrt(max(cov[col][col], 0.0)) / scale if cov is not None
                else None)
-        rows.append({"camera": int(ids[c]), "parameter": CALIBRATION_FIELDS[f],
-                     "initial": float(cams0[c, f]), "adjusted": float(blk.cams[c, f]),
-                     "correction": float(blk.cams[c, f] - cams0[c, f]), "sigma": sig})
+        c0 = int(blk.row_camera[c]) if len(blk.row_camera) else c
+        row = {"camera": int(ids[c0]), "parameter": CALIBRATION_FIELDS[f],
+               "initial": float(cams0[c0, f]), "adjusted": float(blk.cams[c, f]),
+               "correction": float(blk.cams[c, f] - cams0[c0, f]), "sigma": sig}
+        if c != c0:   # a parameter calibrated per photo
+            row["photo"] = int(blk.station_ids[np.flatnonzero(blk.camera == c)[0]])
+        rows.append(row)
     return rows
 
 
@@ -699,11 +769,11 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
 def _moved_cameras(blk: _Block, delta, dtheta=None):
     """The camera rows after a step: moved by the intrinsics' corrections of 9-parameter
     stations (``delta[:, 6:9]``: f, k1 f^2, k2 f^4 of each photo's own camera), or by the
-    self-calibration step ``dtheta`` (cameras x 8, :func:`sapgo.geometry.camera_partials`'
-    scaled parameters)."""
+    self-calibration step ``dtheta`` (cameras x N_CALIBRATION,
+    :func:`sapgo.geometry.camera_partials`' scaled parameters)."""
     cams = blk.cams.copy()
     if dtheta is not None:
-        cams += dtheta / cams[:, :1] ** CALIBRATION_POWERS[None, :]
+        cams[:, :N_CALIBRATION] += dtheta / cams[:, :1] ** CALIBRATION_POWERS[None, :]
     if blk.npar == 9:
         act = np.flatnonzero(blk.station_active)
         c = blk.camera[act]
@@ -1546,7 +1616,14 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
             g = q.new_solution()
             for a, b in q.chunks("stations", opts.chunk_points):
                 g["station_corr"][a:b] = blk.eo[a:b] - q.read_field("stations", "eo", a, b)
-            g["camera_corr"][:] = blk.cams - camera_array(q.cameras())
+            cams0 = camera_array(q.cameras())
+            n_cam = len(cams0)
+            g["camera_corr"][:] = blk.cams[:n_cam] - cams0
+            # each photo's camera row as adjusted (its own with per-photo calibration)
+            rc = blk.row_camera if len(blk.row_camera) else np.arange(n_cam)
+            for a, b in q.chunks("stations", opts.chunk_points):
+                rows = blk.camera[a:b].astype(np.int64)
+                g["photo_camera_corr"][a:b] = blk.cams[rows] - cams0[rc[rows]]
             for a, b in q.chunks("points", opts.chunk_points):
                 g["point_corr"][a:b] = xyz_ds[a:b] - q.read_field("points", "xyz", a, b)
             for a, b in q.chunks("observations", opts.chunk_points):

@@ -256,6 +256,7 @@ def cmd_adjust(args):
         calibrate=args.calibrate or (),
         calibrate_cameras=(None if args.calibrate_cameras is None else
                            _int_list(args.calibrate_cameras, "--calibrate-cameras")),
+        calibrate_per_photo=args.calibrate_per_photo or (),
     )
     if args.plots:  # before a long run: matplotlib is there
         from .plots import check_matplotlib
@@ -684,8 +685,10 @@ def build_parser():
     m.add_argument("--fixed-intrinsics", action="store_true",
                    help="with --format bal or bundler: hold each photo's f, k1, k2 fixed")
     m.add_argument("--cameras", action="append", default=[], metavar="FILE",
-                   help="id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2] "
-                        "(mm)")
+                   help="id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2 "
+                        "[b1 b2 [forward|backward]]] (mm; the distortion model: forward, "
+                        "added to the ideal point, the default; backward, correcting the "
+                        "measured point as PhotoModeler and DBAT)")
     m.add_argument("--photos", action="append", default=[], metavar="FILE",
                    help="id camera strip omega phi kappa X Y Z (angles: --angles; m)")
     m.add_argument("--photos-matrix", action="append", default=[], metavar="FILE",
@@ -781,9 +784,13 @@ def build_parser():
     a.add_argument("--calibrate", default=None, metavar="PARAMS",
                    help="self-calibration: adjust these parameters of every camera (shared "
                         "by its photos) with the block, e.g. f,x0,y0,k1,k2 (any of f, x0, y0, "
-                        "k1, k2, k3, p1, p2)")
+                        "k1, k2, k3, p1, p2, b1, b2; of either distortion model)")
     a.add_argument("--calibrate-cameras", default=None, metavar="IDS",
                    help="with --calibrate: only these camera ids, e.g. 1,3")
+    a.add_argument("--calibrate-per-photo", default=None, metavar="PARAMS",
+                   help="self-calibration: adjust these camera parameters per photo (each "
+                        "photo of a calibrated camera its own value), e.g. x0,y0 with "
+                        "--calibrate f,k1,k2 shared by the camera's photos")
     a.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its last completed iteration")
     a.add_argument("--memory", default=None, metavar="SIZE",

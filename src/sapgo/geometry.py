@@ -9,11 +9,18 @@ with the elementary rotations
 
 and the collinearity equations for a point X seen from station Xc with focal length f and
 principal point (x0, y0), with Brown's lens distortion (radial k1, k2, k3 and decentring p1,
-p2, held fixed) added to the ideal image point:
+p2) and the affinity and shear of the image axes (b1, b2; Fraser 1997, as Australis and
+DBAT), by default (the *forward* model) added to the ideal image point:
 
     [u, v, w] = M (X - Xc),    xi = -f u / w,    yi = -f v / w,    r^2 = xi^2 + yi^2,
-    x = x0 + xi + xi (k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 xi^2) + 2 p2 xi yi,
+    x = x0 + xi + xi (k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 xi^2) + 2 p2 xi yi + b1 xi + b2 yi,
     y = y0 + yi + yi (k1 r^2 + k2 r^4 + k3 r^6) + p2 (r^2 + 2 yi^2) + 2 p1 xi yi.
+
+A camera of the *backward* model (PhotoModeler, DBAT, Australis: the distortion corrects a
+measured point) takes the same polynomial at the measured point (x, y) instead,
+``xm = x - x0``, ``ym = y - y0``, ``r^2 = xm^2 + ym^2``, and the corrected point
+``(x + dx(xm, ym), y + dy(xm, ym))`` is the one the ideal projection ``(x0 + xi, y0 + yi)``
+is fitted to (:func:`observed`): the residual of an observation is ``x0 + xi - x - dx``.
 
 A camera is a row of :data:`CAMERA_FIELDS` (``camera_array``). Station parameters are ordered
 (omega, phi, kappa, Xc, Yc, Zc); angles in radians, object coordinates in metres, image
@@ -23,61 +30,111 @@ coordinates in millimetres (k1 mm^-2, k2 mm^-4, k3 mm^-6, p1 and p2 mm^-1).
 import numpy as np
 from numba import njit
 
-#: The camera row of the kernels: ``cams[c] = (f, x0, y0, k1, k2, k3, p1, p2)``.
-CAMERA_FIELDS = ("focal_length", "x0", "y0", "k1", "k2", "k3", "p1", "p2")
+#: The camera row of the kernels: ``cams[c] = (f, x0, y0, k1, k2, k3, p1, p2, b1, b2,
+#: model)``, ``model`` :data:`FORWARD` or :data:`BACKWARD` (the ``/cameras`` field
+#: ``distortion_model``).
+CAMERA_FIELDS = ("focal_length", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2",
+                 "distortion_model")
+N_CAMERA = len(CAMERA_FIELDS)
+#: The distortion models (the camera row's last field): added to the ideal image point, or
+#: correcting the measured one (module docstring).
+FORWARD, BACKWARD = 0, 1
+DISTORTION_MODELS = ("forward", "backward")
+#: The camera row's fields that hold distortion (k1 .. b2).
+DISTORTION_COLUMNS = slice(3, 10)
 
 
 def camera_array(cameras):
-    """The kernels' camera rows (n x 8 float64) of ``/cameras`` records."""
-    return np.ascontiguousarray(np.column_stack([np.asarray(cameras[k], dtype=np.float64)
-                                                 for k in CAMERA_FIELDS]).reshape(-1, 8))
+    """The kernels' camera rows (n x :data:`N_CAMERA` float64) of ``/cameras`` records (a
+    field the records lack, as in projects written before it existed: 0)."""
+    names = cameras.dtype.names
+    n = len(cameras)
+    return np.ascontiguousarray(np.column_stack(
+        [np.asarray(cameras[k], dtype=np.float64) if k in names else np.zeros(n)
+         for k in CAMERA_FIELDS]).reshape(-1, N_CAMERA))
+
+
+def beyond_brown(rows):
+    """Which camera rows have affinity or shear (b1, b2) or the backward distortion model:
+    what the camera models of COLMAP, OpenSfM, Bundler and BAL cannot hold."""
+    rows = np.asarray(rows, np.float64).reshape(-1, N_CAMERA)
+    return (rows[:, 8:10] != 0.0).any(axis=1) | (rows[:, 10] != FORWARD)
 
 
 def plain_camera(f, x0=0.0, y0=0.0):
     """A camera row without distortion."""
-    return np.array([f, x0, y0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    row = np.zeros(N_CAMERA)
+    row[:3] = f, x0, y0
+    return row
+
+
+@njit(cache=True)
+def brown(u, v, c):
+    """The distortion polynomial of camera row ``c`` at ``(u, v)`` (mm from the principal
+    point): ``(dx, dy, j00, j01, j10, j11)``, where ``J = [[j00, j01], [j10, j11]]`` is the
+    Jacobian of ``(u + dx, v + dy)`` by ``(u, v)``."""
+    k1, k2, k3, p1, p2, b1, b2 = c[3], c[4], c[5], c[6], c[7], c[8], c[9]
+    r2 = u * u + v * v
+    rad = r2 * (k1 + r2 * (k2 + r2 * k3))
+    drad = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)          # d rad / d r^2
+    dx = u * rad + p1 * (r2 + 2.0 * u * u) + 2.0 * p2 * u * v + b1 * u + b2 * v
+    dy = v * rad + p2 * (r2 + 2.0 * v * v) + 2.0 * p1 * u * v
+    j00 = 1.0 + rad + 2.0 * u * u * drad + 6.0 * p1 * u + 2.0 * p2 * v + b1
+    j10 = 2.0 * u * v * drad + 2.0 * p1 * v + 2.0 * p2 * u
+    j01 = j10 + b2
+    j11 = 1.0 + rad + 2.0 * v * v * drad + 6.0 * p2 * v + 2.0 * p1 * u
+    return dx, dy, j00, j01, j10, j11
 
 
 @njit(cache=True)
 def distortion(xi, yi, c):
-    """Brown's distortion at the ideal image point ``(xi, yi)`` (mm, from the principal point)
-    of camera row ``c``: ``(dx, dy, j00, j01, j11)``, where ``J = [[j00, j01], [j01, j11]]``
-    is the Jacobian of ``(xi + dx, yi + dy)`` (symmetric)."""
-    k1, k2, k3, p1, p2 = c[3], c[4], c[5], c[6], c[7]
-    r2 = xi * xi + yi * yi
-    rad = r2 * (k1 + r2 * (k2 + r2 * k3))
-    drad = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)          # d rad / d r^2
-    dx = xi * rad + p1 * (r2 + 2.0 * xi * xi) + 2.0 * p2 * xi * yi
-    dy = yi * rad + p2 * (r2 + 2.0 * yi * yi) + 2.0 * p1 * xi * yi
-    j00 = 1.0 + rad + 2.0 * xi * xi * drad + 6.0 * p1 * xi + 2.0 * p2 * yi
-    j01 = 2.0 * xi * yi * drad + 2.0 * p1 * yi + 2.0 * p2 * xi
-    j11 = 1.0 + rad + 2.0 * yi * yi * drad + 6.0 * p2 * yi + 2.0 * p1 * xi
-    return dx, dy, j00, j01, j11
+    """The distortion added at the ideal image point ``(xi, yi)`` (mm, from the principal
+    point) by camera row ``c``: :func:`brown` for the forward model, none (``0, 0`` and the
+    identity) for the backward one, whose distortion corrects the measurements
+    (:func:`observed`)."""
+    if c[10] != 0.0:
+        return 0.0, 0.0, 1.0, 0.0, 0.0, 1.0
+    return brown(xi, yi, c)
+
+
+@njit(cache=True)
+def observed(x, y, c):
+    """The image point the ideal projection of camera row ``c`` is fitted to, for a
+    measurement ``(x, y)``: the measurement itself (forward model), or the measurement
+    corrected by the backward model's distortion at it."""
+    if c[10] == 0.0:
+        return x, y
+    dx, dy, _, _, _, _ = brown(x - c[1], y - c[2], c)
+    return x + dx, y + dy
 
 
 @njit(cache=True)
 def undistort(x, y, c):
     """The ideal image point ``(xi, yi)`` (from the principal point) that camera row ``c``
-    images at ``(x, y)``: Newton's method on ``xi + dx(xi, yi) = x - x0``. Returns
-    ``(xi, yi, converged)``."""
+    images at ``(x, y)``: Newton's method on ``xi + dx(xi, yi) = x - x0`` (forward model),
+    the corrected measurement (backward). Returns ``(xi, yi, converged)``."""
+    if c[10] != 0.0:
+        xo, yo = observed(x, y, c)
+        return xo - c[1], yo - c[2], True
     xd, yd = x - c[1], y - c[2]
     xi, yi = xd, yd
-    if c[3] == 0.0 and c[4] == 0.0 and c[5] == 0.0 and c[6] == 0.0 and c[7] == 0.0:
+    if (c[3] == 0.0 and c[4] == 0.0 and c[5] == 0.0 and c[6] == 0.0 and c[7] == 0.0
+            and c[8] == 0.0 and c[9] == 0.0):
         return xi, yi, True
     for _ in range(50):
-        dx, dy, j00, j01, j11 = distortion(xi, yi, c)
+        dx, dy, j00, j01, j10, j11 = distortion(xi, yi, c)
         fx, fy = xi + dx - xd, yi + dy - yd
-        det = j00 * j11 - j01 * j01
+        det = j00 * j11 - j01 * j10
         if det == 0.0 or not np.isfinite(det):
             return xi, yi, False
         sx = (j11 * fx - j01 * fy) / det
-        sy = (j00 * fy - j01 * fx) / det
+        sy = (j00 * fy - j10 * fx) / det
         xi -= sx
         yi -= sy
         if abs(sx) + abs(sy) <= 1e-13 * (1.0 + abs(xi) + abs(yi)):
             # the root on the branch of the measured point, where the mapping is one-to-one
-            _, _, j00, j01, j11 = distortion(xi, yi, c)
-            ok = j00 * j11 - j01 * j01 > 0.0 and xi * xd + yi * yd >= 0.0
+            _, _, j00, j01, j10, j11 = distortion(xi, yi, c)
+            ok = j00 * j11 - j01 * j10 > 0.0 and xi * xd + yi * yd >= 0.0
             return xi, yi, ok
     return xi, yi, False
 
@@ -157,7 +214,7 @@ def project(eo, xyz, c):
     if w == 0.0:
         return np.nan, np.nan
     xi, yi = -f * u / w, -f * v / w
-    dx, dy, _, _, _ = distortion(xi, yi, c)
+    dx, dy, _, _, _, _ = distortion(xi, yi, c)
     return c[1] + xi + dx, c[2] + yi + dy
 
 
@@ -214,17 +271,18 @@ def linearize(eo, xyz, c, a, b):
         a[0, 3 + k] = -bx
         a[1, 3 + k] = -by
     xi, yi = -f * u / w, -f * v / w
-    dx, dy, j00, j01, j11 = distortion(xi, yi, c)
-    if j00 != 1.0 or j01 != 0.0 or j11 != 1.0:
+    dx, dy, j00, j01, j10, j11 = distortion(xi, yi, c)
+    if j00 != 1.0 or j01 != 0.0 or j10 != 0.0 or j11 != 1.0:
         for k in range(6):
             a0, a1 = a[0, k], a[1, k]
             a[0, k] = j00 * a0 + j01 * a1
-            a[1, k] = j01 * a0 + j11 * a1
+            a[1, k] = j10 * a0 + j11 * a1
         for k in range(3):
             b0, b1 = b[0, k], b[1, k]
             b[0, k] = j00 * b0 + j01 * b1
-            b[1, k] = j01 * b0 + j11 * b1
+            b[1, k] = j10 * b0 + j11 * b1
     if a.shape[1] >= 9:  # the photo's own intrinsics (f, k1 f^2, k2 f^4): see INTRINSICS
+        # (forward cameras without affinity: sapgo.adjust refuses the others)
         r2 = xi * xi + yi * yi
         k1, k2, k3, p1, p2 = c[3], c[4], c[5], c[6], c[7]
         rad12 = 1.0 + r2 * (k1 + r2 * k2)
@@ -260,22 +318,27 @@ def apply_intrinsics(c, d):
 
 #: Self-calibration of shared cameras (a bordered band, docs/theory.md section 1c): the
 #: camera fields that can be adjusted, in :data:`CAMERA_FIELDS` order, by their short names.
-CALIBRATION_FIELDS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2")
+CALIBRATION_FIELDS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2")
+N_CALIBRATION = len(CALIBRATION_FIELDS)
 #: The border parameter of field ``i`` is the field times ``f ** CALIBRATION_POWERS[i]`` (f
 #: at the linearisation point): all of them in image units or dimensionless, so that the
-#: border is well scaled whatever the units (k1 f^2, k2 f^4, k3 f^6, p1 f, p2 f).
-CALIBRATION_POWERS = np.array([0, 0, 0, 2, 4, 6, 1, 1], np.int64)
+#: border is well scaled whatever the units (k1 f^2, k2 f^4, k3 f^6, p1 f, p2 f, b1, b2).
+CALIBRATION_POWERS = np.array([0, 0, 0, 2, 4, 6, 1, 1, 0, 0], np.int64)
 
 
 @njit(cache=True)
-def camera_partials(eo, xyz, c, e):
-    """Partial derivatives of the image coordinates by the camera's border parameters.
+def camera_partials(eo, xyz, c, e, ox, oy):
+    """Partial derivatives of an observation's residual by the camera's border parameters.
 
-    Fills ``e`` (2 x 8) with d(x, y) / d(f, x0, y0, k1 f^2, k2 f^4, k3 f^6, p1 f, p2 f) at
-    station ``eo``, object point ``xyz``, camera row ``c`` (each scaled border parameter
-    :data:`CALIBRATION_POWERS`, f held at its current value in the scaling). From the model
-    of the module docstring: ``d xi / d f = xi / f`` through the distortion's Jacobian,
-    ``d x / d x0 = 1``, ``d x / d k1 = xi r^2``, ``d x / d p1 = r^2 + 2 xi^2``, ... Returns
+    Fills ``e`` (2 x :data:`N_CALIBRATION`) with d(x, y) / d(f, x0, y0, k1 f^2, k2 f^4,
+    k3 f^6, p1 f, p2 f, b1, b2) at station ``eo``, object point ``xyz``, camera row ``c``
+    and measurement ``(ox, oy)`` (each scaled border parameter :data:`CALIBRATION_POWERS`,
+    f held at its current value in the scaling), of the residual ``computed - observed`` of
+    the module docstring. Forward model: ``d xi / d f = xi / f`` through the distortion's
+    Jacobian, ``d x / d x0 = 1``, ``d x / d k1 = xi r^2``, ``d x / d p1 = r^2 + 2 xi^2``,
+    ``d x / d b1 = xi``, ...; backward model: ``d / d f = xi / f``, the principal point
+    through the correction's Jacobian at the measurement, and the distortion terms at the
+    measurement with the opposite sign (the corrected measurement is subtracted). Returns
     False in the principal plane (no projection)."""
     f = c[0]
     m = _rot9(eo[0], eo[1], eo[2])
@@ -286,36 +349,53 @@ def camera_partials(eo, xyz, c, e):
     if w == 0.0:
         return False
     xi, yi = -f * u / w, -f * v / w
-    _, _, j00, j01, j11 = distortion(xi, yi, c)
-    r2 = xi * xi + yi * yi
     f2 = f * f
-    e[0, 0] = (j00 * xi + j01 * yi) / f
-    e[1, 0] = (j01 * xi + j11 * yi) / f
-    e[0, 1] = 1.0
-    e[1, 1] = 0.0
-    e[0, 2] = 0.0
-    e[1, 2] = 1.0
+    if c[10] != 0.0:   # backward: -d(correction)/d(parameter) at the measurement
+        xm, ym = ox - c[1], oy - c[2]
+        _, _, j00, j01, j10, j11 = brown(xm, ym, c)
+        e[0, 0] = xi / f
+        e[1, 0] = yi / f
+        e[0, 1] = j00
+        e[1, 1] = j10
+        e[0, 2] = j01
+        e[1, 2] = j11
+        sign = -1.0
+    else:
+        _, _, j00, j01, j10, j11 = brown(xi, yi, c)
+        e[0, 0] = (j00 * xi + j01 * yi) / f
+        e[1, 0] = (j10 * xi + j11 * yi) / f
+        e[0, 1] = 1.0
+        e[1, 1] = 0.0
+        e[0, 2] = 0.0
+        e[1, 2] = 1.0
+        xm, ym = xi, yi
+        sign = 1.0
+    r2 = xm * xm + ym * ym
     q = r2 / f2
-    e[0, 3] = xi * q
-    e[1, 3] = yi * q
-    e[0, 4] = xi * q * q
-    e[1, 4] = yi * q * q
-    e[0, 5] = xi * q * q * q
-    e[1, 5] = yi * q * q * q
-    e[0, 6] = (r2 + 2.0 * xi * xi) / f
-    e[1, 6] = 2.0 * xi * yi / f
-    e[0, 7] = 2.0 * xi * yi / f
-    e[1, 7] = (r2 + 2.0 * yi * yi) / f
+    e[0, 3] = sign * xm * q
+    e[1, 3] = sign * ym * q
+    e[0, 4] = sign * xm * q * q
+    e[1, 4] = sign * ym * q * q
+    e[0, 5] = sign * xm * q * q * q
+    e[1, 5] = sign * ym * q * q * q
+    e[0, 6] = sign * (r2 + 2.0 * xm * xm) / f
+    e[1, 6] = sign * 2.0 * xm * ym / f
+    e[0, 7] = sign * 2.0 * xm * ym / f
+    e[1, 7] = sign * (r2 + 2.0 * ym * ym) / f
+    e[0, 8] = sign * xm
+    e[1, 8] = 0.0
+    e[0, 9] = sign * ym
+    e[1, 9] = 0.0
     return True
 
 
 def apply_calibration(c, dtheta):
-    """The camera row ``c`` moved by the border step ``dtheta`` (8: df, dx0, dy0, d(k1 f^2),
-    d(k2 f^4), d(k3 f^6), d(p1 f), d(p2 f), scaled by the current f as in
-    :func:`camera_partials`)."""
+    """The camera row ``c`` moved by the border step ``dtheta`` (:data:`N_CALIBRATION`:
+    df, dx0, dy0, d(k1 f^2), d(k2 f^4), d(k3 f^6), d(p1 f), d(p2 f), db1, db2, scaled by the
+    current f as in :func:`camera_partials`)."""
     out = np.array(c, dtype=np.float64)
     f0 = out[0]
-    out += np.asarray(dtheta, dtype=np.float64) / f0 ** CALIBRATION_POWERS
+    out[:N_CALIBRATION] += np.asarray(dtheta, dtype=np.float64) / f0 ** CALIBRATION_POWERS
     return out
 
 

@@ -68,7 +68,7 @@ def _ideal(ob, st, cams):
 def _refine(eo, xyz, xy, cam):
     """Gauss-Newton on the collinearity equations of one photo: its six parameters from
     points ``xyz`` seen at ``xy`` (None if a point falls behind it)."""
-    from .geometry import linearize
+    from .geometry import linearize, observed
 
     eo = eo.copy()
     a, b = np.empty((2, 6)), np.empty((2, 3))
@@ -79,7 +79,7 @@ def _refine(eo, xyz, xy, cam):
             if not np.isfinite(x) or w >= 0:
                 return None
             rows.append(a.copy())
-            res.append(o - np.array([x, y]))
+            res.append(np.array(observed(o[0], o[1], cam)) - np.array([x, y]))
         j, r = np.vstack(rows), np.concatenate(res)
         step, *_ = np.linalg.lstsq(j, r, rcond=None)
         eo += step

@@ -26,7 +26,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .geometry import camera_partials, linearize, project
+from .geometry import N_CALIBRATION, camera_partials, linearize, observed, project
 from .project import CONTROL_MASK, STATUS_ACTIVE
 
 # kernel status codes
@@ -39,8 +39,8 @@ BAD_LAYOUT = 3  # the records do not follow the logical order the band width was
 @njit(cache=True)
 def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
-                  ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, b_all, lam=0.0,
-                  behind_ok=False):
+                  ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, b_all, o_all,
+                  lam=0.0, behind_ok=False):
     """Linearise point ``j``: fill its rays' A, B, l, p, Nbar and its 3x3 system nn, cc.
 
     Returns the number of active rays ``k`` (negative when a point is behind a camera).
@@ -69,8 +69,11 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
         if w == 0.0 or (w > 0.0 and not behind_ok):
             return -1
         p = 1.0 / (obs_sigma[i] * obs_sigma[i])
-        l0 = obs_xy[i, 0] - x
-        l1 = obs_xy[i, 1] - y
+        ox, oy = observed(obs_xy[i, 0], obs_xy[i, 1], cams[cam])
+        l0 = ox - x
+        l1 = oy - y
+        o_all[k, 0] = obs_xy[i, 0]
+        o_all[k, 1] = obs_xy[i, 1]
         for r in range(npar):
             for c in range(3):
                 nbar[k, r, c] = p * (a[0, r] * b[0, c] + a[1, r] * b[1, c])
@@ -172,7 +175,7 @@ def _workspace(max_rays, npar=6):
     return (np.empty((max_rays, npar, 3)), np.empty((max_rays, 2, npar)),
             np.empty((max_rays, 2)),
             np.empty(max_rays), np.empty(max_rays, np.int64), np.empty((3, 3)), np.empty(3),
-            np.zeros((3, 3)), np.empty(3), np.empty((max_rays, 2, 3)))
+            np.zeros((3, 3)), np.empty(3), np.empty((max_rays, 2, 3)), np.empty((max_rays, 2)))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -220,7 +223,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     """
     cap = band.shape[0]
     npar = band.shape[1]
-    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all = _workspace(max_rays, npar)
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all, o_all = _workspace(max_rays, npar)
     g = np.empty((max_rays, npar, 3))
     h = np.empty(3)
     col = np.empty(3)
@@ -230,7 +233,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     tcols = np.empty(ng, np.int64)       # the border columns the point touches
     ngp = np.empty((ng, 3))              # Nbar of the border: sum p E' B
     ggp = np.empty((ng, 3))              # Ndd^-1 Nbar_g'
-    e = np.empty((2, 8))
+    e = np.empty((2, N_CALIBRATION))
     for j in range(j0, j_stop):
         if pt_active[j] != 0:
             continue
@@ -239,7 +242,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc, b_all, lam, behind_ok)
+                          st_all, nn, cc, b_all, o_all, lam, behind_ok)
         if k < 0:
             return j, BEHIND_CAMERA, j
         bw = band.shape[2] // npar
@@ -274,29 +277,29 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
         if ng > 0:
             _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal, xyz,
                           a_all, l_all, w_all, st_all, g, lo, h, base, split, bord, ovf_bord,
-                          cnn, ccg, cdiag, slot, tcols, ngp, ggp, e, b_all)
+                          cnn, ccg, cdiag, slot, tcols, ngp, ggp, e, b_all, o_all)
     return j_stop, OK, -1
 
 
 @njit(cache=True, nogil=True)
-def _ray_border(eo, xyz, c, cal_row, e):
-    """The border partials ``e`` (2 x 8) of a ray of a camera with calibrated parameters
-    (``cal_row``, the camera's row of ``cal``); False (nothing computed) when the camera is
-    not calibrated."""
+def _ray_border(eo, xyz, c, cal_row, e, ox, oy):
+    """The border partials ``e`` (2 x N_CALIBRATION) of a ray (measured at ``ox, oy``) of a
+    camera with calibrated parameters (``cal_row``, the camera's row of ``cal``); False
+    (nothing computed) when the camera is not calibrated."""
     used = False
-    for f in range(8):
+    for f in range(N_CALIBRATION):
         if cal_row[f] >= 0:
             used = True
     if not used:
         return False
-    camera_partials(eo, xyz, c, e)
+    camera_partials(eo, xyz, c, e, ox, oy)
     return True
 
 
 @njit(cache=True, nogil=True)
 def _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal, xyz, a_all,
                   l_all, w_all, st_all, g, lo, h, base, split, bord, ovf_bord, cnn, ccg,
-                  cdiag, slot, tcols, ngp, ggp, e, b_all):
+                  cdiag, slot, tcols, ngp, ggp, e, b_all, o_all):
     """Point ``j``'s share of the border (see :func:`build_points`): the direct terms of its
     ``k`` rays, ``p A'E`` into the border columns of their band rows, ``p E'E`` and ``p E'l``
     into the border block, then its elimination, ``-G_q Nbar_g'``, ``-Nbar_g Ndd^-1 Nbar_g'``
@@ -307,13 +310,13 @@ def _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, c
     for q in range(k):
         s = st_all[q]
         cam = cam_of_station[s]
-        if not _ray_border(eo[s], xyz, cams[cam], cal[cam], e):
+        if not _ray_border(eo[s], xyz, cams[cam], cal[cam], e, o_all[q, 0], o_all[q, 1]):
             continue
         p = w_all[q]
         a = a_all[q]
         r = s - base
         brow = bord[r] if r < split else ovf_bord[r - split]
-        for f in range(8):
+        for f in range(N_CALIBRATION):
             c1 = cal[cam, f]
             if c1 < 0:
                 continue
@@ -331,7 +334,7 @@ def _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, c
             cdiag[c1] += p * (ex * ex + ey * ey)
             for c in range(3):
                 ngp[sl, c] += p * (ex * b_all[q, 0, c] + ey * b_all[q, 1, c])
-            for f2 in range(8):
+            for f2 in range(N_CALIBRATION):
                 c2 = cal[cam, f2]
                 if c2 >= 0:
                     cnn[c1, c2] += p * (ex * e[0, f2] + ey * e[1, f2])
@@ -464,8 +467,8 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     back-solution as ``- Nbar_g' dtheta``; ``cams_new`` then holds the moved cameras.
     """
     npar = delta.shape[1]
-    e = np.empty((2, 8))
-    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all = _workspace(max_rays, npar)
+    e = np.empty((2, N_CALIBRATION))
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all, o_all = _workspace(max_rays, npar)
     cams_v = cams if cams_new is None else cams_new
     eps = np.empty(3)
     e_new = np.empty(6)
@@ -476,7 +479,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc, b_all, lam, behind_ok)
+                          st_all, nn, cc, b_all, o_all, lam, behind_ok)
         if k < 0 or not _chol3(nn, lo):
             stats[7] = j + 1
             stats[8] = BEHIND_CAMERA if k < 0 else SINGULAR_POINT
@@ -499,15 +502,15 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                 s = st_all[q]
                 cam = cam_of_station[s]
                 moved = False
-                for f in range(8):
+                for f in range(N_CALIBRATION):
                     if dtheta[cam, f] != 0.0:
                         moved = True
                 if not moved:
                     continue
-                camera_partials(eo[s], xyz, cams[cam], e)
+                camera_partials(eo[s], xyz, cams[cam], e, o_all[q, 0], o_all[q, 1])
                 dx = 0.0
                 dy = 0.0
-                for f in range(8):
+                for f in range(N_CALIBRATION):
                     dx += e[0, f] * dtheta[cam, f]
                     dy += e[1, f] * dtheta[cam, f]
                 p = w_all[q]
@@ -538,8 +541,9 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             # rejected observations get their residual too (how far off they are); only the
             # active ones count in the statistics
             x, y = project(e_new, xyz_out[j], cams_v[cam])
-            vx = x - obs_xy[i, 0]
-            vy = y - obs_xy[i, 1]
+            ox, oy = observed(obs_xy[i, 0], obs_xy[i, 1], cams_v[cam])
+            vx = x - ox
+            vy = y - oy
             if not obs_active[i]:
                 ok = math.isfinite(vx) and math.isfinite(vy)
                 resid_out[i, 0] = vx if ok else 0.0
@@ -585,7 +589,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     with design row ``[A, B, E]`` the terms of ``cov(delta_s) += X_s S^-1 X_s'``,
     ``cov(delta_s, theta) = -X_s S^-1``, ``cov(eps, theta) = G V' S^-1``,
     ``cov(delta_s, eps) -= X_s S^-1 V G``, ``cov(theta) = S^-1``."""
-    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all = _workspace(max_rays, npar)
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all, o_all = _workspace(max_rays, npar)
     g = np.empty((3, 3))
     t = np.empty((3, 3))
     qpp = np.empty((3, 3))
@@ -600,7 +604,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     vb = np.zeros((ng, 3))        # V = sum_q X[s_q]' Nbar_q - Nbar_g
     sv = np.zeros((ng, 3))        # S^-1 V
     eb = np.zeros((2, ng))        # the observation's border partials
-    ec = np.empty((2, 8))
+    ec = np.empty((2, N_CALIBRATION))
     xs_s = np.zeros((npar, ng))   # X_s S^-1
     for i in range(out_r.shape[0]):
         for c in range(out_r.shape[1]):
@@ -614,7 +618,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
             continue
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
-                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, b_all)
+                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, b_all, o_all)
         if k < 0 or not _chol3(nn, lo):
             for c in range(out.shape[1]):
                 out[j, c] = np.nan
@@ -648,10 +652,11 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                         for c in range(3):
                             vb[cg, c] += xv * nbar[q, u, c]
                 cam = cam_of_station[s]
-                if not _ray_border(eo[s], xyz, cams[cam], cal[cam], ec):
+                if not _ray_border(eo[s], xyz, cams[cam], cal[cam], ec, o_all[q, 0],
+                                   o_all[q, 1]):
                     continue
                 p = w_all[q]
-                for f in range(8):
+                for f in range(N_CALIBRATION):
                     cg = cal[cam, f]
                     if cg < 0:
                         continue
@@ -725,8 +730,8 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                         zn[a6, c] += x
                 eb[:, :] = 0.0
                 cam = cam_of_station[s]
-                camera_partials(eo[s], xyz, cams[cam], ec)
-                for f in range(8):
+                camera_partials(eo[s], xyz, cams[cam], ec, obs_xy[i, 0], obs_xy[i, 1])
+                for f in range(N_CALIBRATION):
                     cg = cal[cam, f]
                     if cg >= 0:
                         eb[0, cg] = ec[0, f]
@@ -894,8 +899,10 @@ def point_costs(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt
             if not obs_active[i]:
                 continue
             s = obs_station[i]
-            x, y = project(eo[s], xyz, cams[cam_of_station[s]])
-            vx, vy = x - obs_xy[i, 0], y - obs_xy[i, 1]
+            c = cams[cam_of_station[s]]
+            x, y = project(eo[s], xyz, c)
+            ox, oy = observed(obs_xy[i, 0], obs_xy[i, 1], c)
+            vx, vy = x - ox, y - oy
             vpv_img += (vx * vx + vy * vy) / (obs_sigma[i] * obs_sigma[i])
         for c in range(3):
             if ctrl_mask[kind, c] and pt_csig[j, c] > 0.0:

@@ -695,6 +695,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
                                    chunks=(max(1, min(n, CHUNK_RECORDS)),) + shape)
             sol["station_corr"][...] = p.solution("station_corr")[perm]
             sol["station_sigma"][...] = p.solution("station_sigma")[perm]
+            sol["photo_camera_corr"][...] = p.solution("photo_camera_corr")[perm]
             sol["camera_corr"][...] = p.solution("camera_corr")  # cameras keep their order
             if "report" in p.file["solution"]:
                 sol.create_dataset("report", data=p.file["solution/report"][()])
@@ -752,7 +753,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
         new_stations = stations[perm].copy()
         new_stations["status"] = np.where(st_active[perm], STATUS_ACTIVE, STATUS_EXCLUDED)
         w.append("stations", new_stations)
-        w.append("cameras", p.read("cameras"))
+        w.append("cameras", p.cameras())
         priors = p.read("station_priors")
         if len(priors):
             priors["station"] = pos[priors["station"]]

@@ -28,6 +28,7 @@ import numpy as np
 
 from . import __version__
 from .errors import ClosedProjectError, ProjectFormatError
+from .geometry import N_CAMERA
 
 FORMAT_NAME = "sapgo project"
 SCHEMA_VERSION = 1
@@ -77,6 +78,11 @@ CAMERA_DTYPE = np.dtype(
         ("k3", "<f8"),
         ("p1", "<f8"),  # decentring distortion (Brown), mm^-1
         ("p2", "<f8"),
+        ("b1", "<f8"),  # affinity and shear of the image axes (dimensionless)
+        ("b2", "<f8"),
+        # the distortion model: 0 forward (added to the ideal point), 1 backward
+        # (correcting the measured one; sapgo.geometry)
+        ("distortion_model", "<i8"),
     ]
 )
 
@@ -136,6 +142,10 @@ RECORD_DTYPES = {
 }
 #: A planted blunder: the observation of point ``point_id`` on photo ``station_id`` (ids,
 #: stable across ordering) moved by (dx, dy) mm.
+#: Earlier layouts of record datasets that are still read (the fields they lack read as
+#: zeros): /cameras before affinity, shear and the distortion model (b1, b2,
+#: distortion_model; :meth:`Project.cameras`).
+OLDER_DTYPES = {"cameras": (np.dtype(CAMERA_DTYPE.descr[:12]),)}
 TRUTH_BLUNDER_DTYPE = np.dtype([("station_id", "<i8"), ("point_id", "<i8"), ("dx", "<f8"),
                                 ("dy", "<f8")])
 TRUTH_DTYPES = {"truth/stations": TRUTH_STATION_DTYPE, "truth/points": TRUTH_POINT_DTYPE,
@@ -152,9 +162,14 @@ SOLUTION_LAYOUT = {
     "point_sigma": ("points", (3,)),  # a-posteriori standard deviations (m)
     # per observation r_x, r_y, r_xy, w_x, w_y, t, robust weight (quality.QUALITY_COLUMNS)
     "obs_quality": ("observations", (7,)),
-    # corrections to the camera rows (geometry.CAMERA_FIELDS: f, x0, y0, k1, k2, k3, p1, p2)
-    # when the photos' own intrinsics are adjusted; zeros otherwise
-    "camera_corr": ("cameras", (8,)),
+    # corrections to the camera rows (geometry.CAMERA_FIELDS: f, x0, y0, k1, k2, k3, p1, p2,
+    # b1, b2, model) by self-calibration or the photos' own intrinsics; zeros otherwise (a
+    # file of an older version has the first 8: the rest read as zeros)
+    "camera_corr": ("cameras", (N_CAMERA,)),
+    # per photo: the camera row it was adjusted with, as a correction to its camera's
+    # /cameras record (its camera's camera_corr, plus its own parameters when calibrated
+    # per photo); files of older versions lack it (read as zeros)
+    "photo_camera_corr": ("stations", (N_CAMERA,)),
 }
 #: Optional groups of data that sapgo itself does not use, keyed by ids (not by record
 #: numbers), kept for a format's export: ``/colmap`` (a COLMAP model's names, camera models,
@@ -163,7 +178,11 @@ SOLUTION_LAYOUT = {
 #: ``sapgo order`` and ``adjust`` carry them over unchanged.
 KEYED_GROUPS = ("colmap", "bundler", "opensfm")
 #: Solution datasets that files of older versions may lack (read as zeros).
-SOLUTION_OPTIONAL = {"station_sigma", "point_sigma", "obs_quality", "camera_corr"}
+SOLUTION_OPTIONAL = {"station_sigma", "point_sigma", "obs_quality", "camera_corr",
+                     "photo_camera_corr"}
+#: Solution datasets that files of older versions have narrower (their columns then: the
+#: rest read as zeros, :meth:`Project.solution`).
+SOLUTION_NARROWER = {"camera_corr": 8}
 #: Solution datasets stored in single precision (the rest in double).
 SOLUTION_SINGLE = {"obs_quality"}
 
@@ -378,7 +397,8 @@ class Project:
             ds = f[name]
             if not isinstance(ds, h5py.Dataset) or ds.ndim != 1:
                 raise ProjectFormatError(f"{self.path}: /{name} is not a record dataset")
-            if not _dtype_matches(ds.dtype, dtype):
+            if not (_dtype_matches(ds.dtype, dtype)
+                    or any(_dtype_matches(ds.dtype, d) for d in OLDER_DTYPES.get(name, ()))):
                 raise ProjectFormatError(
                     f"{self.path}: /{name} records have fields {ds.dtype.names}, "
                     f"expected {dtype.names} (see docs/project-schema.md)"
@@ -395,7 +415,9 @@ class Project:
                 ds = f["solution"].get(name)
                 if ds is None and name in SOLUTION_OPTIONAL:
                     continue
-                if ds is None or ds.shape != (len(f[parent]),) + shape:
+                narrower = (ds is not None and name in SOLUTION_NARROWER
+                            and ds.shape == (len(f[parent]), SOLUTION_NARROWER[name]))
+                if ds is None or (ds.shape != (len(f[parent]),) + shape and not narrower):
                     raise ProjectFormatError(
                         f"{self.path}: /solution/{name} is missing or does not match /{parent}"
                     )
@@ -546,7 +568,16 @@ class Project:
             yield start, min(n, start + size)
 
     def cameras(self):
-        return self.read("cameras")
+        """The camera records as :data:`CAMERA_DTYPE` (fields an older version's file lacks:
+        0, the forward model without affinity)."""
+        cams = self.read("cameras")
+        if cams.dtype != CAMERA_DTYPE:
+            out = np.zeros(len(cams), CAMERA_DTYPE)
+            for name in cams.dtype.names:
+                if name in CAMERA_DTYPE.names:
+                    out[name] = cams[name]
+            cams = out
+        return cams
 
     # -- solution -----------------------------------------------------------------------
     def solution(self, name, start=0, stop=None):
@@ -556,7 +587,12 @@ class Project:
         stop = n if stop is None else stop
         if not self.has_solution or name not in self.file["solution"]:
             return np.zeros((stop - start,) + shape)
-        return self.file["solution"][name][start:stop]
+        data = self.file["solution"][name][start:stop]
+        if data.shape[1:] != shape:   # (an older version's narrower rows)
+            full = np.zeros((len(data),) + shape)
+            full[:, :data.shape[1]] = data
+            data = full
+        return data
 
     def new_solution(self):
         """A new, zeroed result group ``/solution.new`` sized to the current records.

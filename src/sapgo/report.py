@@ -382,7 +382,8 @@ class Summary:
     blunder_check: dict | None = None
     #: Self-calibration: per adjusted camera parameter ``{"camera", "parameter", "initial",
     #: "adjusted", "correction", "sigma"}`` (the parameter's own unit: f, x0, y0 image units,
-    #: k1 per unit squared, ...); None without self-calibration.
+    #: k1 per unit squared, ...; and ``"photo"``, its id, for a parameter calibrated per
+    #: photo); None without self-calibration.
     calibration: list | None = None
     #: The linear solver: "band" or "tree" (the partition tree of nested dissection).
     solver: str = "band"
@@ -480,7 +481,8 @@ class Summary:
                      f"image unit {unit}):")
             for r in self.calibration:
                 sig = "" if r["sigma"] is None else f" +- {r['sigma']:.6g}"
-                L.append(f"    camera {r['camera']} {r['parameter']:>2}: {r['initial']:.9g} -> "
+                who = f"camera {r['camera']}" + (f" photo {r['photo']}" if "photo" in r else "")
+                L.append(f"    {who} {r['parameter']:>2}: {r['initial']:.9g} -> "
                          f"{r['adjusted']:.9g}{sig}")
         c = self.check_points
         if c["n"]:

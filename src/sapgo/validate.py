@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import DataError
-from .geometry import camera_array, distortion, undistort
+from .geometry import BACKWARD, DISTORTION_MODELS, FORWARD, brown, camera_array, undistort
 from .project import (
     CONTROL_MASK,
     KIND_CHECK,
@@ -62,9 +62,13 @@ def check_values(project: Project, ordered_layout=True):
         raise DataError(f"{path}: the project has no station (photo)")
     cams = project.cameras()
     for f in ("focal_length", "x0", "y0", "format_x", "format_y", "sigma_image",
-              "k1", "k2", "k3", "p1", "p2"):
+              "k1", "k2", "k3", "p1", "p2", "b1", "b2"):
         _check_finite("cameras", 0, cams["id"], f, cams[f])
     for i, c in enumerate(cams):
+        if c["distortion_model"] not in (FORWARD, BACKWARD):
+            raise DataError(f"cameras record {i} (id {c['id']}): distortion model "
+                            f"{c['distortion_model']} is neither {FORWARD} (forward) nor "
+                            f"{BACKWARD} (backward)")
         if c["focal_length"] <= 0:
             raise DataError(f"cameras record {i} (id {c['id']}): focal length must be positive")
         if c["sigma_image"] <= 0:
@@ -73,7 +77,9 @@ def check_values(project: Project, ordered_layout=True):
         if fold is not None:
             raise DataError(
                 f"cameras record {i} (id {c['id']}): the lens distortion (k1 {c['k1']:g}, "
-                f"k2 {c['k2']:g}, k3 {c['k3']:g}, p1 {c['p1']:g}, p2 {c['p2']:g}) folds the "
+                f"k2 {c['k2']:g}, k3 {c['k3']:g}, p1 {c['p1']:g}, p2 {c['p2']:g}, "
+                f"b1 {c['b1']:g}, b2 {c['b2']:g}, "
+                f"{DISTORTION_MODELS[int(c['distortion_model'])]} model) folds the "
                 f"image over at ({fold[0]:.1f}, {fold[1]:.1f}) mm from the principal point, "
                 f"inside the format: check the coefficients and their units (k1 mm^-2, "
                 f"k2 mm^-4, k3 mm^-6, p1 and p2 mm^-1)"
@@ -188,17 +194,21 @@ def check_values(project: Project, ordered_layout=True):
 
 
 def _distortion_fold(cam):
-    """The first ideal image point (x, y) inside the format (a grid of 41 x 41 over it) where
-    the distortion mapping stops being one-to-one (Jacobian determinant <= 0), else None."""
-    if all(cam[k] == 0 for k in ("k1", "k2", "k3", "p1", "p2")):
+    """The first image point (x, y) inside the format (a grid of 41 x 41 over it, from the
+    principal point: ideal points for the forward model, measured ones for the backward)
+    where the distortion mapping stops being one-to-one (Jacobian determinant <= 0), else
+    None."""
+    if all(cam[k] == 0 for k in ("k1", "k2", "k3", "p1", "p2", "b1", "b2")):
         return None
     row = camera_array(np.asarray(cam).reshape(1))[0]
     hx, hy = 0.5 * cam["format_x"], 0.5 * cam["format_y"]
     for x in np.linspace(-hx, hx, 41):
         for y in np.linspace(-hy, hy, 41):
-            _, _, j00, j01, j11 = distortion(x, y, row)
-            if not j00 * j11 - j01 * j01 > 0.0:
+            _, _, j00, j01, j10, j11 = brown(x, y, row)
+            if not j00 * j11 - j01 * j10 > 0.0:
                 return x, y
+            if cam["distortion_model"] == BACKWARD:
+                continue
             # every measured point of the format must map back to an ideal point on its own
             # branch (a barrel distortion can fold beyond the format and still cover it)
             _, _, ok = undistort(row[1] + x, row[2] + y, row)

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
+from ..geometry import N_CAMERA
 
 
 def _tokens_error(path, lines, start, count, per_line, what):
@@ -170,8 +171,8 @@ def rodrigues_vector(m):
 
 
 def bal_to_sapgo(cams):
-    """Stations ``(omega, phi, kappa, Xc, Yc, Zc)`` and camera rows ``(f, x0, y0, k1, k2, k3,
-    p1, p2)`` in image units (pixels) of BAL cameras (n x 9)."""
+    """Stations ``(omega, phi, kappa, Xc, Yc, Zc)`` and camera rows
+    (:data:`sapgo.geometry.CAMERA_FIELDS`) in image units (pixels) of BAL cameras (n x 9)."""
     return snavely_to_sapgo(rodrigues(cams[:, :3]), cams[:, 3:6], cams[:, 6:9])
 
 
@@ -185,7 +186,7 @@ def snavely_to_sapgo(r, t, fk):
     eo = np.column_stack([opk_of(r), centre])
     f = fk[:, 0]
     rows = np.column_stack([f, np.zeros_like(f), np.zeros_like(f), fk[:, 1] / f ** 2,
-                            fk[:, 2] / f ** 4, np.zeros((len(f), 3))])
+                            fk[:, 2] / f ** 4, np.zeros((len(f), N_CAMERA - 5))])
     return eo, rows
 
 
@@ -350,7 +351,7 @@ def snavely_block(project_path, adjusted, fmt, any_camera=False):
     ``obs_records`` (the observations' records), ``camera_rows`` (every camera's) and
     ``camera_of_station``. ``any_camera``: no check of the cameras (a format that holds
     principal points and decentring distortion)."""
-    from ..geometry import camera_array
+    from ..geometry import beyond_brown, camera_array
     from ..project import STATUS_ACTIVE, Project
 
     with Project(project_path) as p:
@@ -363,6 +364,11 @@ def snavely_block(project_path, adjusted, fmt, any_camera=False):
             rows = rows + p.solution("camera_corr")
     cam_rows = rows
     rows = rows[st["camera"]]
+    odd = beyond_brown(rows)
+    if odd.any():
+        raise DataError(f"{project_path}: photo id {int(st['id'][np.argmax(odd)])}: its "
+                        f"camera has affinity or shear (b1, b2) or the backward distortion "
+                        f"model, which {fmt} cannot hold")
     extra = np.abs(rows[:, [1, 2, 5, 6, 7]]).max(axis=1) > 0
     if extra.any() and not any_camera:
         raise DataError(f"{project_path}: photo id {int(st['id'][np.argmax(extra)])}: its "

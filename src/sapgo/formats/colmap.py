@@ -438,13 +438,13 @@ def sapgo_camera_rows(params, size):
     s = fx / fy
     f = fx
     rows = np.column_stack([f, cx - w / 2, s * (h / 2 - cy), k1 / f ** 2, k2 / f ** 4,
-                            np.zeros_like(f), p2 / f, -p1 / f])
+                            np.zeros_like(f), p2 / f, -p1 / f, np.zeros((len(f), 3))])
     return rows, s
 
 
 def colmap_params(rows, y_scale, size):
     """The inverse of :func:`sapgo_camera_rows`: :data:`PARAMS` rows (k3 must be 0)."""
-    f, x0, y0, k1, k2, _, p1, p2 = np.asarray(rows, np.float64).T
+    f, x0, y0, k1, k2, _, p1, p2 = np.asarray(rows, np.float64)[:, :8].T
     w, h = np.asarray(size, np.float64).T
     return np.column_stack([f, f / y_scale, x0 + w / 2, h / 2 - y0 / y_scale, k1 * f ** 2,
                             k2 * f ** 4, -p2 * f, p1 * f])
@@ -789,7 +789,7 @@ def export_colmap(project_path, out_dir, adjusted=False, pixel_size=None):
     point ids and grey points. Image coordinates must be pixels (``image_unit`` "px"), or
     millimetres converted with ``pixel_size`` (micrometres). Returns a dict of counts.
     """
-    from ..geometry import camera_array
+    from ..geometry import beyond_brown, camera_array
     from ..project import Project
 
     out_dir = Path(out_dir)
@@ -824,13 +824,18 @@ def export_colmap(project_path, out_dir, adjusted=False, pixel_size=None):
                              f"{pixel_size!r}")
     else:
         scale = 1000.0 / pixel_size  # pixels per mm
+    odd = np.flatnonzero(beyond_brown(rows))
+    if len(odd):
+        raise DataError(f"{project_path}: camera {int(cams['id'][odd[0]])} has affinity or "
+                        f"shear (b1, b2) or the backward distortion model, which COLMAP's "
+                        f"camera models cannot hold")
     bad = np.flatnonzero(rows[:, 5] != 0.0)
     if len(bad):
         raise DataError(f"{project_path}: camera {int(cams['id'][bad[0]])} has k3 = "
                         f"{rows[bad[0], 5]!r}, which COLMAP's camera models cannot hold")
     # pixels: f, x0, y0 times scale; k1 / scale^2, k2 / scale^4, p / scale
-    rows = rows * np.array([scale, scale, scale, scale ** -2, scale ** -4, 0.0, 1 / scale,
-                            1 / scale])
+    rows = rows[:, :8] * np.array([scale, scale, scale, scale ** -2, scale ** -4, 0.0,
+                                   1 / scale, 1 / scale])
     x_px, y_px = ob["x"] * scale, ob["y"] * scale
     n_cam = len(cams)
     st_id, pt_id = st["id"], pt["id"]

@@ -24,9 +24,11 @@ Conventions (DBAT's ``prob2dbatstruct.m`` and camera model): ``M = R3(kappa) R2(
 R1(omega)`` and the projection ``x0 - f u / w`` are sapgo's. PhotoModeler's K1-K3, P1, P2
 are a *backward* model: they correct a measured point ``m`` (mm, y up) into the ideal one,
 ``m + w (K1 r^2 + K2 r^4 + K3 r^6) + (P1 (r^2 + 2 x^2) + 2 P2 x y, 2 P1 x y + P2 (r^2 +
-2 y^2))`` with ``w = (x, y) = m - (principal point)``. The import applies that correction to
-the measurements and gives sapgo a camera without distortion (held): exact for the
-calibration the file holds. Marked points' sigmas are taken as pixels.
+2 y^2))`` with ``w = (x, y) = m - (principal point)``: sapgo's backward distortion model
+(:mod:`sapgo.geometry`), so the import keeps the measurements as they are (in mm from the
+image centre, y up) and gives each camera its K1-K3, P1, P2 as k1-k3, p1, p2 of that model:
+held, they correct the measurements exactly as DBAT does; self-calibrated (``--calibrate``),
+they are adjusted in PhotoModeler's own model. Marked points' sigmas are taken as pixels.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError, ParameterError
+from ..geometry import BACKWARD
 
 __all__ = ["export_photomodeler", "import_photomodeler", "pm_correct", "read_photomodeler"]
 
@@ -163,8 +166,8 @@ def pm_correct(x, y, camera):
 
 def import_photomodeler(path, out, force=False):
     """Import a PhotoModeler text export into a new project ``out``: one camera per
-    distinct camera row of the photos (held; the measurements freed of its backward
-    distortion), photos with ids their numbers, the object points (ids theirs) as pass
+    distinct camera row of the photos (its distortion in the backward model, as
+    PhotoModeler's), photos with ids their numbers, the object points (ids theirs) as pass
     points with their coordinates as approximations, the control points as full control
     (a sigma at or below 0: fixed), or a free network without control. Returns a summary
     dict."""
@@ -191,6 +194,9 @@ def import_photomodeler(path, out, force=False):
     camera["focal_length"] = cams[:, 0]
     camera["x0"], camera["y0"] = cams[:, 1] - cams[:, 3] / 2, cams[:, 4] / 2 - cams[:, 2]
     camera["format_x"], camera["format_y"] = cams[:, 3], cams[:, 4]
+    for k, name in enumerate(("k1", "k2", "k3", "p1", "p2")):
+        camera[name] = cams[:, 5 + k]
+    camera["distortion_model"] = BACKWARD
     pw, ph = cams[:, 3] / w, cams[:, 4] / h
     camera["sigma_image"] = np.sqrt(pw * ph) * 0.1       # (0.1 px where a point has none)
     ids = np.array([n for n, _, _, _ in d["photos"]], np.int64)
@@ -239,7 +245,6 @@ def import_photomodeler(path, out, force=False):
     c = cam_of_photo[st_rec]
     x = m[:, 2] * pw[c] - cams[c, 3] / 2
     y = cams[c, 4] / 2 - m[:, 3] * ph[c]
-    x, y = pm_correct(x, y, cams[c].T)
     sig = np.where((m[:, 4] > 0) & (m[:, 5] > 0), np.sqrt(m[:, 4] * m[:, 5] * pw[c] * ph[c]),
                    0.0)
     order = np.lexsort((st_rec, p_rec))
@@ -270,9 +275,10 @@ def import_photomodeler(path, out, force=False):
 def export_photomodeler(project_path, out_path, adjusted=False, pixel_size=None):
     """Write a project (its inputs, or with ``adjusted`` its adjusted values) as a
     PhotoModeler text export that :func:`import_photomodeler` and DBAT read: the image
-    measurements freed of the cameras' distortion and written in pixels of ``pixel_size``
-    micrometres (from the top-left corner, y down; the image's size on line 2), the cameras
-    without distortion (K, P 0: the measurements are ideal), photos by their ids (>= 0),
+    measurements in pixels of ``pixel_size`` micrometres (from the top-left corner, y down;
+    the image's size on line 2), a camera of the backward model without affinity as it is
+    (PhotoModeler's own model), the others without distortion and their measurements freed
+    of it (K, P 0: the measurements are ideal), photos by their ids (>= 0),
     full control points as control (a sigma 0: fixed), every active point as an object
     point. Horizontal and vertical control have no place in the format and go as object
     points only. Image coordinates must be millimetres. Returns a dict of counts."""
@@ -308,14 +314,18 @@ def export_photomodeler(project_path, out_path, adjusted=False, pixel_size=None)
     o = o[np.lexsort((pt["id"][ob["point"][o]], st["id"][ob["station"][o]]))]
     cam_of = st["camera"].astype(np.int64)
     xy = np.column_stack([ob["x"][o], ob["y"][o]]).astype(np.float64)
+    # a camera of PhotoModeler's own (backward) model goes as it is, with the measurements;
+    # for the others the measurements are freed of the distortion
+    own = (cams[:, 10] == BACKWARD) & (cams[:, 8:10] == 0.0).all(axis=1)
     ideal = np.empty_like(xy)
     undistort_points(xy, cam_of[ob["station"][o]], cams, ideal)
+    c = cam_of[ob["station"][o]]
+    ideal[own[c]] = xy[own[c]] - cams[c[own[c]], 1:3]
     bad = np.flatnonzero(~np.isfinite(ideal).all(axis=1))
     if len(bad):
         raise DataError(f"{project_path}: the distortion of photo "
                         f"{int(st['id'][ob['station'][o[bad[0]]]])}'s camera cannot be "
                         f"inverted at one of its points")
-    c = cam_of[ob["station"][o]]
     mx, my = ideal[:, 0] + cams[c, 1], ideal[:, 1] + cams[c, 2]
     col, row = (mx + formats[c, 0] / 2) / pw, (formats[c, 1] / 2 - my) / pw
     sig = np.where(ob["sigma"][o] > 0, ob["sigma"][o], sigma_cam[c]) / pw
@@ -323,8 +333,9 @@ def export_photomodeler(project_path, out_path, adjusted=False, pixel_size=None)
     def camline(k):
         f, x0, y0 = cams[k, :3]
         xs, ys = formats[k]
-        return " ".join(repr(float(v)) for v in (f, x0 + xs / 2, ys / 2 - y0, xs, ys)) \
-            + " 0 0 0 0 0"
+        dist = cams[k, 3:8] if own[k] else np.zeros(5)
+        return " ".join(repr(float(v)) for v in (f, x0 + xs / 2, ys / 2 - y0, xs, ys,
+                                                 *dist))
 
     if not (np.allclose(formats / pw, formats[0] / pw)):
         raise DataError(f"{project_path}: the cameras' formats differ: a PhotoModeler export "

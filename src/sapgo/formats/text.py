@@ -6,7 +6,8 @@ image sigmas in mm; ground coordinates and their sigmas in m; angles in the unit
 chooses (``deg``, ``gon`` or ``rad``), stored in radians. Ids are int64. The formats are
 documented field by field in ``docs/formats.md``::
 
-    cameras       id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2]
+    cameras       id focal_length x0 y0 format_x format_y sigma_image
+                  [k1 k2 k3 p1 p2 [b1 b2 [forward|backward]]]
     photos        id camera strip omega phi kappa X Y Z
     photos_matrix id camera strip m11 m12 m13 m21 m22 m23 m31 m32 m33 X Y Z
     measurements  photo point x y [sigma]
@@ -38,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError, ParameterError
+from ..geometry import BACKWARD, FORWARD
 from ..project import (
     CHUNK_RECORDS,
     CONTROL_MASK,
@@ -59,6 +61,8 @@ KIND_WORDS = {"full": KIND_CONTROL, "horizontal": KIND_HORIZONTAL,
               "vertical": KIND_VERTICAL, "check": KIND_CHECK}
 KIND_WORD_OF = {v: k for k, v in KIND_WORDS.items()}
 KIND_WORDS["control"] = KIND_CONTROL  # the project's name of a full control point
+#: The distortion models of the cameras file (column 15; sapgo.geometry).
+MODEL_WORDS = {"forward": FORWARD, "backward": BACKWARD}
 #: Components a control kind cannot do without (X, Y, Z); the others may be '-' or nan.
 NEEDED = CONTROL_MASK.astype(bool).copy()
 NEEDED[KIND_CHECK] = True
@@ -78,13 +82,15 @@ MAX_LINE = 1 << 20
 class TextFormat:
     """One text format: its columns (name, type), the optional tail and the usage line."""
 
-    def __init__(self, name, columns, min_cols, usage, defaults=None):
+    def __init__(self, name, columns, min_cols, usage, defaults=None, words=None):
         self.name = name
         self.columns = columns
         self.min_cols = min_cols
         self.max_cols = len(columns)
         self.usage = usage
         self.defaults = defaults or {}
+        #: the words of each word column and their codes (default: the control kinds)
+        self.words = {n: (words or {}).get(n, KIND_WORDS) for n, t in columns if t == _KIND}
         fields = []
         for cname, ctype in columns:
             if ctype == _KIND:
@@ -124,8 +130,11 @@ CAMERAS = TextFormat(
     "cameras",
     [("id", _ID), ("focal_length", _FLOAT), ("x0", _FLOAT), ("y0", _FLOAT),
      ("format_x", _FLOAT), ("format_y", _FLOAT), ("sigma_image", _FLOAT),
-     ("k1", _FLOAT), ("k2", _FLOAT), ("k3", _FLOAT), ("p1", _FLOAT), ("p2", _FLOAT)],
-    7, "id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2]",
+     ("k1", _FLOAT), ("k2", _FLOAT), ("k3", _FLOAT), ("p1", _FLOAT), ("p2", _FLOAT),
+     ("b1", _FLOAT), ("b2", _FLOAT), ("model", _KIND)],
+    7, "id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2 [b1 b2 "
+       "[forward|backward]]]",
+    defaults={"model": b"forward"}, words={"model": MODEL_WORDS},
 )
 PHOTOS = TextFormat(
     "photos",
@@ -355,14 +364,14 @@ def _normalize(fmt, arr, ncols, angles):
     for i, (cname, ctype) in enumerate(fmt.columns):
         if i >= ncols:
             if ctype == _KIND:
-                out[cname] = KIND_WORDS[fmt.defaults[cname].decode()]
+                out[cname] = fmt.words[cname][fmt.defaults[cname].decode()]
             continue
         if ctype == _ANGLE:
             out[cname] = to_radians(arr[cname], angles)
         elif ctype == _KIND:
             codes = np.full(len(arr), -1, np.int8)
             words = np.char.lower(arr[cname])
-            for word, code in KIND_WORDS.items():
+            for word, code in fmt.words[cname].items():
                 codes[words == word.encode()] = code
             out[cname] = codes
         else:
@@ -477,8 +486,11 @@ def _checks(fmt, arr, rec):
             f"sigma must not be negative, found {_num(rec['sigma'][i])} (column 5)")))
         return c
     if fmt is CAMERAS:
-        names = [n for n, _ in fmt.columns[1:]]
+        names = [n for n, t in fmt.columns[1:] if t != _KIND]
         c = _finite_checks(fmt, rec, names)
+        c.append((rec["model"] < 0, lambda i: (
+            f"unknown distortion model '{_tok(arr['model'][i])}' (column 15); expected "
+            f"forward (added to the ideal point) or backward (correcting the measured one)")))
         c.append((~(rec["focal_length"] > 0), lambda i: (
             f"focal_length must be positive, found {_num(rec['focal_length'][i])} "
             f"(column 2)")))
@@ -579,8 +591,8 @@ def _settle_control(rec):
 # -- writing ---------------------------------------------------------------------------
 
 _HEADERS = {
-    "cameras": "# cameras: id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2]"
-               "  (mm; k1..k3 mm^-2, mm^-4, mm^-6, p1 p2 mm^-1)",
+    "cameras": "# cameras: id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2 "
+               "[b1 b2 [forward|backward]]]  (mm; k1..k3 mm^-2, mm^-4, mm^-6, p1 p2 mm^-1)",
     "photos": "# photos: id camera strip omega phi kappa X Y Z  (angles in {angles}, "
               "X Y Z in m; strip -1 = unknown)",
     "measurements": "# measurements: photo point x y sigma  (mm; sigma 0 = the camera's "
@@ -625,9 +637,14 @@ def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS, rotati
                 vals = [c[n] for n in ("focal_length", "x0", "y0", "format_x", "format_y",
                                        "sigma_image")]
                 dist = [c[n] for n in ("k1", "k2", "k3", "p1", "p2")]
-                if _nonzero_bits(np.array(dist)).any():
+                aff = [c[n] for n in ("b1", "b2")]
+                backward = int(c["distortion_model"]) == MODEL_WORDS["backward"]
+                if backward or _nonzero_bits(np.array(dist + aff)).any():
                     vals += dist
-                f.write(" ".join([str(int(c["id"]))] + [repr(float(v)) for v in vals]) + "\n")
+                if backward or _nonzero_bits(np.array(aff)).any():
+                    vals += aff
+                words = [repr(float(v)) for v in vals] + (["backward"] if backward else [])
+                f.write(" ".join([str(int(c["id"]))] + words) + "\n")
                 counts["cameras"] += 1
         cam_ids = cams["id"]
         station_ids = p.read_field("stations", "id")

@@ -244,7 +244,7 @@ def write_block(spec: BlockSpec, writer, progress=None):
 
     cameras = np.zeros(1, CAMERA_DTYPE)
     cameras[0] = (1, spec.focal_length, 0.0, 0.0, spec.format, spec.format, sigma,
-                  *spec.distortion)
+                  *spec.distortion, 0.0, 0.0, 0)
     cams = camera_array(cameras)
     writer.append("cameras", cameras)
     st_strip, true_eo, approx_eo = _station_arrays(spec, z_mean)

@@ -48,6 +48,7 @@ from .band import PIVOT_TOLERANCE, PivotError
 from .tiles import (Panels, _factor_panel, _left_update, chol_columns, extend_add,
                     invert_tiled, node_bounds, update_bounds, write_dense_panels)
 from ..blas import FNS, L, N, R, T, gemm, gemv, lauum, syrk, trmm, trsm, trsv, trtri
+from ..geometry import N_CALIBRATION
 from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_point, _chol3,
                        _point_system, _ray_terms, _solve3, _workspace)
 
@@ -77,7 +78,7 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
     A panel of a tiled front (:mod:`sapgo.solve.tiles`): ``c0, c1`` the front's columns it
     holds and ``upd`` empty (0 x 0): only the terms in these columns are added, and ``rhs``
     only in the rows of its stations."""
-    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all = _workspace(max_rays, npar)
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all, o_all = _workspace(max_rays, npar)
     g = np.empty((max_rays, npar, 3))
     h = np.empty(3)
     col = np.empty(3)
@@ -87,7 +88,7 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
     tcols = np.empty(ng, np.int64)
     ngp = np.empty((ng, 3))
     ggp = np.empty((ng, 3))
-    e = np.empty((2, 8))
+    e = np.empty((2, N_CALIBRATION))
     nf = bord.shape[0]
     c2 = c1 + upd.shape[0]   # the columns held: c0 .. c2
     spare = np.zeros((npar, npar))   # out-of-panel rays' diagonal terms (not kept)
@@ -101,7 +102,7 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc, b_all, lam, behind_ok)
+                          st_all, nn, cc, b_all, o_all, lam, behind_ok)
         if k < 0:
             return BEHIND_CAMERA, j
         if not _chol3(nn, lo):
@@ -132,7 +133,7 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
         if ng > 0:
             _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal,
                           xyz, a_all, l_all, w_all, st_all, g, lo, h, 0, nf, bord, bord, cnn,
-                          ccg, cdiag, slot, tcols, ngp, ggp, e, b_all)
+                          ccg, cdiag, slot, tcols, ngp, ggp, e, b_all, o_all)
     return OK, -1
 
 

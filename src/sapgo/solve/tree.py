@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 
+from ..geometry import N_CALIBRATION
 from ..normals import CTRL_MASK, OK, PointChunk, station_diagonal
 from .fronts import FactorFile, TreeSolver, build_front, factor_layout
 from .tiles import Panels
@@ -366,7 +367,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
     state = {"node": -1, "a": None, "b": None, "rhs": None, "bord": None}
     cnn, ccg, cdiag = border if border is not None else (np.zeros((0, 0)), np.zeros(0),
                                                          np.zeros(0))
-    cal = blk.cal if ng else np.full((0, 8), -1, np.int64)
+    cal = blk.cal if ng else np.full((0, N_CALIBRATION), -1, np.int64)
 
     def open_node(i):
         t_open = time.perf_counter()
@@ -514,7 +515,7 @@ def build_panel(p, blk, fronts, chunks, lam, a, rhs, bord, sums, c0, c1):
     from ..adjust import _point_error
 
     k, ng = blk.npar, blk.n_border
-    cal = blk.cal if ng else np.full((0, 8), -1, np.int64)
+    cal = blk.cal if ng else np.full((0, N_CALIBRATION), -1, np.int64)
     if c0 != 0:
         bord = np.zeros((bord.shape[0], k, 0))
         sums = (np.zeros((0, 0)), np.zeros(0), np.zeros(0))
