@@ -381,3 +381,66 @@ def test_appending_data_of_another_body_is_refused(exported_geo, tmp_path):
     with pytest.raises(ParameterError, match="must be given in a CRS"):
         import_text(out, control=d / "control.txt", append=True)
     assert digest(out) == before
+
+
+def _dms(deg, hemi=None):
+    """Degrees as D:M:S with 13 decimals of seconds (or D°M'S" with a hemisphere)."""
+    neg = deg < 0
+    a = abs(deg)
+    d = int(a)
+    m = int((a - d) * 60)
+    s = (a - d - m / 60) * 3600
+    if hemi:
+        return f"{d}°{m:02d}'{s:.13f}\"{hemi[1] if neg else hemi[0]}"
+    return f"{'-' if neg else ''}{d}:{m:02d}:{s:.13f}"
+
+
+def test_northing_first_and_degrees_minutes_seconds_read_alike(block_cache, tmp_path,
+                                                                 capsys):
+    """The geographic block of :func:`block_in_crs` written northing (latitude) first, its
+    latitudes, longitudes and angles in degrees, minutes and seconds (two notations), reads
+    back to the same project (to the digits written) and adjusts alike
+    (``--axis-order ne``); a DMS token with 61 minutes is one line naming file and line."""
+    from conftest import assert_one_line_error, run_cli
+
+    src, out, dd = block_in_crs(block_cache, tmp_path)
+    ne = tmp_path / "ne"
+    ne.mkdir()
+    for name in ("cameras.txt", "measurements.txt"):
+        shutil.copy(dd / name, ne / name)
+    with open(ne / "photos.txt", "w") as f:
+        for r in (ln.split() for ln in open(dd / "photos.txt") if ln[0] != "#"):
+            ang = [_dms(float(v)) for v in r[3:6]]
+            lon, lat = float(r[6]), float(r[7])
+            f.write(" ".join(r[:3] + ang + [_dms(lat, "NS"), _dms(lon, "EW"), r[8]]) + "\n")
+    with open(ne / "control.txt", "w") as f:
+        for r in (ln.split() for ln in open(dd / "control.txt") if ln[0] != "#"):
+            lon, lat = float(r[1]), float(r[2])
+            f.write(" ".join([r[0], _dms(lat), _dms(lon), r[3], r[5], r[4]] + r[6:]) + "\n")
+    got = tmp_path / "ne.h5"
+    import_text(got, cameras=ne / "cameras.txt", photos=ne / "photos.txt",
+                measurements=ne / "measurements.txt", control=ne / "control.txt",
+                crs="EPSG:4979", axis_order="ne")
+    a, b = read_records(out), read_records(got)
+    np.testing.assert_allclose(b["stations"]["eo"][:, :3], a["stations"]["eo"][:, :3],
+                               rtol=0, atol=1e-13)
+    np.testing.assert_allclose(b["stations"]["eo"][:, 3:], a["stations"]["eo"][:, 3:],
+                               rtol=0, atol=1e-6)
+    np.testing.assert_allclose(b["points"]["control"], a["points"]["control"], rtol=0,
+                               atol=1e-6)
+    np.testing.assert_array_equal(b["points"]["control_sigma"], a["points"]["control_sigma"])
+    opts = sapgo.Options(progress=False)
+    assert sapgo.adjust(got, opts).sigma0 == pytest.approx(sapgo.adjust(out, opts).sigma0,
+                                                           rel=1e-6)
+    lines = (ne / "control.txt").read_text().splitlines()
+    cols = lines[1].split()
+    cols[1] = "49:61:00"
+    lines[1] = " ".join(cols)
+    (ne / "control.txt").write_text("\n".join(lines) + "\n")
+    code, _, err = run_cli(capsys, "import", tmp_path / "bad.h5", "--cameras",
+                           ne / "cameras.txt", "--photos", ne / "photos.txt", "--measurements",
+                           ne / "measurements.txt", "--control", ne / "control.txt", "--crs",
+                           "EPSG:4979", "--axis-order", "ne")
+    assert_one_line_error(code, err, "control.txt:2: '49:61:00' is no angle in degrees, "
+                          "minutes and seconds (minutes and seconds must be below 60) "
+                          "(column 2, X)")

@@ -179,7 +179,7 @@ def cmd_import(args):
         memory=args.memory, append=args.append, force=args.force, priors=args.priors,
         prior_covariances=args.prior_covariances, crs=args.crs, orientation=args.orientation,
         photos_matrix=args.photos_matrix, rotation=args.rotation,
-        image_frames=args.image_frames,
+        image_frames=args.image_frames, axis_order=args.axis_order,
     )
     for w in summary["warnings"]:
         _warn(w)
@@ -709,7 +709,13 @@ def build_parser():
                         "seconds, m)")
     m.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg",
                    help="unit of omega, phi, kappa in the photos and priors files (default "
-                        "deg)")
+                        "deg; in deg they may also be written in degrees, minutes and "
+                        "seconds: -12:34:56.7, 12d34m56.7s or 12°34'56.7\")")
+    m.add_argument("--axis-order", choices=("en", "ne"), default="en",
+                   help="the order of X and Y in the photos, control and priors files: en "
+                        "easting (longitude) first (default), ne northing (latitude) first; "
+                        "with a geographic --crs they may be written in degrees, minutes and "
+                        "seconds (49:00:12.3N)")
     m.add_argument("--image-frames", action="append", default=[], metavar="FILE",
                    help="per camera, how its photos' measurements are given: camera unit "
                         "(mm|px) pixel_x pixel_y (um, '-' for mm) width height (in the unit) "

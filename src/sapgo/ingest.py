@@ -48,8 +48,10 @@ from .formats.text import (
     PRIOR_PARAMETERS,
     PRIORS,
     check_angles,
+    check_axis_order,
     parse_chunk,
     read_chunks,
+    swap_axes,
 )
 from .frames import (
     LOCAL,
@@ -195,10 +197,11 @@ def ray_points(eo, xy, f, height, distance, sphere=None):
 
 class _Import:
     def __init__(self, out, files, angles, memory, work, existing, crs=None,
-                 orientation="tangent", rotation="opk"):
+                 orientation="tangent", rotation="opk", axis_order="en"):
         self.out = out
         self.files = files
         self.angles = angles
+        self.axis_order = check_axis_order(axis_order)
         self.rotation = rotation
         self.crs = None if crs is None else parse_crs(crs)
         self.orientation = orientation
@@ -226,12 +229,17 @@ class _Import:
             raise DataError(f"{self.existing}: {dataset} record {start + i}: {message(i)}")
 
     def _read(self, fmt, path, refs=None):
-        """Yield (records, locs) of a text file, chunk by chunk."""
+        """Yield (records, locs) of a text file, chunk by chunk (northing-first coordinates
+        put in X, Y order; geographic ones may be written in degrees, minutes, seconds)."""
         src = self.src.add(path)
+        xy = fmt in (PHOTOS, PHOTOS_MATRIX, CONTROL, PRIORS, PRIOR_COVARIANCES)
+        dms = ("X", "Y") if xy and self.crs is not None and self.crs.is_geographic else ()
         for first, chunk in read_chunks(path, self.chunk_bytes):
             self.bytes += len(chunk)
-            rec, lines = parse_chunk(fmt, chunk, first, self.angles, str(path), refs)
+            rec, lines = parse_chunk(fmt, chunk, first, self.angles, str(path), refs, dms)
             self.lines += len(rec)
+            if xy and self.axis_order == "ne":
+                swap_axes(fmt, rec)
             if len(rec):
                 yield rec, self.src.loc(src, lines)
 
@@ -856,6 +864,7 @@ class _Import:
         self.dup_examples, self.lonely_ids = [], []
         attrs = {}
         entry = {"command": "import", "angles": self.angles, "rotation": self.rotation,
+                 "axis_order": self.axis_order,
                  "append": bool(self.existing),
                  "crs": None if self.crs is None else self.crs.to_string(),
                  "orientation": self.orientation,
@@ -1051,7 +1060,7 @@ def read_image_frames(paths, cam_ids):
 def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles="deg",
                 memory=None, append=False, force=False, priors=(), prior_covariances=(),
                 crs=None, orientation="tangent", photos_matrix=(), rotation="opk",
-                image_frames=()):
+                image_frames=(), axis_order="en"):
     """Import a block from text files into the project ``out``; returns a summary dict.
 
     ``cameras``, ``photos``, ``measurements``, ``control``, ``priors`` (exposure-station
@@ -1070,8 +1079,13 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     orientation is a rotation matrix (object to image, row by row; relative to the same axes)
     instead of three angles. ``image_frames``: files giving, per camera, the unit, origin
     and y axis of its photos' image measurements (:func:`read_image_frames`; cameras not
-    listed: mm from the image centre, y up). ``memory``: the budget of the sorting phases (bytes or
-    ``"512M"``; default :data:`sapgo.extsort.DEFAULT_MEMORY`).
+    listed: mm from the image centre, y up). ``axis_order``: ``"en"`` (X, the easting or
+    longitude, first; the default) or ``"ne"`` (the northing or latitude first) in the
+    photos, control and priors files (:data:`sapgo.formats.text.AXIS_ORDERS`); with a
+    geographic ``crs`` their X and Y may be written in degrees, minutes and seconds, as may
+    the angles with ``angles`` "deg" (:func:`sapgo.formats.text.dms_degrees`). ``memory``:
+    the budget of the sorting phases (bytes or ``"512M"``; default
+    :data:`sapgo.extsort.DEFAULT_MEMORY`).
 
     If ``out`` exists, ``force=True`` replaces it and ``append=True`` adds the files to it:
     its records are read back and combined with the files as if all had been imported
@@ -1126,7 +1140,7 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     try:
         summary = _Import(out, files, angles, memory, work,
                           out if (append and exists) else None, crs, orientation,
-                          rotation).run()
+                          rotation, axis_order).run()
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary["seconds"] = time.perf_counter() - t0

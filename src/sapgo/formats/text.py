@@ -182,6 +182,37 @@ FORMATS = {f.name: f for f in (CAMERAS, PHOTOS, PHOTOS_MATRIX, MEASUREMENTS, CON
                                PRIORS, PRIOR_COVARIANCES)}
 
 
+#: The order of the horizontal coordinates in the photos, control and priors files
+#: (``--axis-order``): ``en`` X (east, longitude) then Y (north, latitude), or ``ne``
+#: northing (latitude) first, as many survey and GNSS files (and EPSG:4326) give them.
+AXIS_ORDERS = ("en", "ne")
+
+
+def check_axis_order(order):
+    if order not in AXIS_ORDERS:
+        raise ParameterError(f"axis order {order!r}: choose en (easting first) or ne "
+                             f"(northing first)")
+    return order
+
+
+def swap_axes(fmt, rec):
+    """Records of ``fmt`` read with northing first, in place: X and Y swapped, and their
+    sigmas (control, priors) or covariance terms (prior covariances) with them."""
+    pairs = [("X", "Y"), ("sX", "sY"), ("s_X", "s_Y")]
+    if fmt is PRIOR_COVARIANCES:   # parameter 3 (X) <-> 4 (Y)
+        perm = [0, 1, 2, 4, 3, 5]
+        terms = [(i, j) for i in range(6) for j in range(i, 6)]
+        old = {t: rec[c].copy() for t, c in zip(terms, COVARIANCE_TERMS)}
+        for (i, j), c in zip(terms, COVARIANCE_TERMS):
+            a, b = sorted((perm[i], perm[j]))
+            rec[c] = old[(a, b)]
+    names = rec.dtype.names
+    for a, b in pairs:
+        if a in names and b in names:
+            rec[a], rec[b] = rec[b].copy(), rec[a].copy()
+    return rec
+
+
 def check_angles(angles):
     if angles not in ANGLE_UNITS:
         raise ParameterError(f"angle unit {angles!r}: choose one of {', '.join(ANGLE_UNITS)}")
@@ -307,9 +338,56 @@ def _where(src, line):
     return f"{src}:{line}"
 
 
-def _parse_token(fmt, ci, tok, angles, src, line):
+#: Degrees, minutes and seconds: ``-12:34:56.7``, ``12d34m56.7s``, ``12°34'56.7"``, with
+#: the seconds (or minutes and seconds) optional, a sign or a hemisphere (N, E positive; S,
+#: W negative) before or after.
+_DMS = re.compile(
+    r"\s*(?P<h0>[NSEWnsew])?(?P<sign>[+-])?(?P<d>[0-9]+)(?:[:dD°º]\s*)"
+    r"(?:(?P<m>[0-9]+(?:\.[0-9]*)?)(?:[:mM'′]\s*)?)?"
+    r"(?:(?P<s>[0-9]+(?:\.[0-9]*)?)(?:[sS\"″]|'')?)?(?P<h1>[NSEWnsew])?\s*")
+
+
+def dms_degrees(text):
+    """Decimal degrees (long double) of an angle written in degrees, minutes and seconds
+    (:data:`_DMS`), or None when ``text`` is not one. Raises ValueError for minutes or seconds
+    of 60 or more, or two hemispheres."""
+    m = _DMS.fullmatch(text)
+    if m is None or (m["m"] is None and m["s"] is not None):
+        return None
+    if m["h0"] and m["h1"]:
+        raise ValueError("two hemispheres")
+    minutes = np.longdouble(m["m"] or "0")
+    seconds = np.longdouble(m["s"] or "0")
+    if minutes >= 60 or seconds >= 60:
+        raise ValueError("minutes and seconds must be below 60")
+    if m["s"] is not None and minutes != int(minutes):
+        raise ValueError("decimal minutes before seconds")
+    value = np.longdouble(m["d"]) + minutes / 60 + seconds / 3600
+    hemi = (m["h0"] or m["h1"] or "").upper()
+    negative = (m["sign"] == "-") != (hemi in ("S", "W"))
+    return -value if negative else value
+
+
+def _dms_token(tok, where, col):
+    """A DMS token's decimal degrees, or None when it is not written in DMS."""
+    try:
+        text = tok.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    try:
+        return dms_degrees(text)
+    except ValueError as exc:
+        raise DataError(f"{where}: '{_tok(tok)}' is no angle in degrees, minutes and seconds "
+                        f"({exc}) {col}") from None
+
+
+def _parse_token(fmt, ci, tok, angles, src, line, dms=()):
     cname, ctype = fmt.columns[ci]
     col = f"(column {ci + 1}, {cname})"
+    if ((ctype == _ANGLE and angles == "deg") or cname in dms) and not _FLOAT_RE.fullmatch(tok):
+        v = _dms_token(tok, _where(src, line), col)
+        if v is not None:
+            return v if ctype == _ANGLE else float(v)
     if ctype in (_ID, _INT):
         if not _INT_RE.fullmatch(tok):
             if _FLOAT_RE.fullmatch(tok):
@@ -331,7 +409,7 @@ def _parse_token(fmt, ci, tok, angles, src, line):
     return float(tok)
 
 
-def _parse_lines(fmt, chunk, first, lines, angles, src, refs=None):
+def _parse_lines(fmt, chunk, first, lines, angles, src, refs=None, dms=()):
     """Slow path: parse a block line by line; returns the wide loadtxt-style array.
 
     On a syntax error the records before the bad line are value-checked first, so that the
@@ -346,7 +424,7 @@ def _parse_lines(fmt, chunk, first, lines, angles, src, refs=None):
         try:
             if not fmt.min_cols <= len(toks) <= fmt.max_cols:
                 raise DataError(f"{_where(src, ln)}: {fmt.expected()}, found {len(toks)}")
-            vals = [_parse_token(fmt, i, t, angles, src, ln) for i, t in enumerate(toks)]
+            vals = [_parse_token(fmt, i, t, angles, src, ln, dms) for i, t in enumerate(toks)]
         except DataError:
             done = np.array(rows, dtype=dtype) if rows else np.zeros(0, dtype)
             check_records(fmt, done, _normalize(fmt, done, fmt.max_cols, angles),
@@ -414,11 +492,13 @@ def _load_grouped(fmt, chunk, first, lines, angles):
     return wide
 
 
-def parse_chunk(fmt, chunk, first, angles, src, refs=None):
+def parse_chunk(fmt, chunk, first, angles, src, refs=None, dms=()):
     """Records (``fmt.dtype``) and line numbers of a block of whole lines.
 
     ``src`` names the file in messages. ``refs(rec)`` may add checks (``(mask, message(i))``
     pairs, e.g. that referenced ids exist). Raises :class:`DataError` for the first bad line.
+    Angles in degrees (``angles`` "deg") and the columns named in ``dms`` (geographic
+    coordinates) may also be written in degrees, minutes and seconds (:func:`dms_degrees`).
     """
     head = _first_data_line(chunk)
     if not head:
@@ -451,7 +531,7 @@ def parse_chunk(fmt, chunk, first, angles, src, refs=None):
     if rec is None:
         if lines is None:
             lines = _data_lines(chunk, first)
-        arr = _parse_lines(fmt, chunk, first, lines, angles, src, refs)
+        arr = _parse_lines(fmt, chunk, first, lines, angles, src, refs, dms)
         rec = _normalize(fmt, arr, fmt.max_cols, angles)
     check_records(fmt, arr, rec, lines, src, refs)
     if fmt is CONTROL:
