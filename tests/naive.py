@@ -108,7 +108,7 @@ CAMERA_FIELDS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2")
 def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma, ctrl_mask,
                             ctrl, ctrl_sigma, iterations=30, tol=1e-11, dist=None,
                             calibrate=(), x0=0.0, y0=0.0, model="forward",
-                            calibrate_per_photo=()):
+                            calibrate_per_photo=(), fixed_station=None):
     """Gauss-Newton on the full dense normal equations (no reduction, no band).
 
     Control components with sigma 0 are held at their control values. ``calibrate``: names
@@ -119,7 +119,8 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
     p2, b1, b2) as a fifth element (per photo, n x 10, with ``calibrate_per_photo``) and the
     cofactors of the adjusted fields as a sixth (the shared ones, then per photo, photo by
     photo). ``model`` "backward": the residual is the ideal projection minus the
-    measurement corrected by ``dist`` at it (:func:`corrected`).
+    measurement corrected by ``dist`` at it (:func:`corrected`). ``fixed_station`` (n x 6
+    bools): station parameters held at their values (no unknowns).
     """
     eo = eo.astype(float).copy()
     xyz = xyz.astype(float).copy()
@@ -134,7 +135,9 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
     xyz[fixed] = ctrl[fixed]
     weighted = ctrl_mask & (ctrl_sigma > 0)
     free_pt = ~fixed.ravel()
-    index = np.concatenate([np.ones(6 * ns, bool), free_pt, np.ones(ncam, bool)])
+    free_st = (np.ones(6 * ns, bool) if fixed_station is None
+               else ~np.asarray(fixed_station, bool).ravel())
+    index = np.concatenate([free_st, free_pt, np.ones(ncam, bool)])
     nobs = len(obs_station)
     base = 6 * ns + 3 * npnt
 
@@ -193,7 +196,8 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
     vpv = float(((v / obs_sigma[:, None]) ** 2).sum())
     vc = (xyz - ctrl)[weighted] / ctrl_sigma[weighted]
     vpv += float((vc ** 2).sum())
-    redundancy = 2 * nobs + weighted.sum() - 6 * ns - 3 * npnt + fixed.sum() - ncam
+    redundancy = (2 * nobs + weighted.sum() - int(free_st.sum()) - 3 * npnt + fixed.sum()
+                  - ncam)
     if ncam:  # and the camera parameters' cofactors (the inverse of the last normals)
         q = scale[:, None] * np.linalg.inv(n) * scale[None, :]
         return (eo, xyz, np.sqrt(vpv / redundancy), it, cs if nper else cs[0],

@@ -442,3 +442,171 @@ def test_a_project_of_an_older_version_adjusts_alike(small_block, tmp_path):
     assert got.shape == corr.shape
     np.testing.assert_array_equal(got[:, :8], corr[:, :8] + 1.0)
     assert (got[:, 8:] == 0).all()
+
+
+@pytest.mark.parametrize("control", [True, False])
+def test_fixed_station_parameters_equal_dense_least_squares(small_block, tmp_path, control):
+    """Station parameters held fixed (``--datum fix``) are true constraints: the same
+    solution, sigma0 and redundancy as a dense Gauss-Newton without those unknowns, on the
+    band and on the tree; their corrections and standard deviations are exactly 0. Without
+    control, 7 fixed parameters (a photo's six and another's X) are the datum of a free
+    block, which then has a precision."""
+    rec = read_records(small_block)
+    st, pt, ob = rec["stations"], rec["points"], rec["observations"]
+    if not control:
+        pt["kind"] = 0
+        rec["points"] = pt
+    path = tmp_path / "fix.h5"
+    rewrite(path, rec)
+    ids = np.sort(st["id"])
+    a, b = int(ids[0]), int(ids[-1])
+    fix = (f"fix:{a}:all", f"fix:{b}:X" if not control else f"fix:{b}:Z,kappa")
+    fixed = np.zeros((len(st), 6), bool)
+    fixed[st["id"] == a] = True
+    fixed[st["id"] == b, 3 if not control else 5] = True
+    if control:
+        fixed[st["id"] == b, 2] = True
+    cam = rec["cameras"][0]
+    ref = naive.dense_bundle_adjustment(
+        st["eo"], pt["xyz"], cam["focal_length"], ob["station"], ob["point"],
+        np.column_stack([ob["x"], ob["y"]]), ob["sigma"], CONTROL_MASK[pt["kind"]].astype(bool),
+        pt["control"], pt["control_sigma"], iterations=40, fixed_station=fixed)
+    eo_r, xyz_r, s0_r = ref[0], ref[1], ref[2]
+    for solver in ("band", "tree"):
+        run = tmp_path / f"{solver}.h5"
+        shutil.copy(path, run)
+        s = sapgo.adjust(run, sapgo.Options(progress=False, solver=solver, fix=fix,
+                                            tol_position=1e-9, tol_angle=1e-11,
+                                            max_iterations=40))
+        assert s.converged and s.datum == "fixed"
+        assert s.sigma0 == pytest.approx(s0_r, rel=1e-8)
+        with Project(run) as p:
+            ids_r = p.read_field("stations", "id")
+            eo = p.read_field("stations", "eo") + p.solution("station_corr")
+            corr = p.solution("station_corr")
+            ssig = p.solution("station_sigma")
+            pid = p.read_field("points", "id")
+            xyz = p.read("points")["xyz"] + p.solution("point_corr")
+        order = np.argsort(ids_r)
+        ref_order = np.argsort(st["id"])
+        np.testing.assert_allclose(eo[order], eo_r[ref_order], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(xyz[np.argsort(pid)], xyz_r[np.argsort(pt["id"])], rtol=0,
+                                   atol=1e-6)
+        fx = fixed[ref_order]
+        assert (corr[order][fx] == 0).all() and (ssig[order][fx] == 0).all()
+        assert (ssig[order][~fx] > 0).all()
+        n_fixed_ctrl = (CONTROL_MASK[pt["kind"]].astype(bool) & (pt["control_sigma"] == 0)).sum()
+        n_w = (CONTROL_MASK[pt["kind"]].astype(bool) & (pt["control_sigma"] > 0)).sum()
+        assert s.redundancy == 2 * len(ob) + n_w - (6 * len(st) - fx.sum()) \
+            - 3 * len(pt) + n_fixed_ctrl
+
+
+def test_bad_datum_fixes_are_one_line(small_block, tmp_path, capsys):
+    """``--datum`` takes fix:IDS:PARAMS only; an unknown photo or parameter, or a fixed
+    parameter with a prior, is one line and leaves the project as it was."""
+    from conftest import assert_one_line_error, digest, run_cli
+
+    path = tmp_path / "b.h5"
+    shutil.copy(small_block, path)
+    before = digest(path)
+    pid = int(read_records(path)["stations"]["id"][0])
+    for args, words in [(["--datum", "free"], "expected fix:IDS:PARAMS"),
+                        (["--datum", "fix:424242:X"], "photo id 424242: no such photo"),
+                        (["--datum", f"fix:{pid}:height"], "unknown station parameter"),
+                        (["--datum", f"fix:{pid}"], "expected fix:IDS:PARAMS")]:
+        code, _, err = run_cli(capsys, "adjust", path, "--no-progress", *args)
+        assert_one_line_error(code, err, words)
+    assert digest(path) == before
+    # a parameter with a prior as well
+    rec = read_records(path)
+    pr = np.zeros(1, rec["station_priors"].dtype)
+    pr["station"] = 0
+    pr["value"] = rec["stations"]["eo"][0]
+    pr["weight"] = np.diag([0, 0, 0, 1.0, 1.0, 0])
+    rec["station_priors"] = pr
+    rewrite(path, rec)
+    code, _, err = run_cli(capsys, "adjust", path, "--no-progress", "--datum",
+                           f"fix:{pid}:X")
+    assert_one_line_error(code, err, f"photo id {pid}: its X has a prior too")
+
+
+def _aside_block(small_block, tmp_path):
+    """The small block with a two-ray check point placed on the line through its photos'
+    projection centres (its rays parallel at the start): (good, bad, point record)."""
+    from sapgo.geometry import camera_array, linearize
+
+    rec = read_records(small_block)
+    pt, ob = rec["points"], rec["observations"]
+    j = int(np.flatnonzero(np.isin(pt["kind"], (0, 4)) & (np.bincount(ob["point"],
+                                                                   minlength=len(pt)) >= 2))[0])
+    rec["observations"] = np.delete(ob, np.flatnonzero(ob["point"] == j)[2:])
+    good = tmp_path / "good.h5"
+    rewrite(good, rec)
+    st = rec["stations"]
+    two = rec["observations"]["station"][rec["observations"]["point"] == j]
+    cams = camera_array(rec["cameras"])
+    c1, c2 = st["eo"][two[0], 3:], st["eo"][two[1], 3:]
+    a6, b3 = np.empty((2, 6)), np.empty((2, 3))
+    for t in (5.0, -4.0):   # in front of both photos
+        x = c1 + t * (c2 - c1)
+        if all(linearize(st["eo"][s], x, cams[st["camera"][s]], a6, b3)[2] < 0 for s in two):
+            break
+    else:
+        pytest.fail("no place in front of both photos")
+    rec["points"]["xyz"][j] = x
+    bad = tmp_path / "bad.h5"
+    rewrite(bad, rec)
+    return good, bad, j
+
+
+def test_a_killed_run_with_a_point_set_aside_resumes_alike(small_block, tmp_path):
+    """Killed in the solve of iteration 2 (the point set aside in 1), the run resumes
+    with it aside, brings it back and ends bit for bit where the uninterrupted run does."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    _, bad, _ = _aside_block(small_block, tmp_path)
+    ref = tmp_path / "ref.h5"
+    shutil.copy(bad, ref)
+    run = "import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False))"
+    subprocess.run([sys.executable, "-c", run, str(ref)], check=True, timeout=300,
+                   capture_output=True)
+    r = subprocess.run([sys.executable, "-c", run, str(bad)], timeout=300,
+                       env=dict(os.environ, SAPGO_FAULT="solve:2"), capture_output=True,
+                       text=True)
+    assert r.returncode == -signal.SIGKILL, r.stderr
+    s = sapgo.adjust(bad, sapgo.Options(progress=False, resume=True))
+    assert s.resumed_from_iteration == 1 and s.set_aside[0]["back"] == 2
+    with Project(ref) as p, Project(bad) as q:
+        for name in ("point_corr", "station_corr"):
+            np.testing.assert_array_equal(p.solution(name), q.solution(name))
+        assert p.file["solution"].attrs["sigma0"] == q.file["solution"].attrs["sigma0"]
+
+
+@pytest.mark.parametrize("solver", ["band", "tree"])
+def test_an_undetermined_point_is_set_aside_and_brought_back(small_block, tmp_path, solver,
+                                                            capsys):
+    """A two-ray pass point whose starting coordinates make its rays parallel (far below
+    the block) is set aside in the first iteration with a warning, comes back in the next,
+    intersected from the adjusted photos, and the run ends where the block with good
+    starting values does."""
+    good, bad, j = _aside_block(small_block, tmp_path)
+    pt = read_records(small_block)["points"]
+    opts = sapgo.Options(progress=False, solver=solver)
+    ref = sapgo.adjust(good, opts)
+    s = sapgo.adjust(bad, opts)
+    err = capsys.readouterr().err
+    pid = int(pt["id"][j])
+    assert f"point id {pid} set aside in iteration 1" in err and "are back in iteration 2" in err
+    assert s.converged and s.set_aside == [{"point": pid, "set_aside": 1, "back": 2}]
+    assert s.sigma0 == pytest.approx(ref.sigma0, rel=1e-9)
+    assert s.redundancy == ref.redundancy
+    with Project(good) as p, Project(bad) as q:
+        a = p.read("points")["xyz"] + p.solution("point_corr")
+        b = q.read("points")["xyz"] + q.solution("point_corr")
+        ia, ib = p.read_field("points", "id"), q.read_field("points", "id")
+    np.testing.assert_allclose(b[np.argsort(ib)], a[np.argsort(ia)], rtol=0, atol=1e-6)
+    assert "set aside, rays (nearly) parallel at the values of the time: 1 point(s), 1 back " \
+        "later" in s.full_report()

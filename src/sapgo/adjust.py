@@ -42,7 +42,13 @@ from .solve.band import (
     BorderPivotError,
     PivotError,
 )
-from .errors import DatumDefectError, ProjectFormatError, SapgoError, SingularNormalsError
+from .errors import (
+    DatumDefectError,
+    ProjectFormatError,
+    SapgoError,
+    SingularNormalsError,
+    UndeterminedPointError,
+)
 from .geometry import (
     CALIBRATION_FIELDS,
     CALIBRATION_POWERS,
@@ -163,6 +169,10 @@ class Options:
     #: camera its own value, e.g. the principal point of a camera that refocuses), beside the
     #: shared ones of ``calibrate`` (any of those fields; not both).
     calibrate_per_photo: tuple = ()
+    #: Station parameters held fixed (true constraints, ``--datum fix:IDS:PARAMS``): pairs
+    #: ``(photo ids, parameter names)`` of omega, phi, kappa, X, Y, Z (or "IDS:PARAMS"
+    #: strings). With them the datum is the user's: no control is required.
+    fix: tuple = ()
     #: The linear solver: "band" (recursive partitioning of the band: long strips), "tree"
     #: (the partition tree of nested dissection: any block shape) or "auto" (the project's
     #: order as ``sapgo order`` chose it by predicted cost; an unordered project is ordered
@@ -218,6 +228,7 @@ class Options:
             raise SapgoError(f"self-calibration: {(both or self.calibrate_per_photo)[0]} is "
                              f"named twice (a parameter is shared by a camera's photos or "
                              f"adjusted per photo, not both)")
+        self.fix = tuple(parse_fix(f) for f in self.fix)
         if self.calibrate_cameras is not None:
             self.calibrate_cameras = tuple(int(c) for c in self.calibrate_cameras)
             if len(set(self.calibrate_cameras)) != len(self.calibrate_cameras):
@@ -244,19 +255,32 @@ def _wrap(a):
 
 
 class _PriorCursor:
-    """Station priors, read in chunks in station order as band rows enter the window."""
+    """Station priors, read in chunks in station order as band rows enter the window; and
+    for each station parameter held fixed (``blk.fixed``, ``--datum fix``) a unit weight
+    at its current value (its columns of A are zero, :func:`sapgo.normals.fixed_columns`:
+    the unit diagonal keeps the normals regular and its correction exactly 0)."""
 
-    def __init__(self, project, chunk):
+    def __init__(self, project, chunk, blk=None):
         self.p = project
         self.n = project.n_priors
         self.chunk = chunk
         self.pos = 0
         self.buf = project.read("station_priors", 0, 0)
         self.bpos = 0
+        self.blk = blk
 
     def take(self, lo, hi):
         """Priors of stations in ``[lo, hi)``; calls must come in increasing station order."""
         out = []
+        fixed = None if self.blk is None else self.blk.fixed
+        if fixed is not None and len(fixed) and fixed[lo:hi].any():
+            for s in lo + np.flatnonzero(fixed[lo:hi]):
+                rec = np.zeros((), self.buf.dtype)
+                rec["station"] = s
+                rec["value"] = self.blk.eo[s, :6]
+                bits = (int(fixed[s]) >> np.arange(6)) & 1
+                rec["weight"] = np.diag(bits.astype(np.float64))
+                out.append(rec)
         while True:
             if self.bpos >= len(self.buf):
                 if self.pos >= self.n:
@@ -307,6 +331,16 @@ class _Block:
     n_control: dict = dataclasses.field(default_factory=dict)
     n_weighted_control: int = 0
     n_fixed: int = 0
+    #: per station, its parameters held fixed (bit u: omega, phi, kappa, X, Y, Z;
+    #: ``Options.fix``), and their number over the active stations
+    fixed: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int8))
+    n_fixed_params: int = 0
+    #: pass points set aside during the run, their rays (nearly) parallel at the values of
+    #: the time (record -> [record, active rays, id, iteration]); they are among
+    #: ``rejected_points`` until their rays allow them back (:func:`_bring_back`), and
+    #: ``aside_log`` tells what happened to each
+    aside: dict = dataclasses.field(default_factory=dict)
+    aside_log: list = dataclasses.field(default_factory=list)
     n_prior_params: int = 0
     #: a free network (no control, no priors; the project attribute ``datum`` is "free"):
     #: adjusted by Levenberg-Marquardt, its gauge left to the damping, no precision
@@ -356,7 +390,7 @@ class _Block:
     def redundancy(self):
         equations = 2 * self.n_rays + self.n_weighted_control + self.n_prior_params
         unknowns = (self.npar * self.n_stations + 3 * self.n_points - self.n_fixed
-                    + self.n_border)
+                    + self.n_border - self.n_fixed_params)
         # a free network: its 7 datum parameters are not determined by the observations
         return equations - unknowns + (7 if self.free else 0)
 
@@ -377,6 +411,7 @@ def _load_block(p: Project) -> _Block:
         npar=9 if p.attr("station_intrinsics", "") == "adjusted" else 6,
         tree=p.tree(),
     )
+    blk.fixed = np.zeros(len(blk.station_ids), np.int8)
     if blk.npar == 9:
         cam = blk.camera[blk.station_active]
         shared = np.bincount(cam, minlength=len(blk.cams))
@@ -490,6 +525,83 @@ def _set_calibration(blk: _Block, p: Project, opts: Options):
                 blk.border.append((int(r), f))
 
 
+#: The station parameters ``--datum fix`` names, in the order of a station's eo (bit u).
+FIX_PARAMETERS = ("omega", "phi", "kappa", "X", "Y", "Z")
+
+
+def parse_fix(spec):
+    """``(photo ids, bit mask)`` of a fix: ``"IDS:PARAMS"`` (``--datum fix:IDS:PARAMS``
+    without ``fix:``; ids and parameter names separated by commas, ``all`` for the six) or a
+    pair ``(ids, names)``, names of :data:`FIX_PARAMETERS` (any case)."""
+    if isinstance(spec, str):
+        text = spec[4:] if spec.lower().startswith("fix:") else spec
+        if text.count(":") != 1:
+            raise SapgoError(f"datum fix {spec!r}: expected fix:IDS:PARAMS, e.g. "
+                             f"fix:101:omega,phi,kappa,X,Y,Z fix:102,103:Z")
+        ids_t, names_t = text.split(":")
+        try:
+            ids = tuple(int(x) for x in ids_t.split(",") if x.strip())
+        except ValueError:
+            raise SapgoError(f"datum fix {spec!r}: the photo ids must be integer ids, "
+                             f"separated by commas") from None
+        names = tuple(x.strip() for x in names_t.split(",") if x.strip())
+    elif isinstance(spec, tuple) and len(spec) == 2 and isinstance(spec[1], int):
+        return tuple(int(i) for i in spec[0]), int(spec[1])
+    else:
+        ids, names = tuple(int(i) for i in spec[0]), tuple(spec[1])
+        if isinstance(spec[1], str):
+            names = tuple(x for x in spec[1].replace(",", " ").split() if x)
+    if not ids or not names:
+        raise SapgoError(f"datum fix {spec!r}: name the photo ids and their parameters")
+    mask = 0
+    lower = [n.lower() for n in FIX_PARAMETERS]
+    for n in names:
+        if n.lower() == "all":
+            mask |= 63
+            continue
+        if n.lower() not in lower:
+            raise SapgoError(f"datum fix: unknown station parameter {n!r}; choose from "
+                             f"{', '.join(FIX_PARAMETERS)} or all")
+        mask |= 1 << lower.index(n.lower())
+    return ids, mask
+
+
+def _set_fixed(blk: _Block, p: Project, opts: Options):
+    """``blk.fixed`` from ``Options.fix``: every named photo must exist and be adjusted, and
+    a fixed parameter must not have a prior as well."""
+    n = len(blk.station_ids)
+    blk.fixed = np.zeros(n, np.int8)
+    blk.n_fixed_params = 0
+    if not opts.fix:
+        return
+    order = np.argsort(blk.station_ids, kind="stable")
+    sorted_ids = blk.station_ids[order]
+    for ids, mask in opts.fix:
+        for pid in ids:
+            at = int(np.searchsorted(sorted_ids, pid))
+            if at >= n or sorted_ids[at] != pid:
+                raise SapgoError(f"{p.path}: datum fix of photo id {pid}: no such photo")
+            s = int(order[at])
+            if not blk.station_active[s]:
+                raise SapgoError(f"{p.path}: datum fix of photo id {pid}: the photo is "
+                                 f"excluded from the adjustment")
+            blk.fixed[s] |= mask
+    for a, b in p.chunks("station_priors"):
+        pr = p.read("station_priors", a, b)
+        w = np.diagonal(pr["weight"], axis1=1, axis2=2) > 0
+        bits = (blk.fixed[pr["station"]][:, None].astype(np.int64) >> np.arange(6)) & 1
+        hit = np.flatnonzero((w & (bits == 1)).any(axis=1))
+        if len(hit):
+            s = int(pr["station"][hit[0]])
+            u = int(np.flatnonzero(w[hit[0]] & (bits[hit[0]] == 1))[0])
+            raise SapgoError(f"{p.path}: datum fix of photo id {int(blk.station_ids[s])}: "
+                             f"its {FIX_PARAMETERS[u]} has a prior too; fix it or weight it, "
+                             f"not both")
+    act = blk.fixed[blk.station_active].astype(np.int64)
+    blk.n_fixed_params = int(((act[:, None] >> np.arange(6)) & 1).sum())
+    blk.free = False   # (the user's datum)
+
+
 def _border_names(blk: _Block, p: Project):
     """``"camera <id> <field>"`` (``"photo <id> <field>"`` for a field calibrated per photo)
     of every border column (for messages and the report)."""
@@ -577,10 +689,11 @@ def _datum_advice(nh, nv, n_priors):
     )
 
 
-def check_datum(p: Project):
+def check_datum(p: Project, fixed=False):
     """Raise :class:`DatumDefectError` when the control cannot fix the datum (a project
-    marked as a free network, ``datum = "free"``, needs none)."""
-    if p.attr("datum", "") == "free":
+    marked as a free network, ``datum = "free"``, needs none, nor one whose datum the user
+    gives by fixed station parameters, ``fixed``)."""
+    if p.attr("datum", "") == "free" or fixed:
         return
     nh, nv, npr = _datum_counts(p)
     if npr == 0 and (nh < 2 or nv < 3):
@@ -657,9 +770,9 @@ def _point_error(p, chunk, j, status, blk):
             f"control does not fix the remaining direction (control_sigma "
             f"{list(rec['control_sigma'])} m); check its image measurements and control"
         )
-    return SingularNormalsError(
+    return UndeterminedPointError(
         f"point id {pid} cannot be determined: its rays are (nearly) parallel and it has no "
-        f"control; check its image measurements"
+        f"control; check its image measurements", chunk.start + j
     )
 
 
@@ -700,7 +813,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             band_ds[base:base + len(rows)] = rows
             rhs_ds[base:base + len(rows)] = rhs_rows
     xyz_ds = work.xyz_current if xyz is None else xyz
-    priors = _PriorCursor(p, opts.chunk_points)
+    priors = _PriorCursor(p, opts.chunk_points, blk)
     base = 0
     if lam > 0.0:
         diag = np.zeros((n, k))
@@ -746,7 +859,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
                     c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
                     blk.camera, blk.cams, CTRL_MASK, band, rhs, base,
                     c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS, blk.cal,
-                    bord, ovf_bord, cnn_t, ccg_t, cdiag_t, lam, blk.behind_ok,
+                    bord, ovf_bord, cnn_t, ccg_t, cdiag_t, lam, blk.behind_ok, blk.fixed,
                 )
                 if status != OK:
                     raise _point_error(p, c, bad, status, blk)
@@ -813,7 +926,7 @@ def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, st
             c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
             c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
             blk.cams, CTRL_MASK, c.max_rays, xyz_out, res_out,
-            stats, lam, blk.behind_ok, cams_new, dtheta,
+            stats, lam, blk.behind_ok, cams_new, dtheta, blk.fixed,
         )
         if stats[7]:
             raise _point_error(p, c, int(stats[7]) - 1, int(stats[8]), blk)
@@ -921,6 +1034,81 @@ def _accepted(log):
     return [r for r in log if r.get("step", "accepted") == "accepted"]
 
 
+#: At most this many points (and this fraction of the points) are set aside in a run
+#: before an undetermined point stops it as an error.
+MAX_ASIDE = 1000
+MAX_ASIDE_FRACTION = 0.01
+
+
+def _active_rays(p, blk, j):
+    """Point record ``j``'s active observations (not rejected)."""
+    pt = p.read("points", j, j + 1)[0]
+    o0, o1 = int(pt["obs_start"]), int(pt["obs_start"] + pt["n_obs"])
+    obs = p.read("observations", o0, o1)
+    live = np.flatnonzero(obs["status"] == STATUS_ACTIVE)
+    live = live[~np.isin(o0 + live, blk.rejected)]
+    return pt, obs[live]
+
+
+def _note_aside(run, blk):
+    run["aside"] = [list(v) for v in blk.aside.values()]
+    run["aside_log"] = blk.aside_log
+    run["rejected_points"] = blk.rejected_points.tolist()
+
+
+def _set_aside(p, work, blk, opts, run, exc, iteration):
+    """A pass point undetermined at the current values (``exc``, its rays (nearly)
+    parallel): left out of the adjustment from now on, until :func:`_bring_back` finds
+    its rays fit again; too many such points stop the run with ``exc``."""
+    j = exc.record
+    if j in blk.aside or len(blk.aside) >= max(1, min(MAX_ASIDE, int(MAX_ASIDE_FRACTION
+                                                                     * blk.n_points) + 1)):
+        raise exc
+    pt, rays = _active_rays(p, blk, j)
+    blk.aside[j] = [j, len(rays), int(pt["id"]), iteration]
+    blk.aside_log.append({"point": int(pt["id"]), "set_aside": iteration, "back": None})
+    blk.rejected_points = np.sort(np.append(blk.rejected_points, j)).astype(np.int64)
+    blk.n_points -= 1
+    blk.n_rays -= len(rays)
+    _note_aside(run, blk)
+    run["cost"] = _cost(p, work, blk, opts)   # the cost function lost the point
+    print(f"sapgo: warning: point id {int(pt['id'])} set aside in iteration {iteration}: its "
+          f"rays are (nearly) parallel at the current values; it comes back when they fit",
+          file=sys.stderr)
+
+
+def _bring_back(p, work, blk, opts, run, iteration):
+    """The points set aside whose rays now meet at a clear angle: intersected from the
+    current orientations and taken into the adjustment again."""
+    from .geometry import intersect
+
+    back = []
+    for j, (_, n_rays, pid, _) in list(blk.aside.items()):
+        pt, rays = _active_rays(p, blk, j)
+        if len(rays) < 2:
+            continue
+        st = rays["station"].astype(np.int64)
+        xyz, ok = intersect(blk.eo[st], np.column_stack([rays["x"], rays["y"]]),
+                            blk.cams[blk.camera[st]])
+        if not ok or not np.isfinite(xyz).all():
+            continue
+        work.xyz_current[j:j + 1] = xyz[None, :]
+        del blk.aside[j]
+        blk.rejected_points = blk.rejected_points[blk.rejected_points != j]
+        blk.n_points += 1
+        blk.n_rays += len(rays)
+        for e in reversed(blk.aside_log):
+            if e["point"] == pid and e["back"] is None:
+                e["back"] = iteration
+                break
+        back.append(pid)
+    if back:
+        _note_aside(run, blk)
+        run["cost"] = _cost(p, work, blk, opts)   # the cost function has them again
+        print(f"sapgo: warning: {len(back)} point(s) set aside before are back in iteration "
+              f"{iteration}: {', '.join(str(i) for i in back[:20])}", file=sys.stderr)
+
+
 def _cost(p: Project, work, blk: _Block, opts: Options):
     """Half the weighted sum of squared residuals at the current state (images, control,
     priors): the cost Ceres reports."""
@@ -1002,7 +1190,13 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         lm = run.get("method") == "lm"
         mu = float(run.get("mu", opts.lm_initial_mu)) if lm else 0.0
         t0 = time.perf_counter()
-        step = _factor_solve(p, work, blk, opts, it, mu)
+        _bring_back(p, work, blk, opts, run, it)
+        while True:
+            try:
+                step = _factor_solve(p, work, blk, opts, it, mu)
+                break
+            except UndeterminedPointError as exc:   # set it aside; the step once more
+                _set_aside(p, work, blk, opts, run, exc, it)
         _fault("solve", it)
         delta, diag, border = step["delta"], step["diag"], step["border"]
         delta[~blk.station_active] = 0.0
@@ -1155,7 +1349,13 @@ def adjust(path, options: Options | None = None) -> Summary:
     wpath = work_path(path)
     with Project(path, "r") as p:
         check_values(p)
-        check_datum(p)
+        check_datum(p, fixed=bool(opts.fix))
+        if opts.fix:   # (refused before the implicit ordering rewrites the project)
+            import types
+
+            _set_fixed(types.SimpleNamespace(
+                station_ids=p.read_field("stations", "id"),
+                station_active=p.read_field("stations", "status") == STATUS_ACTIVE), p, opts)
         needs_order = _needs_order(p, opts)
     order_info = None
     checkpoint = Work.load_checkpoint(wpath) if opts.resume else None
@@ -1170,6 +1370,7 @@ def adjust(path, options: Options | None = None) -> Summary:
     with Project(path, "r") as p:
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
+        _set_fixed(blk, p, opts)
         if blk.tree is not None:
             from .solve.tree import check_tree_memory
 
@@ -1233,6 +1434,10 @@ def adjust(path, options: Options | None = None) -> Summary:
                 blk.n_rays -= len(blk.rejected)
                 blk.rejected_points = np.array(checkpoint.get("rejected_points", []), np.int64)
                 blk.n_points -= len(blk.rejected_points)
+                blk.aside = {int(a[0]): [int(x) for x in a]
+                             for a in checkpoint.get("aside", [])}
+                blk.aside_log = list(checkpoint.get("aside_log", []))
+                blk.n_rays -= sum(a[1] for a in blk.aside.values())
                 run["rejections"] = blk.rejections
                 run["planted"] = blk.planted
                 for key in ("robust_tol", "method", "mu", "nu", "cost", "initial_cost",
@@ -1240,6 +1445,8 @@ def adjust(path, options: Options | None = None) -> Summary:
                     if checkpoint.get(key) is not None:
                         run[key] = checkpoint[key]
                 run["rejected_points"] = blk.rejected_points.tolist()
+                if blk.aside or blk.aside_log:
+                    _note_aside(run, blk)
                 if run.get("border_cov") is not None:
                     blk.border_cov = np.array(run["border_cov"])
                 blk.refactor = True
@@ -1528,6 +1735,9 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     else:
         station_sigma, psig, quality = _precision(p_read, work, blk, opts,
                                                       last["sigma0"], correlations)
+        if blk.n_fixed_params:   # (their unit diagonal's inverse is no variance: they are
+            bits = (blk.fixed[:, None].astype(np.int64) >> np.arange(6)) & 1   # fixed)
+            station_sigma[:, :6][bits == 1] = 0.0
         _note_planted(p_read, blk, quality, run)
         reliability = reliability_statistics(opts.snooping_alpha)
     # the report's sums over the points and their observations: each Dask part's points on
@@ -1599,7 +1809,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         method=run.get("method", "gn"),
         initial_cost=run.get("initial_cost"),
         final_cost=run.get("cost"),
-        datum="free" if blk.free else "control",
+        datum="free" if blk.free else ("fixed" if blk.n_fixed_params else "control"),
+        set_aside=list(blk.aside_log),
         image_unit=str(p_read.attr("image_unit", "mm") or "mm"),
         rejected=_rejected_list(p_read, blk),
         blunder_check=_blunder_check(p_read, blk, opts.snooping_alpha),

@@ -257,6 +257,7 @@ def cmd_adjust(args):
         calibrate_cameras=(None if args.calibrate_cameras is None else
                            _int_list(args.calibrate_cameras, "--calibrate-cameras")),
         calibrate_per_photo=args.calibrate_per_photo or (),
+        fix=tuple(_datum_fixes(args.datum)),
     )
     if args.plots:  # before a long run: matplotlib is there
         from .plots import check_matplotlib
@@ -388,6 +389,16 @@ def cmd_export(args):
         print(f"wrote {', '.join(f'{n} {k}' for k, n in r['counts'].items())} to "
               f"{args.directory}")
     return 0
+
+
+def _datum_fixes(values):
+    """``--datum`` values: ``fix:IDS:PARAMS`` each (the only kind taken)."""
+    for v in values:
+        if not v.lower().startswith("fix:"):
+            raise ParameterError(f"--datum {v!r}: expected fix:IDS:PARAMS (e.g. "
+                                 f"fix:101:omega,phi,kappa,X,Y,Z); the control and priors "
+                                 f"of the project give the datum otherwise")
+        yield v
 
 
 def cmd_info(args):
@@ -793,6 +804,11 @@ def build_parser():
                         "k1, k2, k3, p1, p2, b1, b2; of either distortion model)")
     a.add_argument("--calibrate-cameras", default=None, metavar="IDS",
                    help="with --calibrate: only these camera ids, e.g. 1,3")
+    a.add_argument("--datum", action="append", default=[], metavar="fix:IDS:PARAMS",
+                   help="hold station parameters fixed (true constraints, repeatable): "
+                        "fix:101:all fix:102:X,Y,Z fix:103,104:Z (omega, phi, kappa, X, Y, Z); "
+                        "their photos define the datum with whatever control there is, e.g. "
+                        "7 parameters for a block without control")
     a.add_argument("--calibrate-per-photo", default=None, metavar="PARAMS",
                    help="self-calibration: adjust these camera parameters per photo (each "
                         "photo of a calibrated camera its own value), e.g. x0,y0 with "

@@ -26,6 +26,18 @@ class SingularNormalsError(SapgoError):
     """The reduced normal equations are not positive definite at a station."""
 
 
+class UndeterminedPointError(SingularNormalsError):
+    """A pass point's rays are (nearly) parallel at the current values: ``args`` are the
+    message and the point's record number (the adjustment sets it aside and goes on)."""
+
+    def __str__(self):
+        return str(self.args[0])
+
+    @property
+    def record(self):
+        return int(self.args[1])
+
+
 class ClosedProjectError(SapgoError):
     """A project was used after it was closed."""
 

@@ -36,11 +36,25 @@ BEHIND_CAMERA = 2
 BAD_LAYOUT = 3  # the records do not follow the logical order the band width was computed for
 
 
+@njit(cache=True, nogil=True, inline="always")
+def fixed_columns(a, mask):
+    """Zero the columns of ``a`` (2 x npar) of the station parameters whose bits are set
+    in ``mask`` (bit u: parameter u of omega, phi, kappa, X, Y, Z), held fixed: as unknowns
+    they are gone from the observation equations, and the unit weight the priors' cursor
+    gives them (``sapgo.adjust._PriorCursor``) keeps the normals regular with their
+    corrections exactly 0."""
+    if mask != 0:
+        for u in range(6):
+            if (mask >> u) & 1:
+                a[0, u] = 0.0
+                a[1, u] = 0.0
+
+
 @njit(cache=True)
 def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                   ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, b_all, o_all,
-                  lam=0.0, behind_ok=False):
+                  lam=0.0, behind_ok=False, st_fixed=None):
     """Linearise point ``j``: fill its rays' A, B, l, p, Nbar and its 3x3 system nn, cc.
 
     Returns the number of active rays ``k`` (negative when a point is behind a camera).
@@ -48,6 +62,9 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
     their control values). ``lam > 0``: Levenberg-Marquardt damping, ``lam`` times the
     diagonal of nn (clamped to [1e-6, 1e32], as Ceres does) added to it. ``behind_ok``: a
     point behind a camera is projected all the same (BAL problems), not refused.
+    ``st_fixed`` (per station, bits 0-5): station parameters held fixed (``--datum fix``):
+    their columns of A are zero, so they take no part in the normals (see
+    :func:`fixed_columns`).
     """
     kind = pt_kind[j]
     for c in range(3):
@@ -68,6 +85,8 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
         x, y, w = linearize(eo[s], xyz, cams[cam], a, b)
         if w == 0.0 or (w > 0.0 and not behind_ok):
             return -1
+        if st_fixed is not None and s < st_fixed.shape[0]:
+            fixed_columns(a, st_fixed[s])
         p = 1.0 / (obs_sigma[i] * obs_sigma[i])
         ox, oy = observed(obs_xy[i, 0], obs_xy[i, 1], cams[cam])
         l0 = ox - x
@@ -204,7 +223,8 @@ def _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, diag, rhs_row, g, col,
 def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                  pt_smax, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                  cams, ctrl_mask, band, rhs, base, max_rays, split, ovf_band,
-                 ovf_rhs, cal, bord, ovf_bord, cnn, ccg, cdiag, lam=0.0, behind_ok=False):
+                 ovf_rhs, cal, bord, ovf_bord, cnn, ccg, cdiag, lam=0.0, behind_ok=False,
+                 st_fixed=None):
     """Add points ``j0 .. j_stop-1`` of a chunk into the band-row window.
 
     ``band[r]`` (6 x 6b) and ``rhs[r]`` (6) are the rows of logical station ``base + r``;
@@ -242,7 +262,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc, b_all, o_all, lam, behind_ok)
+                          st_all, nn, cc, b_all, o_all, lam, behind_ok, st_fixed)
         if k < 0:
             return j, BEHIND_CAMERA, j
         bw = band.shape[2] // npar
@@ -374,7 +394,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                           pt_smin, pt_smax, pt_active, obs_station, obs_xy, obs_sigma,
                           obs_active, eo, cam_of_station, cams, ctrl_mask, band, rhs, base,
                           max_rays, ovf_band, ovf_rhs, min_points, cal, bord, ovf_bord, cnn,
-                          ccg, cdiag, lam=0.0, behind_ok=False):
+                          ccg, cdiag, lam=0.0, behind_ok=False, st_fixed=None):
     """:func:`build_points` for the points from ``j0`` that fit the window, on
     ``len(ovf_band)`` threads over station ranges.
 
@@ -403,7 +423,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                                       obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays, cap,
                                       empty_b, empty_r, cal, bord, empty_g, cnn[0], ccg[0],
-                                      cdiag[0], lam, behind_ok)
+                                      cdiag[0], lam, behind_ok, st_fixed)
         if status != OK or j < j_end:
             return j, status, bad
         return j_end, OK, -1
@@ -426,7 +446,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                                       obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays,
                                       split[t], ob, orr, cal, bord, og, cnn[t], ccg[t],
-                                      cdiag[t], lam, behind_ok)
+                                      cdiag[t], lam, behind_ok, st_fixed)
         res[t, 0] = j
         res[t, 1] = status
         res[t, 2] = bad
@@ -450,7 +470,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
 def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cams,
                   ctrl_mask, max_rays, xyz_out, resid_out, stats, lam=0.0,
-                  behind_ok=False, cams_new=None, dtheta=None):
+                  behind_ok=False, cams_new=None, dtheta=None, st_fixed=None):
     """Back-solve point corrections and compute residuals for a chunk of points.
 
     ``eps_j = Ndd_j^-1 (cdd_j - sum_s Nbar_s' delta_s)`` with the system linearised at the
@@ -479,7 +499,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc, b_all, o_all, lam, behind_ok)
+                          st_all, nn, cc, b_all, o_all, lam, behind_ok, st_fixed)
         if k < 0 or not _chol3(nn, lo):
             stats[7] = j + 1
             stats[8] = BEHIND_CAMERA if k < 0 else SINGULAR_POINT
@@ -562,7 +582,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
 def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                  obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                  ctrl_mask, max_rays, zb, base, res, out, out_r, out_w, npar=6, cal=None,
-                 xw=None, xbase=0, sig_b=None):
+                 xw=None, xbase=0, sig_b=None, st_fixed=None):
     """Precision of the points of a chunk and the quality of their observations (stations
     of ``npar`` parameters: 6, or 9 with the photo's intrinsics).
 
@@ -618,7 +638,8 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
             continue
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
-                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, b_all, o_all)
+                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, b_all, o_all,
+                          0.0, False, st_fixed)
         if k < 0 or not _chol3(nn, lo):
             for c in range(out.shape[1]):
                 out[j, c] = np.nan
@@ -701,6 +722,8 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                 continue
             s = obs_station[i]
             linearize(eo[s], xyz, cams[cam_of_station[s]], a, b)
+            if st_fixed is not None and s < st_fixed.shape[0]:
+                fixed_columns(a, st_fixed[s])
             for c in range(3):  # a fixed component is no unknown (qpp holds a placeholder)
                 if ctrl_mask[kind, c] and pt_csig[j, c] == 0.0:
                     b[0, c] = 0.0

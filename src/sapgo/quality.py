@@ -156,14 +156,15 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
     out_r = np.empty((c.o1 - c.o0, 3))
     out_w = np.empty((c.o1 - c.o0, 3))
     if callable(zb):
-        zb, st, eo, camera, xw = zb(c.obs_station, c.obs_active)
+        zb, st, eo, camera, xw, fixed = zb(c.obs_station, c.obs_active)
     else:
-        st, eo, camera = ((c.obs_station, blk.eo, blk.camera) if stations is None else
-                          stations(c.obs_station, c.obs_active))
+        st, eo, camera, fixed = ((c.obs_station, blk.eo, blk.camera, blk.fixed)
+                                 if stations is None else
+                                 stations(c.obs_station, c.obs_active))
     point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, st,
                  c.obs_xy, c.obs_sigma, c.obs_active, eo, camera, blk.cams, CTRL_MASK,
                  c.max_rays, zb, base, np.ascontiguousarray(work.res_current[c.o0:c.o1]), out,
-                 out_r, out_w, blk.npar, cal, xw, xlo, sig_b)
+                 out_r, out_w, blk.npar, cal, xw, xlo, sig_b, fixed)
     psig[a:b] = sigma0 * out[:, :3]
     if weight is None:
         weight = np.ones(c.o1 - c.o0)

@@ -370,8 +370,13 @@ class Summary:
     #: at the end: the cost as Ceres reports it.
     initial_cost: float | None = None
     final_cost: float | None = None
-    #: "control" (control points and priors fix the datum) or "free" (a free network).
+    #: "control" (control points and priors fix the datum), "fixed" (station parameters
+    #: held fixed, ``--datum fix``, with whatever control there is) or "free" (a free
+    #: network).
     datum: str = "control"
+    #: Pass points set aside during the run, their rays (nearly) parallel at the values of
+    #: the time: ``{"point": id, "set_aside": iteration, "back": iteration or None}``.
+    set_aside: list = dataclasses.field(default_factory=list)
     #: The project's image unit: "mm", or "px" (BAL problems: the ``*_um`` figures are then
     #: thousandths of a pixel).
     image_unit: str = "mm"
@@ -472,6 +477,14 @@ class Summary:
             L.append(f"  cost (1/2 sum of squared weighted residuals): initial "
                      f"{self.initial_cost:.6e}, final {self.final_cost:.6e}"
                      + (" (Levenberg-Marquardt)" if self.method == "lm" else ""))
+        if self.set_aside:
+            out = [e["point"] for e in self.set_aside if e["back"] is None]
+            L.append(f"  set aside, rays (nearly) parallel at the values of the time: "
+                     f"{len(self.set_aside)} point(s), {len(self.set_aside) - len(out)} "
+                     f"back later" + (f"; left out: {_ids(out)}" if out else ""))
+        if self.datum == "fixed":
+            L.append("  datum: station parameters held fixed (--datum fix), with the control "
+                     "and priors given; their standard deviations are 0")
         if self.datum == "free":
             L.append("  a free network: no control or priors fix the datum, so no precision "
                      "is computed")

@@ -995,7 +995,7 @@ def _top_inputs(p, work, blk, opts, tree, top, lam, diag):
     from ..adjust import _PriorCursor, _prior_residual
 
     k = blk.npar
-    priors = _PriorCursor(p, opts.chunk_points)
+    priors = _PriorCursor(p, opts.chunk_points, blk)
     out = {}
     for i in top:
         lo, hi = int(tree.lo[i]), int(tree.hi[i])

@@ -57,7 +57,7 @@ from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_po
 def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                 pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                 ctrl_mask, front, upd, rhs, max_rays, npar, lam, behind_ok, cal, bord, cnn,
-                ccg, cdiag, c0, c1):
+                ccg, cdiag, c0, c1, st_fixed=None):
     """Add points ``j0 .. j1-1`` of a chunk into a front.
 
     ``obs_station`` holds each observation's station as its place in the front (-1: not in
@@ -102,7 +102,7 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc, b_all, o_all, lam, behind_ok)
+                          st_all, nn, cc, b_all, o_all, lam, behind_ok, st_fixed)
         if k < 0:
             return BEHIND_CAMERA, j
         if not _chol3(nn, lo):

@@ -125,6 +125,7 @@ class _Fronts:
         self.stations = fr
         self.eo = np.ascontiguousarray(self.blk.eo[fr])
         self.camera = np.ascontiguousarray(self.blk.camera[fr])
+        self.fixed = np.ascontiguousarray(self.blk.fixed[fr])
         return fr
 
     def leave(self):
@@ -133,10 +134,10 @@ class _Fronts:
     def numbered(self, obs_station, obs_active):
         """The observations' stations, orientations and cameras by place in the front (for
         :func:`sapgo.quality.points_quality`; inactive observations at place 0, never looked
-        at)."""
+        at), and their fixed parameters."""
         st = self.local(obs_station, obs_active)
         st[st < 0] = 0
-        return st, self.eo, self.camera
+        return st, self.eo, self.camera, self.fixed
 
     def local(self, obs_station, obs_active):
         """The observations' stations as places in the current front (-1: outside, or an
@@ -362,7 +363,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
     k = blk.npar
     ng = blk.n_border
     fronts = _Fronts(tree, blk, k)
-    priors = _PriorCursor(p, opts.chunk_points)
+    priors = _PriorCursor(p, opts.chunk_points, blk)
     pt = tree.pt_start
     state = {"node": -1, "a": None, "b": None, "rhs": None, "bord": None}
     cnn, ccg, cdiag = border if border is not None else (np.zeros((0, 0)), np.zeros(0),
@@ -458,7 +459,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
                     c.nobs, c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo,
                     fronts.camera, blk.cams, CTRL_MASK, *state["a"], state["rhs"],
                     c.max_rays, k, lam, blk.behind_ok, cal, state["bord"], cnn, ccg, cdiag,
-                    0, state["a"][0].shape[1])
+                    0, state["a"][0].shape[1], fronts.fixed)
                 if status != OK:
                     raise _point_error(p, c, bad, status, blk)
                 j = j1
@@ -524,7 +525,7 @@ def build_panel(p, blk, fronts, chunks, lam, a, rhs, bord, sums, c0, c1):
             0, len(c.active), c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
             c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo, fronts.camera,
             blk.cams, CTRL_MASK, a, _EMPTY, rhs, c.max_rays, k, lam, blk.behind_ok, cal,
-            bord, *sums, c0, c1)
+            bord, *sums, c0, c1, fronts.fixed)
         if status != OK:
             raise _point_error(p, c, bad, status, blk)
 
@@ -540,14 +541,15 @@ def _gathered(z, fronts, k, xw):
     inverse over the stations they see (gathered), their places in it, orientations,
     cameras and border rows."""
     def take(obs_station, obs_active):
-        st, eo, camera = fronts.numbered(obs_station, obs_active)
+        st, eo, camera, fixed = fronts.numbered(obs_station, obs_active)
         places = np.unique(st[obs_active]) if obs_active.any() else np.zeros(1, np.int64)
         zs = z.gather((k * places[:, None] + np.arange(k)).ravel())
         st = np.ascontiguousarray(np.searchsorted(places, st), dtype=np.int64)
         st[~obs_active] = 0
         return (zs.T, st, np.ascontiguousarray(eo[places]),
                 np.ascontiguousarray(camera[places]),
-                None if xw is None else np.ascontiguousarray(xw[places]))
+                None if xw is None else np.ascontiguousarray(xw[places]),
+                np.ascontiguousarray(fixed[places]))
     return take
 
 
