@@ -107,6 +107,33 @@ def test_two_workers_give_the_threaded_solution(case, blocks, miscalibrated_squa
             assert a["sigma"] == pytest.approx(b["sigma"], rel=1e-9 if tiled else 1e-10)
 
 
+def test_camera_models_per_photo_calibration_and_fixes_on_two_workers(blocks, tmp_path,
+                                                                       client):
+    """A backward camera with affinity, self-calibrated with its radial distortion per
+    photo, two photos' parameters fixed: the workers reach the threaded solution. (Not the
+    principal point per photo: in a vertical block it is all but the photo's tilt, and the
+    precision of so ill-conditioned a border differs in its third digit with the order of
+    the border's sums.)"""
+    from conftest import read_records, rewrite
+
+    rec = read_records(blocks["square"])
+    rec["cameras"][["k1", "p1", "b1", "b2", "distortion_model"]] = (1e-8, 2e-7, 1e-4, -5e-5,
+                                                                    1)
+    src = tmp_path / "src.h5"
+    rewrite(src, rec)
+    ids = np.sort(rec["stations"]["id"])
+    opts = dataclasses.replace(TIGHT, progress=False, calibrate=("f", "x0", "y0", "b1", "b2"),
+                               calibrate_per_photo=("k1",),
+                               fix=(f"fix:{ids[0]}:all", f"fix:{ids[-1]}:Z"))
+    ref, path, sr, sd, _ = _both(src, tmp_path, opts, client)
+    assert sd.converged and sd.datum == "fixed" and sd.iterations == sr.iterations
+    assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-10)
+    assert_same_solution(path, ref, rtol=1e-9)
+    assert len(sd.calibration) == 5 + len(ids)
+    for a, b in zip(sd.calibration, sr.calibration):
+        assert a["adjusted"] == pytest.approx(b["adjusted"], rel=1e-9, abs=1e-15)
+
+
 def assert_same_report(a, b, where, rel=1e-9):
     """Two reports' parts (dicts, lists, numbers) equal, numbers to ``rel``."""
     if isinstance(b, dict):

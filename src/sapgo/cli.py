@@ -94,10 +94,10 @@ def cmd_order(args):
 def cmd_init(args):
     from .init import initialise
 
-    r = initialise(args.project)
+    r = initialise(args.project, method=args.method)
     print(f"placed {r.photos_placed} of {r.photos} photos and intersected "
-          f"{r.points_intersected} points ({r.sweeps} sweeps of resection and intersection); "
-          f"next: sapgo adjust {args.project}")
+          f"{r.points_intersected} points ({r.method} start, {r.sweeps} sweeps of resection "
+          f"and intersection); next: sapgo adjust {args.project}")
     if r.photos_not_placed:
         _warn(f"{r.photos - r.photos_placed} photo(s) are not connected to two points of "
               f"known X, Y and keep their values: ids "
@@ -645,16 +645,24 @@ def build_parser():
                    help="the partition tree's largest leaf (default 48 stations)")
     o.set_defaults(func=cmd_order)
 
-    ini = sub.add_parser("init", help="starting values of a near-vertical block's photos and "
-                                      "points from its control",
-                         description="Starting values of a near-vertical (aerial) block: "
-                                     "the photos as vertical photos from a planimetric "
-                                     "block adjustment over the control's X, Y, the points "
-                                     "intersected, then sweeps of resection and "
-                                     "intersection. The project's approximations are "
-                                     "replaced (a stored solution is dropped). Then: sapgo "
-                                     "adjust.")
+    ini = sub.add_parser("init", help="starting values of a block's photos and points from "
+                                      "its control (aerial or convergent)",
+                         description="Starting values of a block from its control: a "
+                                     "near-vertical (aerial) block's photos as vertical "
+                                     "photos from a planimetric block adjustment over the "
+                                     "control's X, Y; a convergent block's photos resected "
+                                     "directly from known points, propagated through the "
+                                     "block; the points intersected, then sweeps of "
+                                     "resection and intersection. The project's "
+                                     "approximations are replaced (a stored solution is "
+                                     "dropped). Then: sapgo adjust.")
     ini.add_argument("project")
+    ini.add_argument("--method", choices=("auto", "vertical", "resection"), default="auto",
+                     help="vertical: aerial blocks, from a planimetric block adjustment; "
+                          "resection: convergent (close-range) blocks, photos resected "
+                          "directly from 6 or more known points not in a plane and the "
+                          "points intersected, in turns through the block; auto (default): "
+                          "resection when a photo sees 6 known points that span space")
     ini.set_defaults(func=cmd_init)
 
     m = sub.add_parser("import", help="import a block: text files (cameras, photos, image "

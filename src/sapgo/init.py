@@ -17,8 +17,14 @@ near-vertical (aerial) blocks: the approximations the project holds are not used
 
 Photos and points not connected to two known X, Y keep their values and are counted. The
 result is a start for ``sapgo adjust``, not a solution (tilts of a few degrees are left:
-the adjustment takes them out). Convergent (close-range) photography is outside what a
-vertical start serves. The project is rewritten atomically (a copy replaced), with an
+the adjustment takes them out).
+
+Convergent (close-range) photography (``method`` "resection", chosen by "auto" when a photo
+sees six known points that span space): each photo that sees six or more points of known
+or intersected coordinates, not in one plane, is resected directly (the DLT with the
+camera's known focal length, its 3 x 3 part made a rotation, then Gauss-Newton), the points
+its placed photos see are intersected, and so on through the block until nothing is
+added; then the same sweeps. The project is rewritten atomically (a copy replaced), with an
 ``init`` entry in its history; a stored solution and a run's work directory are dropped
 (their corrections refer to the old approximations). Memory: the block's records and a
 sparse system of 4 unknowns a photo and 2 a point, in core.
@@ -53,6 +59,8 @@ class InitSummary:
     photos_not_placed: list
     points_not_intersected: int
     sweeps: int
+    #: "vertical" or "resection" (:data:`METHODS`)
+    method: str = "vertical"
 
 
 def _ideal(ob, st, cams):
@@ -143,9 +151,75 @@ def _planimetric(n_st, n_pt, o_st, o_pt, uv, known, ground):
     return q, t, xy
 
 
-def initialise(path, sweeps=3):
+#: ``sapgo init --method``: the vertical start of aerial blocks, resection and intersection
+#: propagated through a convergent (close-range) block, or the one the control suits.
+METHODS = ("auto", "vertical", "resection")
+#: Points of known or intersected coordinates a photo needs for a direct (DLT) resection.
+MIN_DLT = 6
+#: The DLT's points must span space: the smallest of their spreads (standard deviations
+#: along the principal axes) at least this fraction of the largest (else they are planar).
+MIN_SPREAD = 0.05
+
+
+def _dlt(xyz, ideal, f):
+    """A photo's orientation ``(omega, phi, kappa, Xc, Yc, Zc)`` from six or more points
+    ``xyz`` (not coplanar) and their ideal image coordinates (from the principal point):
+    the direct linear transformation with Hartley's normalisation, its 3 x 3 part made the
+    nearest matrix ``diag(1, 1, -1) M`` of a rotation ``M`` (sapgo's: ``x = -f u / w``),
+    the centre from its last column. None when the points do not determine it."""
+    from .frames import opk_of
+
+    n = len(xyz)
+    if n < MIN_DLT:
+        return None
+    c3, c2 = xyz.mean(axis=0), ideal.mean(axis=0)
+    s3 = np.sqrt(3) / max(np.sqrt(((xyz - c3) ** 2).sum(axis=1)).mean(), 1e-300)
+    s2 = np.sqrt(2) / max(np.sqrt(((ideal - c2) ** 2).sum(axis=1)).mean(), 1e-300)
+    X = np.column_stack([(xyz - c3) * s3, np.ones(n)])
+    u, v = ((ideal - c2) * s2).T
+    a = np.zeros((2 * n, 12))
+    a[0::2, 0:4], a[0::2, 8:12] = X, -u[:, None] * X
+    a[1::2, 4:8], a[1::2, 8:12] = X, -v[:, None] * X
+    _, sv, vt = np.linalg.svd(a)
+    if sv[-2] <= 1e-9 * sv[0]:
+        return None
+    pn = vt[-1].reshape(3, 4)
+    t2 = np.array([[s2, 0, -s2 * c2[0]], [0, s2, -s2 * c2[1]], [0, 0, 1.0]])
+    t3 = np.eye(4)
+    t3[:3, :3] *= s3
+    t3[:3, 3] = -s3 * c3
+    pm = np.linalg.solve(t2, pn) @ t3            # in ideal image coordinates
+    pm = np.diag([1 / f, 1 / f, 1.0]) @ pm       # [x/f, y/f, 1] ~ pm [X, 1]
+    A, b = pm[:, :3], pm[:, 3]
+    if abs(np.linalg.det(A)) < 1e-300:
+        return None
+    centre = -np.linalg.solve(A, b)
+    U, _, Vt = np.linalg.svd(A)
+    B = U @ Vt
+    if np.linalg.det(B) > 0:                     # diag(1, 1, -1) M has determinant -1
+        B = -B
+    m = np.diag([1.0, 1.0, -1.0]) @ B
+    # (the determinant fixes the sign of P's scale: the points are in front, w < 0, unless
+    # the data say otherwise)
+    if not np.isfinite(m).all() or not np.isfinite(centre).all() \
+            or np.median((xyz - centre) @ m[2]) >= 0:
+        return None
+    return np.concatenate([opk_of(m[None])[0], centre])
+
+
+def _spread_ok(xyz):
+    """Whether points span space (:data:`MIN_SPREAD`): no plane holds them all."""
+    if len(xyz) < 4:
+        return False
+    sv = np.linalg.svd(xyz - xyz.mean(axis=0), compute_uv=False)
+    return bool(sv[-1] >= MIN_SPREAD * sv[0])
+
+
+def initialise(path, sweeps=3, method="auto"):
     """Starting values for the photos and points of the project ``path`` (the module's
-    comment); returns an :class:`InitSummary`."""
+    comment); returns an :class:`InitSummary`. ``method``: "vertical" (aerial blocks),
+    "resection" (convergent blocks: :func:`_propagate`) or "auto" (resection when some photo
+    sees :data:`MIN_DLT` known points that span space, else vertical)."""
     from .geometry import camera_array, intersect_points
     from .project import (
         KIND_CHECK,
@@ -180,6 +254,28 @@ def initialise(path, sweeps=3):
     rows = np.flatnonzero(live)
     f = cams[cam_of[o_st[rows]], 0]
     ground = pt["control"].astype(np.float64)
+    if method not in METHODS:
+        raise DataError(f"init method {method!r}: choose {', '.join(METHODS)}")
+    tried = None
+    if method == "auto":
+        for s_ in range(n_st):
+            seen = np.unique(o_pt[rows[(o_st[rows] == s_) & known[o_pt[rows]]]])
+            if len(seen) >= MIN_DLT and _spread_ok(ground[seen]):
+                method = "resection"
+                break
+        else:
+            method = "vertical"
+        if method == "resection":   # kept if it places every photo (else the vertical start
+            tried = _propagate(st, pt, ob, cams, cam_of, rows, ideal, known, ground, sweeps)
+            if tried[0].photos_placed < int((st["status"] == STATUS_ACTIVE).sum()):
+                method = "vertical"   # is tried too, and the one placing more kept)
+    if method == "resection":
+        r, eo, xyz = tried or _propagate(st, pt, ob, cams, cam_of, rows, ideal, known, ground,
+                                         sweeps)
+        _write(path, eo, xyz, history, {"command": "init", "method": "resection",
+                                        "photos_placed": r.photos_placed,
+                                        "points_intersected": r.points_intersected})
+        return r
     q, t, pxy = _planimetric(n_st, n_pt, o_st[rows], o_pt[rows], ideal[rows] / f[:, None],
                              known_xy, ground)
     placed = np.isfinite(q)
@@ -233,12 +329,96 @@ def initialise(path, sweeps=3):
                 eo[s] = new
         intersect()
     lost = st["id"][~placed & (st["status"] == STATUS_ACTIVE)]
-    _write(path, eo, xyz, history, {"command": "init", "photos_placed": int(placed.sum()),
+    if tried is not None and tried[0].photos_placed >= int(placed.sum()):
+        r, eo_r, xyz_r = tried
+        _write(path, eo_r, xyz_r, history, {"command": "init", "method": "resection",
+                                            "photos_placed": r.photos_placed,
+                                            "points_intersected": r.points_intersected})
+        return r
+    _write(path, eo, xyz, history, {"command": "init", "method": "vertical",
+                                    "photos_placed": int(placed.sum()),
                                     "points_intersected": int((got_pt & ~known).sum())})
     return InitSummary(photos=n_st, points=n_pt, photos_placed=int(placed.sum()),
                        points_intersected=int((got_pt & ~known).sum()),
                        photos_not_placed=lost[:20].tolist(),
                        points_not_intersected=int((~got_pt & active).sum()), sweeps=sweeps)
+
+
+def _propagate(st, pt, ob, cams, cam_of, rows, ideal, known, ground, sweeps):
+    """Convergent blocks: photos resected directly (:func:`_dlt`, then Gauss-Newton) from
+    the full control and the points already intersected that they see, points intersected
+    from the photos already placed, in turns until no photo or point is added; then the
+    sweeps of resection and intersection. Photos and points never reached keep their
+    values. Returns ``(InitSummary, eo, xyz)``."""
+    from .geometry import intersect_points
+    from .project import STATUS_ACTIVE
+
+    n_st, n_pt = len(st), len(pt)
+    o_st, o_pt = ob["station"].astype(np.int64), ob["point"].astype(np.int64)
+    raw = np.column_stack([ob["x"], ob["y"]]).astype(np.float64)
+    eo = st["eo"].copy()
+    xyz = pt["xyz"].copy()
+    xyz[known] = ground[known]
+    got = known.copy()
+    placed = np.zeros(n_st, bool)
+    by_st = rows[np.argsort(o_st[rows], kind="stable")]
+    by_pt = rows[np.argsort(o_pt[rows], kind="stable")]
+    st_start = np.searchsorted(o_st[by_st], np.arange(n_st + 1))
+
+    def resect(s, direct):
+        mine = by_st[st_start[s]:st_start[s + 1]]
+        mine = mine[got[o_pt[mine]]]
+        if len(mine) < (MIN_DLT if direct else MIN_RESECTION):
+            return False
+        start = eo[s]
+        if direct:
+            if not _spread_ok(xyz[o_pt[mine]]):
+                return False
+            start = _dlt(xyz[o_pt[mine]], ideal[mine], cams[cam_of[s], 0])
+            if start is None:
+                return False
+        new = _refine(start, xyz[o_pt[mine]], raw[mine], cams[cam_of[s]])
+        if new is None:
+            return False
+        eo[s] = new
+        return True
+
+    def intersect():
+        sel = by_pt[placed[o_st[by_pt]] & ~known[o_pt[by_pt]]]
+        pts, counts = np.unique(o_pt[sel], return_counts=True)
+        if not len(pts):
+            return 0
+        starts = (np.cumsum(counts) - counts).astype(np.int64)
+        out = np.zeros((len(pts), 3))
+        ok = np.zeros(len(pts), bool)
+        intersect_points(starts, counts.astype(np.int64), o_st[sel], raw[sel], eo, cam_of,
+                         cams, out, ok)
+        ok &= (counts >= 2) & _good_points(out, starts, counts, o_st[sel], eo)
+        new = int((ok & ~got[pts]).sum())
+        xyz[pts[ok]] = out[ok]
+        got[pts[ok]] = True
+        return new
+
+    while True:
+        added = 0
+        for s in np.flatnonzero(~placed & (st["status"] == STATUS_ACTIVE)):
+            if resect(s, True):
+                placed[s] = True
+                added += 1
+        added += intersect()
+        if not added:
+            break
+    for _ in range(sweeps):
+        for s in np.flatnonzero(placed):
+            resect(s, False)
+        intersect()
+    active = pt["status"] == STATUS_ACTIVE
+    lost = st["id"][~placed & (st["status"] == STATUS_ACTIVE)]
+    return InitSummary(photos=n_st, points=n_pt, photos_placed=int(placed.sum()),
+                       points_intersected=int((got & ~known).sum()),
+                       photos_not_placed=lost[:20].tolist(),
+                       points_not_intersected=int((~got & active).sum()), sweeps=sweeps,
+                       method="resection"), eo, xyz
 
 
 def _good_points(xyz, starts, counts, stations, eo):
