@@ -53,6 +53,39 @@ def corrected(xy, x0, y0, dist):
     return np.stack([xy[..., 0] + dx, xy[..., 1] + dy], axis=-1)
 
 
+def project_turned(eo, theta, xyz, f, x0=0.0, y0=0.0, dist=None):
+    """The projection by the photo ``eo`` turned by the rotation vector ``theta`` to first
+    order, ``M (I - [theta]x)`` (sapgo turns by ``M exp(-[theta]x)``: the same first
+    derivative, all a complex step sees)."""
+    m = rotation(eo[0], eo[1], eo[2])
+    t0, t1, t2 = theta
+    skew = np.array([[0, -t2, t1], [t2, 0, -t0], [-t1, t0, 0]])
+    m = m @ (np.eye(3) - skew)
+    q = m @ (xyz - eo[3:6])
+    xi, yi = -f * q[0] / q[2], -f * q[1] / q[2]
+    if dist is not None:
+        dx, dy = _polynomial(xi, yi, dist)
+        xi, yi = xi + dx, yi + dy
+    return np.array([x0 + xi, y0 + yi])
+
+
+def jacobian_rotvec_complex_step(eo, xyz, f, x0=0.0, y0=0.0, h=1e-30, dist=None):
+    """d(x, y)/d(theta, Xc, xyz) for one ray by complex step, the attitude's unknowns the
+    rotation vector of :func:`project_turned`: (2 x 6), (2 x 3)."""
+    jac = np.zeros((2, 9))
+    for k in range(3):
+        t = np.zeros(3, complex)
+        t[k] = 1j * h
+        jac[:, k] = project_turned(eo.astype(complex), t, xyz.astype(complex), f, x0, y0,
+                                   dist).imag / h
+    p = np.concatenate([eo, xyz]).astype(complex)
+    for k in range(3, 9):
+        q = p.copy()
+        q[k] += 1j * h
+        jac[:, k] = project(q[:6], q[6:], f, x0, y0, dist).imag / h
+    return jac[:, :6], jac[:, 6:]
+
+
 def jacobian_complex_step(eo, xyz, f, x0=0.0, y0=0.0, h=1e-30, dist=None):
     """d(x, y)/d(eo, xyz) for one ray by complex step: (2 x 6), (2 x 3)."""
     p = np.concatenate([eo, xyz]).astype(complex)

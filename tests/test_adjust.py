@@ -460,12 +460,12 @@ def test_fixed_station_parameters_equal_dense_least_squares(small_block, tmp_pat
     rewrite(path, rec)
     ids = np.sort(st["id"])
     a, b = int(ids[0]), int(ids[-1])
-    fix = (f"fix:{a}:all", f"fix:{b}:X" if not control else f"fix:{b}:Z,kappa")
+    fix = (f"fix:{a}:all", f"fix:{b}:X" if not control else f"fix:{b}:Z,omega,phi,kappa")
     fixed = np.zeros((len(st), 6), bool)
     fixed[st["id"] == a] = True
     fixed[st["id"] == b, 3 if not control else 5] = True
     if control:
-        fixed[st["id"] == b, 2] = True
+        fixed[st["id"] == b, :3] = True
     cam = rec["cameras"][0]
     ref = naive.dense_bundle_adjustment(
         st["eo"], pt["xyz"], cam["focal_length"], ob["station"], ob["point"],
@@ -513,7 +513,9 @@ def test_bad_datum_fixes_are_one_line(small_block, tmp_path, capsys):
     for args, words in [(["--datum", "free"], "expected fix:IDS:PARAMS"),
                         (["--datum", "fix:424242:X"], "photo id 424242: no such photo"),
                         (["--datum", f"fix:{pid}:height"], "unknown station parameter"),
-                        (["--datum", f"fix:{pid}"], "expected fix:IDS:PARAMS")]:
+                        (["--datum", f"fix:{pid}"], "expected fix:IDS:PARAMS"),
+                        (["--datum", f"fix:{pid}:phi"], "omega, phi and kappa are held "
+                                                        "together")]:
         code, _, err = run_cli(capsys, "adjust", path, "--no-progress", *args)
         assert_one_line_error(code, err, words)
     assert digest(path) == before
@@ -610,3 +612,47 @@ def test_an_undetermined_point_is_set_aside_and_brought_back(small_block, tmp_pa
     np.testing.assert_allclose(b[np.argsort(ib)], a[np.argsort(ia)], rtol=0, atol=1e-6)
     assert "set aside, rays (nearly) parallel at the values of the time: 1 point(s), 1 back " \
         "later" in s.full_report()
+
+
+@pytest.mark.parametrize("solver", ["band", "tree"])
+def test_photos_at_phi_ninety_degrees_adjust(small_block, tmp_path, solver):
+    """The small block turned 90 degrees about the Y axis (terrestrial photos looking along
+    X: phi near +-90 degrees, one photo's start exactly there): a photo's attitude is
+    turned by a rotation vector, so the normals keep full rank and the block adjusts to the
+    unturned block's solution, turned; the reported angles and their sigmas are
+    omega, phi, kappa."""
+    from sapgo.frames import opk_of, rotation_matrices
+
+    rec = read_records(small_block)
+    pt = rec["points"]
+    pt["control_sigma"][pt["control_sigma"] > 0] = 0.05   # (isotropic: turned alike)
+    ref = tmp_path / "ref.h5"
+    rewrite(ref, rec)
+    r = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])   # about Y, 90 deg
+    st = rec["stations"]
+    m = rotation_matrices(st["eo"][:, :3]) @ r.T
+    st["eo"][:, :3] = opk_of(m)
+    st["eo"][:, 3:] = st["eo"][:, 3:] @ r.T
+    w0, p0, k0 = st["eo"][0, :3]   # a start at the lock itself (a degree off at most)
+    st["eo"][0, :3] = opk_of(rotation_matrices([[w0, np.copysign(np.pi / 2, p0), k0]]))[0]
+    pt["xyz"] = pt["xyz"] @ r.T
+    pt["control"] = pt["control"] @ r.T
+    turned_path = tmp_path / "turned.h5"
+    rewrite(turned_path, rec)
+    assert np.abs(np.abs(st["eo"][:, 1]) - np.pi / 2).max() < np.radians(2)
+    opts = sapgo.Options(progress=False, solver=solver, tol_position=1e-8, tol_angle=1e-10,
+                         max_iterations=30)
+    a = sapgo.adjust(ref, opts)
+    b = sapgo.adjust(turned_path, opts)
+    assert b.converged and b.sigma0 == pytest.approx(a.sigma0, rel=1e-9)
+    with Project(ref) as p, Project(turned_path) as q:
+        xa = p.read("points")["xyz"] + p.solution("point_corr")
+        xb = q.read("points")["xyz"] + q.solution("point_corr")
+        ia, ib = p.read_field("points", "id"), q.read_field("points", "id")
+        sa = p.solution("station_sigma")[:, 3:]
+        sb = q.solution("station_sigma")
+    np.testing.assert_allclose(xb[np.argsort(ib)], xa[np.argsort(ia)] @ r.T, rtol=0,
+                               atol=1e-6)
+    assert np.isfinite(sb).all() and (sb[:, 3:] > 0).all()
+    # the centres' sigmas turn with the frame: X and Z swap
+    np.testing.assert_allclose(np.sort(sb[:, 3:].ravel()), np.sort(sa.ravel()), rtol=1e-6)

@@ -16,6 +16,7 @@ from sapgo.geometry import (
     plain_camera,
     project,
     rotation_matrix,
+    turned,
     undistort,
 )
 
@@ -76,17 +77,23 @@ def test_partials_against_complex_step_and_finite_differences(rng, dist):
         assert w < 0  # the point is in front of the camera
         np.testing.assert_allclose([x, y], naive.project(eo, xyz, 152.0, 0.02, -0.01, dist),
                                    atol=1e-12)
-        ac, bc = naive.jacobian_complex_step(eo, xyz, 152.0, 0.02, -0.01, dist=dist)
+        ac, bc = naive.jacobian_rotvec_complex_step(eo, xyz, 152.0, 0.02, -0.01, dist=dist)
         np.testing.assert_allclose(a, ac, rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(b, bc, rtol=1e-10, atol=1e-14)
-        # central finite differences, steps scaled to the parameter
+        # central finite differences, steps scaled to the parameter; the attitude turned
+        # by the rotation vector as the adjustment turns it (geometry.turned)
         p = np.concatenate([eo, xyz])
         steps = np.array([1e-6] * 3 + [1e-3] * 6)
         fd = np.zeros((2, 9))
         for k in range(9):
             hi, lo = p.copy(), p.copy()
-            hi[k] += steps[k]
-            lo[k] -= steps[k]
+            if k < 3:
+                t = np.zeros(3)
+                t[k] = steps[k]
+                hi[:3], lo[:3] = turned(eo[:3], t)[0], turned(eo[:3], -t)[0]
+            else:
+                hi[k] += steps[k]
+                lo[k] -= steps[k]
             fd[:, k] = (np.array(project(hi[:6], hi[6:], c))
                         - np.array(project(lo[:6], lo[6:], c))) / (2 * steps[k])
         np.testing.assert_allclose(np.hstack([a, b]), fd, rtol=1e-6, atol=1e-9)

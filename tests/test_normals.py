@@ -6,6 +6,7 @@ import pytest
 import naive
 from conftest import read_records, rewrite
 from sapgo.adjust import Options, _load_block, build
+from sapgo.geometry import attitude_jacobians
 from sapgo.work import Work
 from sapgo.solve.band import band_to_dense
 from sapgo.ordering import order_project
@@ -44,7 +45,14 @@ def dense(path):
         s = rec["station"]
         m[6 * s:6 * s + 6, 6 * s:6 * s + 6] += rec["weight"]
         d[6 * s:6 * s + 6] += rec["weight"] @ (rec["value"] - st["eo"][s])
-    return m, d
+    # sapgo's unknowns of a photo's attitude are the rotation vector that turns it:
+    # d(omega, phi, kappa) = J d(theta) (geometry.attitude_jacobians), M' = T' M T
+    n = len(st)
+    t = np.zeros((6 * n, 6 * n))
+    for s, j in enumerate(attitude_jacobians(st["eo"][:, :3])):
+        t[6 * s:6 * s + 3, 6 * s:6 * s + 3] = j
+        t[6 * s + 3:6 * s + 6, 6 * s + 3:6 * s + 6] = np.eye(3)
+    return t.T @ m @ t, t.T @ d
 
 
 def with_mixed_control_and_prior(path):

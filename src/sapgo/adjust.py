@@ -56,6 +56,7 @@ from .geometry import (
     INTRINSICS,
     N_CALIBRATION,
     camera_array,
+    turned,
 )
 from .normals import (
     BAD_LAYOUT,
@@ -255,12 +256,13 @@ def _wrap(a):
 
 
 class _PriorCursor:
-    """Station priors, read in chunks in station order as band rows enter the window; and
-    for each station parameter held fixed (``blk.fixed``, ``--datum fix``) a unit weight
-    at its current value (its columns of A are zero, :func:`sapgo.normals.fixed_columns`:
-    the unit diagonal keeps the normals regular and its correction exactly 0)."""
+    """Station priors, read in chunks in station order as band rows enter the window, handed
+    out as their terms of the normal equations; and for each station parameter held fixed
+    (``blk.fixed``, ``--datum fix``) a unit weight at its current value (its columns of A
+    are zero, :func:`sapgo.normals.fixed_columns`: the unit diagonal keeps the normals
+    regular and its correction exactly 0)."""
 
-    def __init__(self, project, chunk, blk=None):
+    def __init__(self, project, chunk, blk):
         self.p = project
         self.n = project.n_priors
         self.chunk = chunk
@@ -269,18 +271,10 @@ class _PriorCursor:
         self.bpos = 0
         self.blk = blk
 
-    def take(self, lo, hi):
-        """Priors of stations in ``[lo, hi)``; calls must come in increasing station order."""
+    def records(self, lo, hi):
+        """Prior records of stations in ``[lo, hi)``; calls must come in increasing station
+        order."""
         out = []
-        fixed = None if self.blk is None else self.blk.fixed
-        if fixed is not None and len(fixed) and fixed[lo:hi].any():
-            for s in lo + np.flatnonzero(fixed[lo:hi]):
-                rec = np.zeros((), self.buf.dtype)
-                rec["station"] = s
-                rec["value"] = self.blk.eo[s, :6]
-                bits = (int(fixed[s]) >> np.arange(6)) & 1
-                rec["weight"] = np.diag(bits.astype(np.float64))
-                out.append(rec)
         while True:
             if self.bpos >= len(self.buf):
                 if self.pos >= self.n:
@@ -296,11 +290,40 @@ class _PriorCursor:
             self.bpos += 1
         return out
 
+    def take(self, lo, hi):
+        """``(station, W, r)`` of the priors of stations in ``[lo, hi)``: their weight and
+        right-hand side in the adjustment's unknowns (:func:`prior_terms`)."""
+        out = []
+        fixed = self.blk.fixed
+        if len(fixed) and fixed[lo:hi].any():   # (in the unknowns themselves)
+            for s in lo + np.flatnonzero(fixed[lo:hi]):
+                bits = (int(fixed[s]) >> np.arange(6)) & 1
+                out.append((int(s), np.diag(bits.astype(np.float64)), np.zeros(6)))
+        recs = self.records(lo, hi)
+        if recs:
+            recs = np.array(recs, dtype=self.buf.dtype)
+            w, r = prior_terms(recs, self.blk.eo[recs["station"]])
+            out += list(zip(recs["station"].tolist(), w, r))
+        return out
 
-def _prior_residual(rec, eo):
-    v = eo - rec["value"]
-    v[:3] = _wrap(v[:3])
-    return v
+
+def prior_terms(recs, eo):
+    """Normal-equation terms ``(W', r)`` (n x 6 x 6, n x 6) of prior records at the stations'
+    current values ``eo``: the priors observe omega, phi, kappa, while the adjustment turns
+    a photo by a rotation vector (:func:`sapgo.geometry.turn`), so the angles' rows go
+    through ``J = d(omega, phi, kappa)/d theta`` (:func:`sapgo.geometry.attitude_jacobians`):
+    ``W' = T' W T``, ``r = -T' W v`` with ``T = diag(J, I)`` and ``v`` the prior's residual
+    (angles wrapped)."""
+    from .geometry import attitude_jacobians
+
+    w = np.asarray(recs["weight"], np.float64)
+    v = np.asarray(eo, np.float64)[:, :6] - recs["value"]
+    v[:, :3] = _wrap(v[:, :3])
+    t = np.zeros((len(recs), 6, 6))
+    t[:, :3, :3] = attitude_jacobians(eo[:, :3])
+    t[:, 3:, 3:] = np.eye(3)
+    tw = np.transpose(t, (0, 2, 1)) @ w
+    return tw @ t, -np.einsum("nij,nj->ni", tw, v)
 
 
 @dataclasses.dataclass
@@ -553,6 +576,12 @@ def parse_fix(spec):
             names = tuple(x for x in spec[1].replace(",", " ").split() if x)
     if not ids or not names:
         raise SapgoError(f"datum fix {spec!r}: name the photo ids and their parameters")
+    return ids, _fix_mask(spec, names)
+
+
+def _fix_mask(spec, names):
+    """The bit mask of a fix's parameter names; omega, phi and kappa only together (a
+    photo is turned by a rotation vector: its attitude is held, not one of its angles)."""
     mask = 0
     lower = [n.lower() for n in FIX_PARAMETERS]
     for n in names:
@@ -563,7 +592,11 @@ def parse_fix(spec):
             raise SapgoError(f"datum fix: unknown station parameter {n!r}; choose from "
                              f"{', '.join(FIX_PARAMETERS)} or all")
         mask |= 1 << lower.index(n.lower())
-    return ids, mask
+    if mask & 7 not in (0, 7):
+        raise SapgoError(f"datum fix {spec!r}: omega, phi and kappa are held together (the "
+                         f"adjustment turns a photo by a rotation vector, not angle by "
+                         f"angle): name all three, or all")
+    return mask
 
 
 def _set_fixed(blk: _Block, p: Project, opts: Options):
@@ -710,13 +743,11 @@ def _init_rows(band, rhs, base, lo, hi, blk, priors):
     for s in range(lo, hi):
         if not blk.station_active[s]:
             band[s - base, :, :k] += np.eye(k)
-    for rec in priors.take(lo, hi):
-        s = int(rec["station"])
+    for s, w, r in priors.take(lo, hi):
         if not blk.station_active[s]:
             continue
-        w = rec["weight"]
         band[s - base, :6, :6] += w
-        rhs[s - base, :6] += w @ (-_prior_residual(rec, blk.eo[s]))
+        rhs[s - base, :6] += r
 
 
 def _behind_depths(chunk, blk, rays):
@@ -899,6 +930,15 @@ def _moved_cameras(blk: _Block, delta, dtheta=None):
     return np.ascontiguousarray(cams)
 
 
+def next_orientations(eo, delta):
+    """The stations after a step ``delta`` (n x 6 or more): the attitudes turned by the
+    rotation vectors ``delta[:, :3]`` (:func:`sapgo.geometry.turn`), the centres moved."""
+    out = np.array(eo, dtype=np.float64, copy=True)
+    out[:, :3] = turned(eo[:, :3], delta[:, :3])
+    out[:, 3:6] += delta[:, 3:6]
+    return out
+
+
 def _uncovered(cover):
     """The ranges ``(a, b)`` where ``cover`` is 0."""
     z = np.concatenate([[0], (cover == 0).astype(np.int8), [0]])
@@ -912,6 +952,7 @@ def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, st
     work buffers, ``stats`` (:func:`sapgo.normals.update_points`) and ``stats_robust``
     accumulated."""
     xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
+    eo_next = next_orientations(blk.eo, delta)
     for a in range(a0, b0, opts.chunk_points):
         b = min(b0, a + opts.chunk_points)
         c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
@@ -926,7 +967,7 @@ def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, st
             c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
             c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
             blk.cams, CTRL_MASK, c.max_rays, xyz_out, res_out,
-            stats, lam, blk.behind_ok, cams_new, dtheta, blk.fixed,
+            stats, lam, blk.behind_ok, cams_new, dtheta, blk.fixed, eo_next,
         )
         if stats[7]:
             raise _point_error(p, c, int(stats[7]) - 1, int(stats[8]), blk)
@@ -974,10 +1015,10 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
     for a, b in p.chunks("station_priors", opts.chunk_points):
         pr = p.read("station_priors", a, b)
         pr = pr[blk.station_active[pr["station"]]]
-        v = blk.eo[pr["station"]] + delta[pr["station"], :6] - pr["value"]
+        v = next_orientations(blk.eo[pr["station"]], delta[pr["station"]]) - pr["value"]
         v[:, :3] = _wrap(v[:, :3])
         vpv_prior += float(np.einsum("ni,nij,nj->", v, pr["weight"], v))
-    blk.eo += delta[:, :6]
+    blk.eo[:] = next_orientations(blk.eo, delta)
     blk.cams = cams_new
     return {
         "vpv": stats[0] + stats[1] + vpv_prior,

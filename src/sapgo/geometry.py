@@ -177,6 +177,110 @@ def _rot9(omega, phi, kappa):
 
 
 @njit(cache=True)
+def _opk9(m):
+    """(omega, phi, kappa) of the nine elements of a rotation ``M = R3 R2 R1`` (row by
+    row); at phi = +-90 degrees omega = 0 and kappa takes the rest (as
+    :func:`sapgo.frames.opk_of`)."""
+    s = m[6]
+    if s > 1.0:
+        s = 1.0
+    elif s < -1.0:
+        s = -1.0
+    phi = np.arcsin(s)
+    if np.hypot(m[0], m[3]) < 1e-9:
+        return 0.0, phi, np.arctan2(m[1], m[4])
+    return np.arctan2(-m[7], m[8]), phi, np.arctan2(-m[3], m[0])
+
+
+@njit(cache=True)
+def turn(omega, phi, kappa, t0, t1, t2):
+    """The angles of a photo turned by the rotation vector ``theta = (t0, t1, t2)`` (the
+    adjustment's unknowns of a photo's attitude, in the object frame): ``M' = M R(-theta)``,
+    ``R(v) = exp([v]x)`` (Rodrigues), so that ``M' d = M d + M [d]x theta`` to first order
+    (:func:`linearize`). Any attitude, phi = +-90 degrees included, has neighbours in every
+    direction of theta; only the angles read off ``M'`` meet the lock."""
+    m = _rot9(omega, phi, kappa)
+    a = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+    if a == 0.0:
+        return omega, phi, kappa
+    x, y, z = -t0 / a, -t1 / a, -t2 / a
+    c, s = np.cos(a), np.sin(a)
+    v = 1.0 - c
+    r = (c + x * x * v, x * y * v - z * s, x * z * v + y * s,
+         y * x * v + z * s, c + y * y * v, y * z * v - x * s,
+         z * x * v - y * s, z * y * v + x * s, c + z * z * v)
+    n = np.empty(9)
+    for i in range(3):
+        for j in range(3):
+            n[3 * i + j] = (m[3 * i] * r[j] + m[3 * i + 1] * r[3 + j]
+                            + m[3 * i + 2] * r[6 + j])
+    w, p, k = _opk9(n)
+    # of the two triples of angles of M' (and their turns by 2 pi), the one nearest the
+    # old angles: a small turn moves the angles a little, whatever range they were given in
+    best = 1e300
+    bw, bp, bk = w, p, k
+    for cw, cp, ck in ((w, p, k), (w + np.pi, np.pi - p, k + np.pi)):
+        cw = omega + _near(cw - omega)
+        cp = phi + _near(cp - phi)
+        ck = kappa + _near(ck - kappa)
+        d = abs(cw - omega) + abs(cp - phi) + abs(ck - kappa)
+        if d < best:
+            best, bw, bp, bk = d, cw, cp, ck
+    return bw, bp, bk
+
+
+@njit(cache=True)
+def _near(a):
+    """``a`` turned by a multiple of 2 pi into [-pi, pi)."""
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+@njit(cache=True)
+def turn_all(opk, theta, out):
+    """:func:`turn` of rows of angles (n x 3) by rows of rotation vectors, into ``out``."""
+    for i in range(opk.shape[0]):
+        w, p, k = turn(opk[i, 0], opk[i, 1], opk[i, 2], theta[i, 0], theta[i, 1],
+                       theta[i, 2])
+        out[i, 0] = w
+        out[i, 1] = p
+        out[i, 2] = k
+
+
+def turned(opk, theta):
+    """Angles (n x 3) turned by rotation vectors (n x 3): :func:`turn` row by row."""
+    opk = np.ascontiguousarray(opk, np.float64).reshape(-1, 3)
+    out = np.empty_like(opk)
+    turn_all(opk, np.ascontiguousarray(theta, np.float64).reshape(-1, 3), out)
+    return out
+
+
+def attitude_jacobians(opk):
+    """``J = d(omega, phi, kappa) / d theta`` (n x 3 x 3) at rows of angles: how the angles
+    move as :func:`turn` turns a photo, analytically: ``dM'/dtheta_k = -M [e_k]x`` through
+    ``phi = asin(m20)``, ``omega = atan2(-m21, m22)``, ``kappa = atan2(-m10, m00)``;
+    singular at phi = +-90 degrees, where the angles cannot follow every turn."""
+    opk = np.ascontiguousarray(opk, np.float64).reshape(-1, 3)
+    w, p, k = opk.T
+    cw, sw, cp, sp, ck, sk = np.cos(w), np.sin(w), np.cos(p), np.sin(p), np.cos(k), np.sin(k)
+    m = np.empty((len(opk), 3, 3))
+    m[:, 0] = np.column_stack([ck * cp, ck * sp * sw + sk * cw, -ck * sp * cw + sk * sw])
+    m[:, 1] = np.column_stack([-sk * cp, -sk * sp * sw + ck * cw, sk * sp * cw + ck * sw])
+    m[:, 2] = np.column_stack([sp, -cp * sw, cp * cw])
+    zero = np.zeros((len(opk), 3))
+    c0, c1, c2 = m[:, :, 0], m[:, :, 1], m[:, :, 2]
+    dms = (np.stack([zero, -c2, c1], axis=2), np.stack([c2, zero, -c0], axis=2),
+           np.stack([-c1, c0, zero], axis=2))
+    j = np.empty((len(opk), 3, 3))
+    qw = m[:, 2, 1] ** 2 + m[:, 2, 2] ** 2
+    qk = m[:, 1, 0] ** 2 + m[:, 0, 0] ** 2
+    for i, dm in enumerate(dms):
+        j[:, 0, i] = (-m[:, 2, 2] * dm[:, 2, 1] + m[:, 2, 1] * dm[:, 2, 2]) / qw
+        j[:, 1, i] = dm[:, 2, 0] / cp
+        j[:, 2, i] = (-m[:, 0, 0] * dm[:, 1, 0] + m[:, 1, 0] * dm[:, 0, 0]) / qk
+    return j
+
+
+@njit(cache=True)
 def rotation_matrix(omega, phi, kappa):
     """``M = R3(kappa) R2(phi) R1(omega)``, object to image."""
     r = _rot9(omega, phi, kappa)
@@ -222,32 +326,25 @@ def project(eo, xyz, c):
 def linearize(eo, xyz, c, a, b):
     """Computed image coordinates and the partial derivatives of the collinearity equations.
 
-    Fills ``a`` (2x6) with d(x, y)/d(omega, phi, kappa, Xc, Yc, Zc) and ``b`` (2x3) with
-    d(x, y)/d(X, Y, Z), distortion included (chain rule through its Jacobian); an ``a`` of
+    Fills ``a`` (2x6) with d(x, y)/d(theta, Xc, Yc, Zc), ``theta`` the rotation vector
+    that turns the photo (:func:`turn`: any attitude, phi = +-90 degrees included), and
+    ``b`` (2x3) with d(x, y)/d(X, Y, Z), distortion included (chain rule through its
+    Jacobian); an ``a`` of
     2x9 gets the partials by the photo's intrinsics too (:data:`INTRINSICS`); returns the
     computed ``x, y`` and ``w`` (the depth along the optical axis, negative for a point in
     front of the camera).
     """
     f = c[0]
-    # q = M d with M = R3 R2 R1, and its derivatives without forming matrices:
-    # dR1/dw = Kx R1, dR2/dp = Ky R2, dR3/dk = Kz R3 with constant skew matrices K, so
-    # dq/dw = R3 R2 Kx (R1 d), dq/dp = R3 Ky (R2 R1 d), dq/dk = Kz q.
-    cw, sw = np.cos(eo[0]), np.sin(eo[0])
-    cp, sp = np.cos(eo[1]), np.sin(eo[1])
-    ck, sk = np.cos(eo[2]), np.sin(eo[2])
+    # q = M d, and its derivatives by the rotation vector theta of the attitude
+    # (M' = M R(-theta), :func:`turn`): dq/dtheta = M [d]x, column k = M (e_k x ... ):
+    # [d]x = [[0, -d2, d1], [d2, 0, -d0], [-d1, d0, 0]]
+    m = _rot9(eo[0], eo[1], eo[2])
     d0, d1, d2 = xyz[0] - eo[3], xyz[1] - eo[4], xyz[2] - eo[5]
-    p10, p11, p12 = d0, cw * d1 + sw * d2, -sw * d1 + cw * d2  # R1 d
-    p20, p21, p22 = cp * p10 - sp * p12, p11, sp * p10 + cp * p12  # R2 R1 d
-    q = (ck * p20 + sk * p21, -sk * p20 + ck * p21, p22)
-    # Kx (R1 d) = (0, p12, -p11) -> R2 -> R3
-    t0, t1, t2 = sp * p11, p12, cp * -p11
-    qw = (ck * t0 + sk * t1, -sk * t0 + ck * t1, t2)
-    # Ky (R2 R1 d) = (-p22, 0, p20) -> R3
-    qp = (ck * -p22, sk * p22, p20)
-    qk = (q[1], -q[0], 0.0)
-    m = (ck * cp, ck * sp * sw + sk * cw, -ck * sp * cw + sk * sw,
-         -sk * cp, -sk * sp * sw + ck * cw, sk * sp * cw + ck * sw,
-         sp, -cp * sw, cp * cw)
+    q = (m[0] * d0 + m[1] * d1 + m[2] * d2, m[3] * d0 + m[4] * d1 + m[5] * d2,
+         m[6] * d0 + m[7] * d1 + m[8] * d2)
+    qw = (m[1] * d2 - m[2] * d1, m[4] * d2 - m[5] * d1, m[7] * d2 - m[8] * d1)
+    qp = (-m[0] * d2 + m[2] * d0, -m[3] * d2 + m[5] * d0, -m[6] * d2 + m[8] * d0)
+    qk = (m[0] * d1 - m[1] * d0, m[3] * d1 - m[4] * d0, m[6] * d1 - m[7] * d0)
     u, v, w = q[0], q[1], q[2]
     if w == 0.0:  # in the principal plane: no projection (behind the camera, w > 0, the
         return np.nan, np.nan, w  # callers refuse unless told otherwise: BAL problems)

@@ -76,7 +76,7 @@ def _ideal(ob, st, cams):
 def _refine(eo, xyz, xy, cam):
     """Gauss-Newton on the collinearity equations of one photo: its six parameters from
     points ``xyz`` seen at ``xy`` (None if a point falls behind it)."""
-    from .geometry import linearize, observed
+    from .geometry import linearize, observed, turned
 
     eo = eo.copy()
     a, b = np.empty((2, 6)), np.empty((2, 3))
@@ -90,7 +90,8 @@ def _refine(eo, xyz, xy, cam):
             res.append(np.array(observed(o[0], o[1], cam)) - np.array([x, y]))
         j, r = np.vstack(rows), np.concatenate(res)
         step, *_ = np.linalg.lstsq(j, r, rcond=None)
-        eo += step
+        eo[:3] = turned(eo[:3], step[:3])[0]
+        eo[3:] += step[3:]
         if np.abs(step).max() < 1e-10 * (1 + np.abs(eo[3:]).max()):
             break
     return eo if np.isfinite(eo).all() else None

@@ -26,7 +26,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .geometry import N_CALIBRATION, camera_partials, linearize, observed, project
+from .geometry import N_CALIBRATION, camera_partials, linearize, observed, project, turn
 from .project import CONTROL_MASK, STATUS_ACTIVE
 
 # kernel status codes
@@ -470,7 +470,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
 def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cams,
                   ctrl_mask, max_rays, xyz_out, resid_out, stats, lam=0.0,
-                  behind_ok=False, cams_new=None, dtheta=None, st_fixed=None):
+                  behind_ok=False, cams_new=None, dtheta=None, st_fixed=None, eo_next=None):
     """Back-solve point corrections and compute residuals for a chunk of points.
 
     ``eps_j = Ndd_j^-1 (cdd_j - sum_s Nbar_s' delta_s)`` with the system linearised at the
@@ -556,8 +556,15 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
         for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
             s = obs_station[i]
             cam = cam_of_station[s]
-            for u in range(6):
-                e_new[u] = eo[s, u] + delta[s, u]
+            if eo_next is not None:   # (the attitude turned by the rotation vector)
+                for u in range(6):
+                    e_new[u] = eo_next[s, u]
+            else:
+                w_, p_, k_ = turn(eo[s, 0], eo[s, 1], eo[s, 2], delta[s, 0], delta[s, 1],
+                                  delta[s, 2])
+                e_new[0], e_new[1], e_new[2] = w_, p_, k_
+                for u in range(3, 6):
+                    e_new[u] = eo[s, u] + delta[s, u]
             # rejected observations get their residual too (how far off they are); only the
             # active ones count in the statistics
             x, y = project(e_new, xyz_out[j], cams_v[cam])

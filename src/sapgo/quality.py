@@ -118,6 +118,10 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
             x = np.asarray(xb_ds[a:b], dtype=np.float64)
             blocks = cov[a:b] + np.einsum("iag,gh,ibh->iab", x, sig_b, x)
             cov[a:b] = blocks
+        for a in range(0, n_st, opts.chunk_points):   # the attitude in omega, phi, kappa
+            b = min(n_st, a + opts.chunk_points)
+            blocks = in_angles(cov[a:b], blk.eo[a:b])
+            cov[a:b] = blocks
             var[a:b] = np.diagonal(blocks, axis1=1, axis2=2)
         if correlations is not None:
             _station_correlations(cov, blk, opts, correlations)
@@ -137,6 +141,24 @@ def _station_correlations(cov, blk, opts, correlations):
         rho = station_correlations(cov[a:b][:, :6, :6])
         rho[~blk.station_active[a:b]] = np.nan
         correlations.add("stations", blk.station_ids[a:b], rho)
+
+
+def in_angles(blocks, eo):
+    """Stations' cofactor blocks (n x k x k) of the adjustment's unknowns, the attitude a
+    rotation vector (:func:`sapgo.geometry.turn`), as blocks of omega, phi, kappa: ``T Q
+    T'`` with ``T = diag(J, I)``, ``J = d(omega, phi, kappa)/d theta`` at the stations'
+    values ``eo`` (:func:`sapgo.geometry.attitude_jacobians`; exact for the linearised
+    cofactors, undefined at phi = +-90 degrees, where the angles are)."""
+    from .geometry import attitude_jacobians
+
+    blocks = np.asarray(blocks, np.float64)
+    if not len(blocks):
+        return blocks
+    k = blocks.shape[1]
+    t = np.zeros((len(blocks), k, k))
+    t[:, :3, :3] = attitude_jacobians(np.asarray(eo, np.float64)[:, :3])
+    t[:, 3:, 3:] = np.eye(k - 3)
+    return t @ blocks @ np.transpose(t, (0, 2, 1))
 
 
 def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correlations,

@@ -992,7 +992,7 @@ def _strip(res):
 def _top_inputs(p, work, blk, opts, tree, top, lam, diag):
     """Per top node: its own stations' priors (``(row, weight, right-hand side)``) and
     damping."""
-    from ..adjust import _PriorCursor, _prior_residual
+    from ..adjust import _PriorCursor
 
     k = blk.npar
     priors = _PriorCursor(p, opts.chunk_points, blk)
@@ -1000,10 +1000,8 @@ def _top_inputs(p, work, blk, opts, tree, top, lam, diag):
     for i in top:
         lo, hi = int(tree.lo[i]), int(tree.hi[i])
         mine = []
-        for rec in priors.take(lo, hi):
-            s = int(rec["station"]) - lo
-            w = np.array(rec["weight"], dtype=np.float64)
-            mine.append((k * s, w, w @ (-_prior_residual(rec, blk.eo[lo + s]))))
+        for s, w, r in priors.take(lo, hi):
+            mine.append((k * (s - lo), np.array(w, dtype=np.float64), r))
         damping = None
         if lam > 0.0:
             damping = lam * np.clip(diag[lo:hi], 1e-6, 1e32).ravel()

@@ -356,7 +356,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
     post-order) from their points, read chunk by chunk; ``diag`` receives the stations'
     undamped diagonal of these points, ``border`` (``(cnn, ccg, cdiag)``, this thread's) the
     border's share; the solver's seconds go to ``seconds[slot]``."""
-    from ..adjust import _PriorCursor, _point_error, _prior_residual
+    from ..adjust import _PriorCursor, _point_error
     from ..quality import reweight
     from ..work import _fault
 
@@ -381,14 +381,13 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
         assert not ng or np.shares_memory(bord, b)
         lo, hi = int(tree.lo[i]), int(tree.hi[i])
         held = []   # a tiled front's priors: added panel by panel
-        for rec in priors.take(lo, hi):
-            s = int(rec["station"]) - lo
-            w = rec["weight"]
+        for s, w, r in priors.take(lo, hi):
+            s -= lo
             if tiled:
                 held.append((k * s, w))
             else:   # (own stations: own columns)
                 a[0][k * s:k * s + 6, k * s:k * s + 6] += w
-            rhs[k * s:k * s + 6] += w @ (-_prior_residual(rec, blk.eo[lo + s]))
+            rhs[k * s:k * s + 6] += r
         state.update(node=i, a=a, b=b, rhs=rhs, bord=bord, tiled=tiled, priors=held,
                      chunks=None, opened=t_open)
 
@@ -560,7 +559,7 @@ def quality_visitor(p, work, blk, opts, tree, sigma0, psig, quality, cov, var, c
     ``var``, its points' standard deviations into ``psig`` and their observations' quality
     into ``quality`` (``correlations``, if any, told the high ones). ``xb``, ``cal``,
     ``sig_b``: self-calibration's ``X = M^-1 B``, border and ``S^-1`` (else None)."""
-    from ..quality import points_quality
+    from ..quality import in_angles, points_quality
 
     k = blk.npar
     ng = blk.n_border
@@ -583,6 +582,7 @@ def quality_visitor(p, work, blk, opts, tree, sigma0, psig, quality, cov, var, c
                 blocks[s] = z[k * s:k * s + k, k * s:k * s + k]
         if ng:
             blocks += np.einsum("sag,gh,sbh->sab", xb[lo:hi], sig_b, xb[lo:hi])
+        blocks = in_angles(blocks, blk.eo[lo:hi])   # (the attitude in omega, phi, kappa)
         cov[lo:hi] = blocks
         var[lo:hi] = np.diagonal(blocks, axis1=1, axis2=2)
         p0, p1 = int(tree.pt_start[i]), int(tree.pt_start[i + 1])
