@@ -221,7 +221,7 @@ def initialise(path, sweeps=3, method="auto"):
     comment); returns an :class:`InitSummary`. ``method``: "vertical" (aerial blocks),
     "resection" (convergent blocks: :func:`_propagate`) or "auto" (resection when some photo
     sees :data:`MIN_DLT` known points that span space, else vertical)."""
-    from .geometry import camera_array, intersect_points
+    from .geometry import camera_array
     from .project import (
         KIND_CHECK,
         KIND_CONTROL,
@@ -302,18 +302,8 @@ def initialise(path, sweeps=3, method="auto"):
     got_pt = known.copy()
 
     def intersect():
-        sel = by_pt[placed[o_st[by_pt]] & ~known[o_pt[by_pt]]]
-        pts, counts = np.unique(o_pt[sel], return_counts=True)
-        if not len(pts):
-            return
-        starts = (np.cumsum(counts) - counts).astype(np.int64)
-        out = np.zeros((len(pts), 3))
-        ok = np.zeros(len(pts), bool)
-        intersect_points(starts, counts.astype(np.int64), o_st[sel], raw[sel], eo, cam_of,
-                         cams, out, ok)
-        ok &= (counts >= 2) & _good_points(out, starts, counts, o_st[sel], eo)
-        xyz[pts[ok]] = out[ok]
-        got_pt[pts[ok]] = True
+        _intersect_placed(by_pt, placed, known, o_st, o_pt, raw, eo, cam_of, cams, xyz,
+                          got_pt)
         xyz[known_xy, :2] = ground[known_xy, :2]   # (partial control: its known part)
         xyz[known_z, 2] = ground[known_z, 2]
 
@@ -351,7 +341,6 @@ def _propagate(st, pt, ob, cams, cam_of, rows, ideal, known, ground, sweeps):
     from the photos already placed, in turns until no photo or point is added; then the
     sweeps of resection and intersection. Photos and points never reached keep their
     values. Returns ``(InitSummary, eo, xyz)``."""
-    from .geometry import intersect_points
     from .project import STATUS_ACTIVE
 
     n_st, n_pt = len(st), len(pt)
@@ -385,20 +374,8 @@ def _propagate(st, pt, ob, cams, cam_of, rows, ideal, known, ground, sweeps):
         return True
 
     def intersect():
-        sel = by_pt[placed[o_st[by_pt]] & ~known[o_pt[by_pt]]]
-        pts, counts = np.unique(o_pt[sel], return_counts=True)
-        if not len(pts):
-            return 0
-        starts = (np.cumsum(counts) - counts).astype(np.int64)
-        out = np.zeros((len(pts), 3))
-        ok = np.zeros(len(pts), bool)
-        intersect_points(starts, counts.astype(np.int64), o_st[sel], raw[sel], eo, cam_of,
-                         cams, out, ok)
-        ok &= (counts >= 2) & _good_points(out, starts, counts, o_st[sel], eo)
-        new = int((ok & ~got[pts]).sum())
-        xyz[pts[ok]] = out[ok]
-        got[pts[ok]] = True
-        return new
+        return _intersect_placed(by_pt, placed, known, o_st, o_pt, raw, eo, cam_of, cams, xyz,
+                                 got)
 
     while True:
         added = 0
@@ -420,6 +397,28 @@ def _propagate(st, pt, ob, cams, cam_of, rows, ideal, known, ground, sweeps):
                        photos_not_placed=lost[:20].tolist(),
                        points_not_intersected=int((~got & active).sum()), sweeps=sweeps,
                        method="resection"), eo, xyz
+
+
+def _intersect_placed(by_pt, placed, known, o_st, o_pt, raw, eo, cam_of, cams, xyz, got):
+    """Intersect every point not known that two or more placed photos see (observations
+    ``by_pt``, sorted by point) into ``xyz``, those in front of their photos and seen under
+    :data:`MIN_ANGLE` marked in ``got``; returns how many were not marked before."""
+    from .geometry import intersect_points
+
+    sel = by_pt[placed[o_st[by_pt]] & ~known[o_pt[by_pt]]]
+    pts, counts = np.unique(o_pt[sel], return_counts=True)
+    if not len(pts):
+        return 0
+    starts = (np.cumsum(counts) - counts).astype(np.int64)
+    out = np.zeros((len(pts), 3))
+    ok = np.zeros(len(pts), bool)
+    intersect_points(starts, counts.astype(np.int64), o_st[sel], raw[sel], eo, cam_of, cams,
+                     out, ok)
+    ok &= (counts >= 2) & _good_points(out, starts, counts, o_st[sel], eo)
+    new = int((ok & ~got[pts]).sum())
+    xyz[pts[ok]] = out[ok]
+    got[pts[ok]] = True
+    return new
 
 
 def _good_points(xyz, starts, counts, stations, eo):

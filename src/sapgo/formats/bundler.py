@@ -221,8 +221,6 @@ def import_bundler(path, out, force=False, intrinsics="adjusted"):
     their indices) with the file's coordinates as approximations, image units pixels with
     sigma 1, a free network; the colours and keypoint indices in ``/bundler``. Returns a
     summary dict."""
-    import json
-
     out = _check_out(out, force, intrinsics)
     d = read_bundler(path)
     rec = np.flatnonzero(d["reconstructed"])
