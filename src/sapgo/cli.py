@@ -814,7 +814,8 @@ def build_parser():
                    help="with --calibrate: only these camera ids, e.g. 1,3")
     a.add_argument("--datum", action="append", default=[], metavar="fix:IDS:PARAMS",
                    help="hold station parameters fixed (true constraints, repeatable): "
-                        "fix:101:all fix:102:X,Y,Z fix:103,104:Z (omega, phi, kappa, X, Y, Z); "
+                        "fix:101:all fix:102:X,Y,Z fix:103,104:Z (X, Y, Z, and omega, phi, kappa "
+                        "only together); "
                         "their photos define the datum with whatever control there is, e.g. "
                         "7 parameters for a block without control")
     a.add_argument("--calibrate-per-photo", default=None, metavar="PARAMS",
