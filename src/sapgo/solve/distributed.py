@@ -81,8 +81,12 @@ def cluster(workers=None, scheduler=None, quiet=False):
     else:
         import dask
 
-        # a part stays on its worker (no work stealing): its files and, later, its memory
-        with dask.config.set({"distributed.scheduler.work-stealing": False}):
+        # a part stays on its worker (no work stealing): its files and, later, its memory;
+        # the inputs scattered to every worker (the tree, the block) keep their copies: the
+        # active memory manager would drop all but one, and a worker killed then would take
+        # the only copy with it (its tasks could not be run again elsewhere)
+        with dask.config.set({"distributed.scheduler.work-stealing": False,
+                              "distributed.scheduler.active-memory-manager.start": False}):
             lc = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
                               dashboard_address=":0",
                               env={"NUMBA_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
@@ -232,7 +236,8 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration,
     # and kept by the workers
     tree_f = getattr(work, "_tree_future", None)
     n_workers = len(worker_addresses(client))
-    if tree_f is None or getattr(work, "_tree_id", None) is not tree:
+    if (tree_f is None or getattr(work, "_tree_id", None) is not tree
+            or tree_f.status != "finished"):   # (lost with a worker: sent again)
         _count(*[tree] * n_workers, key="to_workers")   # (to each)
         tree_f = client.scatter(tree, broadcast=True)
         work._tree_future, work._tree_id = tree_f, tree
