@@ -1776,9 +1776,6 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     else:
         station_sigma, psig, quality = _precision(p_read, work, blk, opts,
                                                       last["sigma0"], correlations)
-        if blk.n_fixed_params:   # (their unit diagonal's inverse is no variance: they are
-            bits = (blk.fixed[:, None].astype(np.int64) >> np.arange(6)) & 1   # fixed)
-            station_sigma[:, :6][bits == 1] = 0.0
         _note_planted(p_read, blk, quality, run)
         reliability = reliability_statistics(opts.snooping_alpha)
     # the report's sums over the points and their observations: each Dask part's points on

@@ -26,7 +26,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .geometry import N_CALIBRATION, camera_partials, linearize, observed, project, turn
+from .geometry import N_CALIBRATION, camera_partials, linearize, observed, project
 from .project import CONTROL_MASK, STATUS_ACTIVE
 
 # kernel status codes
@@ -475,14 +475,15 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
 
     ``eps_j = Ndd_j^-1 (cdd_j - sum_s Nbar_s' delta_s)`` with the system linearised at the
     values the normals were built with (``eo``, ``pt_xyz``); the residuals
-    ``v = computed - observed`` are then evaluated at the new values (``eo + delta``,
+    ``v = computed - observed`` are then evaluated at the new values (``eo_next``, the
+    stations after the step, :func:`sapgo.adjust.next_orientations`; required, and
     ``xyz_out``). ``stats`` accumulates: 0 vPv image, 1 vPv control, 2 sum vx^2, 3 sum vy^2,
     4 image rays, 5 max |eps|, 6 control components, 7 bad point (index+1) or 0,
     8 its status code, 9 sum of c' Ndd^-1 c, 10 sum of D eps^2 (undamped diagonal).
     ``lam``: the Levenberg-Marquardt damping the normals were built with.
     ``delta`` has a row of 6 or 9 parameters per station; with 9, ``cams_new`` holds the camera
     rows moved by the intrinsics' corrections (one camera per photo), for the residuals.
-    ``dtheta`` (cameras x 8): the self-calibration step of each camera's border parameters
+    ``dtheta`` (camera rows x N_CALIBRATION): the self-calibration step of each camera's border parameters
     (:func:`sapgo.geometry.camera_partials`; zero where not adjusted), which enters the
     back-solution as ``- Nbar_g' dtheta``; ``cams_new`` then holds the moved cameras.
     """
@@ -556,15 +557,8 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
         for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
             s = obs_station[i]
             cam = cam_of_station[s]
-            if eo_next is not None:   # (the attitude turned by the rotation vector)
-                for u in range(6):
-                    e_new[u] = eo_next[s, u]
-            else:
-                w_, p_, k_ = turn(eo[s, 0], eo[s, 1], eo[s, 2], delta[s, 0], delta[s, 1],
-                                  delta[s, 2])
-                e_new[0], e_new[1], e_new[2] = w_, p_, k_
-                for u in range(3, 6):
-                    e_new[u] = eo[s, u] + delta[s, u]
+            for u in range(6):   # (the attitude turned by the rotation vector)
+                e_new[u] = eo_next[s, u]
             # rejected observations get their residual too (how far off they are); only the
             # active ones count in the statistics
             x, y = project(e_new, xyz_out[j], cams_v[cam])

@@ -298,6 +298,22 @@ def new_project_path(out, force):
     return out
 
 
+def point_records(point_of_obs, n_points, **fields):
+    """``/points`` records of ``n_points`` points whose observations come grouped by point
+    (``point_of_obs``: each observation's point record, ascending): ``n_obs`` and
+    ``obs_start`` from them, ``station_min`` and ``station_max`` -1 (unknown: ``sapgo
+    order`` sets them), the other ``fields`` (``id``, ``kind``, ``xyz``, ``control``, ...)
+    as given."""
+    counts = np.bincount(np.asarray(point_of_obs, np.int64), minlength=n_points)
+    out = np.zeros(n_points, POINT_DTYPE)
+    for name, value in fields.items():
+        out[name] = value
+    out["n_obs"] = counts
+    out["obs_start"] = np.cumsum(counts) - counts
+    out["station_min"] = out["station_max"] = -1
+    return out
+
+
 def write_project(path, cameras, stations, points, observations, priors=None, truth=None,
                   attrs=None, extra=None):
     """Write a new project file atomically from whole record arrays (small blocks, tests).

@@ -120,7 +120,7 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
             cov[a:b] = blocks
         for a in range(0, n_st, opts.chunk_points):   # the attitude in omega, phi, kappa
             b = min(n_st, a + opts.chunk_points)
-            blocks = in_angles(cov[a:b], blk.eo[a:b])
+            blocks = in_angles(cov[a:b], blk.eo[a:b], blk.fixed[a:b])
             cov[a:b] = blocks
             var[a:b] = np.diagonal(blocks, axis1=1, axis2=2)
         if correlations is not None:
@@ -143,12 +143,14 @@ def _station_correlations(cov, blk, opts, correlations):
         correlations.add("stations", blk.station_ids[a:b], rho)
 
 
-def in_angles(blocks, eo):
+def in_angles(blocks, eo, fixed):
     """Stations' cofactor blocks (n x k x k) of the adjustment's unknowns, the attitude a
     rotation vector (:func:`sapgo.geometry.turn`), as blocks of omega, phi, kappa: ``T Q
     T'`` with ``T = diag(J, I)``, ``J = d(omega, phi, kappa)/d theta`` at the stations'
     values ``eo`` (:func:`sapgo.geometry.attitude_jacobians`; exact for the linearised
-    cofactors, undefined at phi = +-90 degrees, where the angles are)."""
+    cofactors, undefined at phi = +-90 degrees, where the angles are); the rows and
+    columns of the parameters held fixed (``fixed``, the stations' bits of
+    ``_Block.fixed``) 0: no variance (their unit diagonal in the normals is none)."""
     from .geometry import attitude_jacobians
 
     blocks = np.asarray(blocks, np.float64)
@@ -158,7 +160,13 @@ def in_angles(blocks, eo):
     t = np.zeros((len(blocks), k, k))
     t[:, :3, :3] = attitude_jacobians(np.asarray(eo, np.float64)[:, :3])
     t[:, 3:, 3:] = np.eye(k - 3)
-    return t @ blocks @ np.transpose(t, (0, 2, 1))
+    out = t @ blocks @ np.transpose(t, (0, 2, 1))
+    held = ((np.asarray(fixed, np.int64)[:, None] >> np.arange(6)) & 1) == 1
+    if held.any():
+        keep = np.ones((len(out), k))
+        keep[:, :6][held] = 0.0
+        out *= keep[:, :, None] * keep[:, None, :]
+    return out
 
 
 def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correlations,

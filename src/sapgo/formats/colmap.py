@@ -545,11 +545,11 @@ def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=F
         KIND_NAMES,
         KIND_VERTICAL,
         OBSERVATION_DTYPE,
-        POINT_DTYPE,
         STATION_DTYPE,
         STATUS_ACTIVE,
         append_history,
         new_project_path,
+        point_records,
         write_project,
     )
 
@@ -675,17 +675,9 @@ def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=F
     obs["point"], obs["station"] = o_point[o], o_station[o]
     obs["x"], obs["y"] = ox[o], oy[o]
     obs["status"] = STATUS_ACTIVE
-    counts = np.bincount(o_point, minlength=n_pt)
-    point = np.zeros(n_pt, POINT_DTYPE)
-    point["id"] = pt["ids"][pt_order]
-    point["kind"] = kind
-    point["status"] = STATUS_ACTIVE
-    point["xyz"] = xyz
-    point["control"] = ctrl
-    point["control_sigma"] = ctrl_sigma
-    point["n_obs"] = counts
-    point["obs_start"] = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    point["station_min"] = point["station_max"] = -1
+    point = point_records(obs["point"], n_pt, id=pt["ids"][pt_order], kind=kind,
+                          status=STATUS_ACTIVE, xyz=xyz, control=ctrl,
+                          control_sigma=ctrl_sigma)
 
     # /colmap: what sapgo does not use, keyed by ids
     g_cam = np.zeros(len(c_ord), COLMAP_CAMERA_DTYPE)

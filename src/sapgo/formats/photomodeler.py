@@ -175,10 +175,10 @@ def import_photomodeler(path, out, force=False):
         CAMERA_DTYPE,
         KIND_CONTROL,
         OBSERVATION_DTYPE,
-        POINT_DTYPE,
         STATION_DTYPE,
         append_history,
         new_project_path,
+        point_records,
         write_project,
     )
 
@@ -251,16 +251,8 @@ def import_photomodeler(path, out, force=False):
     obs = np.zeros(len(m), OBSERVATION_DTYPE)
     obs["point"], obs["station"] = p_rec[order], st_rec[order]
     obs["x"], obs["y"], obs["sigma"] = x[order], y[order], sig[order]
-    counts = np.bincount(p_rec, minlength=n_pt)
-    point = np.zeros(n_pt, POINT_DTYPE)
-    point["id"] = all_ids
-    point["kind"] = kind
-    point["xyz"] = xyz
-    point["control"] = control
-    point["control_sigma"] = csig
-    point["n_obs"] = counts
-    point["obs_start"] = np.cumsum(counts) - counts
-    point["station_min"] = point["station_max"] = -1
+    point = point_records(obs["point"], n_pt, id=all_ids, kind=kind, xyz=xyz,
+                          control=control, control_sigma=csig)
     free = not len(ctrl)
     creator = {"command": "import", "format": "photomodeler", "file": str(path)}
     attrs = {"creator": json.dumps(creator), "history": append_history("[]", creator)}

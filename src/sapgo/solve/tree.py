@@ -582,7 +582,7 @@ def quality_visitor(p, work, blk, opts, tree, sigma0, psig, quality, cov, var, c
                 blocks[s] = z[k * s:k * s + k, k * s:k * s + k]
         if ng:
             blocks += np.einsum("sag,gh,sbh->sab", xb[lo:hi], sig_b, xb[lo:hi])
-        blocks = in_angles(blocks, blk.eo[lo:hi])   # (the attitude in omega, phi, kappa)
+        blocks = in_angles(blocks, blk.eo[lo:hi], blk.fixed[lo:hi])   # (omega, phi, kappa)
         cov[lo:hi] = blocks
         var[lo:hi] = np.diagonal(blocks, axis1=1, axis2=2)
         p0, p1 = int(tree.pt_start[i]), int(tree.pt_start[i + 1])
