@@ -35,6 +35,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from .lock import writes_project
 from . import normals
 from .solve.band import (
     PIVOT_TOLERANCE,
@@ -1381,6 +1382,7 @@ def _work_band(blk: _Block):
     return blk.band_width if blk.tree is None else 0
 
 
+@writes_project("adjust", "path")
 def adjust(path, options: Options | None = None) -> Summary:
     """Adjust the project at ``path``; see the module docstring. Returns a :class:`Summary`."""
     opts = (options or Options()).check()
@@ -1398,17 +1400,57 @@ def adjust(path, options: Options | None = None) -> Summary:
                 station_ids=p.read_field("stations", "id"),
                 station_active=p.read_field("stations", "status") == STATUS_ACTIVE), p, opts)
         needs_order = _needs_order(p, opts)
+        source_uuid = p.attr("uuid", "")
     order_info = None
     checkpoint = Work.load_checkpoint(wpath) if opts.resume else None
+    # an unordered project is ordered into a copy beside it (NAME.h5.ordered), which the
+    # commit makes the project: a run that fails leaves the project as it was
+    ordered = ordered_path(path)
+    src = path
     if needs_order:
-        checkpoint = None  # an unordered project has no run to resume
-        t0 = time.perf_counter()
-        order_info = order_project(path, opts.ordering, memory=opts.memory, solver=opts.solver)
-        timings["order"] = time.perf_counter() - t0
+        src = ordered
+        if checkpoint is None or not _ordered_copy_of(ordered, source_uuid):
+            checkpoint = None  # (a run on another ordered copy cannot be resumed)
+            t0 = time.perf_counter()
+            order_info = order_project(path, opts.ordering, memory=opts.memory,
+                                       solver=opts.solver, out=ordered)
+            timings["order"] = time.perf_counter() - t0
+    else:
+        ordered.unlink(missing_ok=True)   # (an interrupted run's, of an older project)
+    try:
+        summary = _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings,
+                                  t_start)
+    except SapgoError:
+        ordered.unlink(missing_ok=True)
+        raise
+    ordered.unlink(missing_ok=True)
+    return summary
 
+
+def ordered_path(path):
+    """Where ``sapgo adjust`` orders an unordered project (``NAME.h5.ordered`` beside it):
+    the run reads it, the commit makes it the project, an interrupted run resumes on it."""
+    path = Path(path)
+    return path.with_name(path.name + ".ordered")
+
+
+def _ordered_copy_of(ordered, source_uuid):
+    """Is ``ordered`` a whole ordered copy of the project of uuid ``source_uuid``?"""
+    if not ordered.exists():
+        return False
+    try:
+        with Project(ordered, "r") as q:
+            return bool(source_uuid) and q.attr("ordered_from", "") == source_uuid
+    except (OSError, SapgoError):
+        return False
+
+
+def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_start):
+    """:func:`adjust` on the ordered project ``src`` (``path`` itself, or its ordered copy);
+    the results are committed to ``path``."""
     log = []
     resumed_from = None
-    with Project(path, "r") as p:
+    with Project(src, "r") as p:
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
         _set_fixed(blk, p, opts)
@@ -1859,9 +1901,11 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
 
     tmp = path.with_name(path.name + ".commit.tmp")
     try:
-        shutil.copyfile(path, tmp)
+        shutil.copyfile(p_read.path, tmp)   # (the project, or the run's ordered copy of it)
         _fault("commit-copy")
         with Project(tmp, "r+") as q:
+            if "ordered_from" in q.file.attrs:
+                del q.file.attrs["ordered_from"]
             g = q.new_solution()
             for a, b in q.chunks("stations", opts.chunk_points):
                 g["station_corr"][a:b] = blk.eo[a:b] - q.read_field("stations", "eo", a, b)

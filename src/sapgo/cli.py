@@ -59,7 +59,8 @@ def cmd_generate(args):
         station_position_perturbation=args.station_position_perturbation,
         station_angle_perturbation=angle, control_perturbation=args.control_perturbation,
         terrain_relief=args.terrain_relief, seed=args.seed,
-        distortion=args.distortion, blunders=args.blunders, **irregular,
+        distortion=args.distortion, blunders=args.blunders, force=args.force,
+        **irregular,
     )
     print(f"generated {info['path']}: {info['photos']} photos in {info['strips']} strips, "
           f"{info['points']} points ({info['control_points']} control, "
@@ -626,6 +627,8 @@ def build_parser():
                    help="plant N blunders of 30 to 100 um in random image observations (listed "
                         "in /truth/blunders; default 0)")
     g.add_argument("--seed", type=int, help="random seed (default 1)")
+    g.add_argument("--force", action="store_true",
+                   help="replace an existing project file at OUTPUT")
     _design_arguments(g)
     g.set_defaults(func=cmd_generate)
 

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .lock import writes_project
 from .errors import DataError, ParameterError
 from .extsort import DEFAULT_MEMORY, ExternalSorter, parse_memory
 from .formats.text import (
@@ -1057,6 +1058,7 @@ def read_image_frames(paths, cam_ids):
     return frames
 
 
+@writes_project("import", "out")
 def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles="deg",
                 memory=None, append=False, force=False, priors=(), prior_covariances=(),
                 crs=None, orientation="tangent", photos_matrix=(), rotation="opk",

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .lock import writes_project
 from .errors import DataError
 
 #: Points a photo needs for a resection in a sweep.
@@ -216,6 +217,7 @@ def _spread_ok(xyz):
     return bool(sv[-1] >= MIN_SPREAD * sv[0])
 
 
+@writes_project("init", "path")
 def initialise(path, sweeps=3, method="auto"):
     """Starting values for the photos and points of the project ``path`` (the module's
     comment); returns an :class:`InitSummary`. ``method``: "vertical" (aerial blocks),

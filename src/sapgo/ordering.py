@@ -32,9 +32,11 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from .lock import writes_project
 from .errors import ParameterError
 from .extsort import DEFAULT_MEMORY, ExternalSorter, parse_memory, rechunk
 from .project import (
+    CHECKSUM,
     CHUNK_RECORDS,
     KEYED_GROUPS,
     KIND_CONTROL,
@@ -49,6 +51,7 @@ from .project import (
     Project,
     ProjectWriter,
     append_history,
+    solution_dataset,
 )
 
 MIN_RAYS_PASS = 2
@@ -508,8 +511,9 @@ def _station_activity(p, chunk):
 SOLVERS = ("auto", "band", "tree")
 
 
+@writes_project("order", "path")
 def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver="auto",
-                  leaf_stations=None):
+                  leaf_stations=None, out=None):
     """Order a project: exclusions, station order, point order, records rewritten.
 
     ``method`` is ``"best"`` (smallest band width of all candidates) or one candidate name
@@ -521,7 +525,9 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
     the records in chunks; the points and observations are put in their new order by external
     sorts within ``memory`` bytes (default :data:`sapgo.extsort.DEFAULT_MEMORY`). In core:
     per-station vectors and the station graph (a few edges per station). The project is
-    rewritten through a temporary file that replaces it only when complete.
+    rewritten through a temporary file that replaces it only when complete; with ``out``
+    the ordered project is written there instead (attribute ``ordered_from``: the uuid of
+    ``path``) and ``path`` is left as it was (``sapgo adjust`` orders into its commit).
     """
     import time
 
@@ -536,7 +542,7 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
         if solver not in SOLVERS:
             raise ParameterError(f"unknown solver {solver!r}; choose from {', '.join(SOLVERS)}")
         try:
-            result = _order(p, work, method, memory, chunk, solver, leaf_stations)
+            result = _order(p, work, method, memory, chunk, solver, leaf_stations, out)
         finally:
             shutil.rmtree(work, ignore_errors=True)
     result.seconds = time.perf_counter() - t0
@@ -605,7 +611,7 @@ def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stati
     return None, None, predicted
 
 
-def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
+def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, out=None):
 
     stations = p.read("stations")
     n_st, n_pt = p.n_stations, p.n_points
@@ -640,11 +646,11 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
     if has_truth:
         pt_fields.append(("truth", TRUTH_POINT_DTYPE))
     if has_solution:
-        pt_fields.append(("corr", "<f8", (3,)))
+        pt_fields += [("corr", "<f8", (3,)), ("sigma", "<f8", (3,))]
     ob_fields = [("point", "<i8"), ("station", "<i8"), ("seq", "<i8"),
                  ("rec", OBSERVATION_DTYPE)]
     if has_solution:
-        ob_fields.append(("res", "<f8", (2,)))
+        ob_fields += [("res", "<f8", (2,)), ("quality", "<f4", (7,))]
     pt_dtype, ob_dtype = np.dtype(pt_fields), np.dtype(ob_fields)
     map_dtype = np.dtype([("old", "<i8"), ("new", "<i8")])
 
@@ -654,11 +660,13 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
         "command": "order", "ordering": name, "band_width": b, "band_width_before": b_before})
     attrs.update(ordered=True, ordering=name, band_width=b, history=history,
                  solver="tree" if tree is not None else "band")
+    if out is not None:
+        attrs["ordered_from"] = p.attr("uuid", "")
     node_points = np.zeros(tree.n_nodes if tree is not None else 0, np.int64)
 
     with ExternalSorter(pt_dtype, ["kmin", "kmax", "id", "old"], memory // 2, work,
                         "points") as pts_sort, \
-            ProjectWriter(p.path, attrs, truth=has_truth, tmp_suffix=".order.tmp") as w:
+            ProjectWriter(out or p.path, attrs, truth=has_truth, tmp_suffix=".order.tmp") as w:
         # 1. points keyed by (min, max) logical station of their active rays
         for a, b_ in p.chunks("points", chunk):
             c = _Chunk(p, a, b_, st_active, fields=("station", "status"))
@@ -678,6 +686,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
                 rec["truth"] = p.read("truth/points", a, b_)
             if has_solution:
                 rec["corr"] = p.solution("point_corr", a, b_)
+                rec["sigma"] = p.solution("point_sigma", a, b_)
             ids = c.pts["id"][~c.point_active]
             n_excluded_points += len(ids)
             excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
@@ -688,11 +697,10 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
             sol = w.file.create_group("solution.new")
             for k, v in p.file["solution"].attrs.items():
                 sol.attrs[k] = v
-            for dname, (parent, shape) in SOLUTION_LAYOUT.items():
-                n = {"stations": n_st, "points": n_pt,
-                     "cameras": p.n_cameras}.get(parent, p.n_observations)
-                sol.create_dataset(dname, (n,) + shape, "<f8",
-                                   chunks=(max(1, min(n, CHUNK_RECORDS)),) + shape)
+            for dname, (parent, _) in SOLUTION_LAYOUT.items():
+                solution_dataset(sol, dname, {"stations": n_st, "points": n_pt,
+                                              "cameras": p.n_cameras}.get(parent,
+                                                                          p.n_observations))
             sol["station_corr"][...] = p.solution("station_corr")[perm]
             sol["station_sigma"][...] = p.solution("station_sigma")[perm]
             sol["photo_camera_corr"][...] = p.solution("photo_camera_corr")[perm]
@@ -708,8 +716,9 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
                 w.append("points", r)
                 if has_truth:
                     w.append("truth/points", c["truth"])
-                if has_solution:
+                if has_solution:   # (every per-point and per-observation result)
                     sol["point_corr"][new:new + len(c)] = c["corr"]
+                    sol["point_sigma"][new:new + len(c)] = c["sigma"]
                 if tree is not None:  # the points of each node (by their first station)
                     km = c["kmin"][c["kmin"] < tree.n_active]
                     node_points += np.bincount(np.searchsorted(tree.hi, km, side="right"),
@@ -740,6 +749,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
                     rec["rec"] = o
                     if has_solution:
                         rec["res"] = p.solution("residuals", c.o0, c.o1)
+                        rec["quality"] = p.solution("obs_quality", c.o0, c.o1)
                     obs_sort.add(rec)
                 map_sort.close()
                 at = 0
@@ -747,6 +757,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
                     w.append("observations", c["rec"])
                     if has_solution:
                         sol["residuals"][at:at + len(c)] = c["res"]
+                        sol["obs_quality"][at:at + len(c)] = c["quality"]
                     at += len(c)
 
         # 4. per-station records
@@ -774,7 +785,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None):
             g.attrs["n_active"] = tree.n_active
             g.attrs["method"] = tree.method
             for key, arr in tree.to_arrays().items():
-                g.create_dataset(key, data=arr)
+                g.create_dataset(key, data=arr, **(CHECKSUM if np.size(arr) else {}))
         w.finish()  # replaces the project (still open here for reading: POSIX keeps it)
     return OrderResult(
         band_width_before=b_before,

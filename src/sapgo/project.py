@@ -27,7 +27,7 @@ import h5py
 import numpy as np
 
 from . import __version__
-from .errors import ClosedProjectError, ProjectFormatError
+from .errors import ClosedProjectError, DataError, ProjectFormatError
 from .geometry import N_CAMERA
 
 FORMAT_NAME = "sapgo project"
@@ -186,6 +186,19 @@ SOLUTION_NARROWER = {"camera_corr": 8}
 #: Solution datasets stored in single precision (the rest in double).
 SOLUTION_SINGLE = {"obs_quality"}
 
+#: Every record dataset is written with HDF5's Fletcher-32 checksum of each chunk: a
+#: damaged chunk is found when read (:meth:`Project.read` names it) instead of being
+#: adjusted as data.
+CHECKSUM = {"fletcher32": True}
+
+
+def solution_dataset(group, name, n):
+    """Create the /solution dataset ``name`` for ``n`` records in ``group`` (zeros)."""
+    shape = SOLUTION_LAYOUT[name][1]
+    return group.create_dataset(
+        name, shape=(n,) + shape, dtype="<f4" if name in SOLUTION_SINGLE else "<f8",
+        chunks=(max(1, min(n, CHUNK_RECORDS)),) + shape, fillvalue=0.0, **CHECKSUM)
+
 
 def _now():
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
@@ -242,7 +255,8 @@ class ProjectWriter:
             names.update(TRUTH_DTYPES)
         for name, dtype in names.items():
             rows = max(1, min(CHUNK_RECORDS, (1 << 20) // dtype.itemsize))
-            f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows,))
+            f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows,),
+                             **CHECKSUM)
 
     @property
     def file(self):
@@ -555,7 +569,8 @@ class Project:
         if size > max_bytes:
             return 0
         for n in names:
-            self._held[n] = self.file[n][...]
+            ds = self.file[n]
+            self._held[n] = self._checked(ds, 0, ds.shape[0], lambda: ds[...])
         return size
 
     def read(self, name, start=0, stop=None):
@@ -565,7 +580,7 @@ class Project:
             return held[start:stop].copy()
         ds = self.file[name]
         stop = ds.shape[0] if stop is None else stop
-        return ds[start:stop]
+        return self._checked(ds, start, stop, lambda: ds[start:stop])
 
     def read_field(self, name, field, start=0, stop=None):
         held = self._held.get(name)
@@ -575,7 +590,30 @@ class Project:
         stop = ds.shape[0] if stop is None else stop
         if stop <= start:
             return np.zeros((0,) + ds.dtype.fields[field][0].shape, ds.dtype.fields[field][0].base)
-        return ds.fields(field)[start:stop]
+        return self._checked(ds, start, stop, lambda: ds.fields(field)[start:stop])
+
+    def _checked(self, ds, start, stop, read):
+        """``read()`` of records ``start:stop`` of ``ds``; a chunk that fails its checksum
+        (or cannot be read at all) raises :class:`DataError` naming the dataset and the
+        chunk's records."""
+        try:
+            return read()
+        except OSError as exc:
+            rows = (ds.chunks or (max(1, stop - start),))[0]
+            lo, hi = start, stop
+            for a in range(start - start % rows, stop, rows):   # the chunk at fault
+                try:
+                    ds[max(a, start):min(a + rows, stop)]
+                except OSError:
+                    lo, hi = max(a, start), min(a + rows, ds.shape[0])
+                    break
+            text = str(exc).lower()
+            why = ("fail their checksum (Fletcher-32)" if ds.fletcher32 and (
+                "filter" in text or "fletcher" in text or "checksum" in text)
+                else "cannot be read")
+            raise DataError(f"{self.path}: {ds.name} records {lo}..{hi - 1} {why}: the file "
+                            f"was damaged on disk or in transfer; restore the project from "
+                            f"a copy") from None
 
     def chunks(self, name, size=CHUNK_RECORDS):
         """Yield ``(start, stop)`` ranges covering dataset ``name`` in processing order."""
@@ -603,7 +641,8 @@ class Project:
         stop = n if stop is None else stop
         if not self.has_solution or name not in self.file["solution"]:
             return np.zeros((stop - start,) + shape)
-        data = self.file["solution"][name][start:stop]
+        ds = self.file["solution"][name]
+        data = self._checked(ds, start, stop, lambda: ds[start:stop])
         if data.shape[1:] != shape:   # (an older version's narrower rows)
             full = np.zeros((len(data),) + shape)
             full[:, :data.shape[1]] = data
@@ -620,12 +659,8 @@ class Project:
         if "solution.new" in f:
             del f["solution.new"]
         g = f.create_group("solution.new")
-        for name, (parent, shape) in SOLUTION_LAYOUT.items():
-            n = len(f[parent])
-            g.create_dataset(
-                name, shape=(n,) + shape, dtype="<f4" if name in SOLUTION_SINGLE else "<f8",
-                chunks=(max(1, min(n, CHUNK_RECORDS)),) + shape, fillvalue=0.0,
-            )
+        for name, (parent, _) in SOLUTION_LAYOUT.items():
+            solution_dataset(g, name, len(f[parent]))
         g.attrs["state"] = "initial"
         g.attrs["iterations"] = 0
         g.attrs["converged"] = False

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..lock import writes_project
 from ..errors import DataError
 from ..geometry import N_CAMERA
 
@@ -238,6 +239,7 @@ def write_bal(path, cams, pts, obs_camera, obs_point, obs_xy):
         f.write("".join(f"{v!r}\n" for v in np.asarray(pts, np.float64).ravel().tolist()))
 
 
+@writes_project("import", "out")
 def import_bal(path, out, force=False, intrinsics="adjusted"):
     """Import the BAL problem ``path`` into a new project ``out``: one photo and one camera
     per BAL camera (ids = BAL indices; its f, k1, k2 ``"adjusted"`` with the photo, as

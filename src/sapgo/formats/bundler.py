@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..lock import writes_project
 from ..errors import DataError
 from .bal import (
     _check_out,
@@ -214,6 +215,7 @@ def write_bundler(path, r, t, fk, pts, colors, obs_camera, obs_point, obs_key, o
                     obs_xy[o, 1].tolist())]) + "\n")
 
 
+@writes_project("import", "out")
 def import_bundler(path, out, force=False, intrinsics="adjusted"):
     """Import the Bundler file ``path`` into a new project ``out``: one photo and one
     camera per reconstructed camera (ids: the cameras' indices in the file; f, k1, k2

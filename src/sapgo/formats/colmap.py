@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..lock import writes_project
 from ..errors import DataError, ParameterError
 
 #: Camera models read and written, with COLMAP's parameter names in file order.
@@ -517,6 +518,7 @@ def similarity(src, dst):
 
 # -- import ----------------------------------------------------------------------------
 
+@writes_project("import", "out")
 def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=False,
                   memory=None):
     """Import the COLMAP text model in ``model_dir`` into a new project ``out``.

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..lock import writes_project
 from ..errors import DataError, ParameterError
 
 __all__ = ["CAMERA_TYPES", "export_opensfm", "import_opensfm", "opensfm_project",
@@ -271,6 +272,7 @@ def _int_ids(names):
     return np.arange(1, len(names) + 1, dtype=np.int64)
 
 
+@writes_project("import", "out")
 def import_opensfm(path, out, index=0, sigma_image=1.0, force=False):
     """Import reconstruction ``index`` of the OpenSfM dataset ``path`` into a new project
     ``out``: one sapgo camera per OpenSfM camera (intrinsics held fixed), one photo per shot

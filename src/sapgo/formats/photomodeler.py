@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..lock import writes_project
 from ..errors import DataError, ParameterError
 from ..geometry import BACKWARD
 
@@ -164,6 +165,7 @@ def pm_correct(x, y, camera):
             y + v * radial + 2 * p1 * u * v + p2 * (r2 + 2 * v * v))
 
 
+@writes_project("import", "out")
 def import_photomodeler(path, out, force=False):
     """Import a PhotoModeler text export into a new project ``out``: one camera per
     distinct camera row of the photos (its distortion in the backward model, as

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from ..errors import ParameterError
+from ..lock import writes_project
 import numpy as np
 
 from ..project import TRUTH_BLUNDER_DTYPE, ProjectWriter, append_history
@@ -47,15 +48,20 @@ def block_spec(preset=None, **overrides):
     return BlockSpec(**params).check()
 
 
-def generate_block(path, preset=None, progress=None, **overrides):
+@writes_project("generate", "path")
+def generate_block(path, preset=None, progress=None, force=False, **overrides):
     """Generate a block into a new project file at ``path``; returns a summary dict.
 
     The records are streamed into the file a column block at a time (memory does not grow
     with the block beyond per-photo vectors); the file appears at ``path`` only when complete.
-    ``progress``: True, False or None (a progress bar when stderr is a terminal).
+    ``progress``: True, False or None (a progress bar when stderr is a terminal). An
+    existing ``path`` is refused unless ``force``.
     """
     from tqdm import tqdm
 
+    from ..project import new_project_path
+
+    new_project_path(path, force)
     if preset in SCENES:
         return _generate_scene(path, preset, **overrides)
     if any(overrides.get(k) is not None for k in FLIGHT_DESIGN):
