@@ -72,3 +72,35 @@ def test_reordering_an_adjusted_project_keeps_every_result(p1_block, capsys):
         np.testing.assert_array_equal(sig1[i], sig0[i])
     for k in q0:
         np.testing.assert_array_equal(q1[k], q0[k])
+
+
+def test_earlier_rejections_are_reported_and_can_be_reset(block_cache, tmp_path, capsys):
+    """Snooping's rejections stay out of later runs, said in the report; --reset-rejections
+    brings them back (issue 19, item 6)."""
+    import sapgo
+    from sapgo.project import STATUS_REJECTED
+
+    path = tmp_path / "b.h5"
+    path.write_bytes(block_cache("blunders", strips=3, photos_per_strip=8, control_points=8,
+                                 blunders=3).read_bytes())
+    s1 = sapgo.adjust(path, sapgo.Options(snooping=True, progress=False))
+    n = len(s1.rejected)
+    found = s1.blunder_check["found"]
+    assert n >= 1 and found >= 1
+
+    def rejected():
+        with Project(path) as p:
+            return int((p.read_field("observations", "status") == STATUS_REJECTED).sum())
+
+    assert rejected() == n
+    code, out, _ = run_cli(capsys, "adjust", path, "--no-progress")
+    assert code == 0
+    assert f"{n} observation(s) rejected by an earlier run are kept out" in out
+    assert "--reset-rejections" in out
+    assert rejected() == n
+    code, out, _ = run_cli(capsys, "adjust", path, "--no-progress", "--reset-rejections",
+                           "--snooping")
+    assert code == 0 and f"{n} observation(s) rejected by an earlier run were brought back" in out
+    assert f"planted blunders: {found} of 3 found" in out
+    s = sapgo.adjust(path, sapgo.Options(reset_rejections=True, progress=False))
+    assert s.rejections_reset == n and s.rejections_kept == 0 and rejected() == 0

@@ -45,6 +45,7 @@ from .solve.band import (
 )
 from .errors import (
     DatumDefectError,
+    ParameterError,
     ProjectFormatError,
     SapgoError,
     SingularNormalsError,
@@ -57,6 +58,7 @@ from .geometry import (
     INTRINSICS,
     N_CALIBRATION,
     camera_array,
+    project_observations,
     turned,
 )
 from .normals import (
@@ -150,6 +152,9 @@ class Options:
     snooping_alpha: float = 0.001
     #: Data snooping rejects at most this many observations.
     max_rejections: int = 1000
+    #: Bring back the observations an earlier run rejected (data snooping flags them
+    #: rejected in the project; without this they stay out, and the report says how many).
+    reset_rejections: bool = False
     #: Correlations of a station's or a point's parameters above this are listed.
     correlation_threshold: float = 0.9
     #: "auto" (Gauss-Newton; Levenberg-Marquardt from the first step that raises the cost,
@@ -187,14 +192,43 @@ class Options:
     client: object = None
 
     def check(self):
+        """Refuse, before any work, every option out of its range (one line each)."""
+        from .ordering import ORDERINGS
+
+        def number(name, value, lo, hi, what, closed_hi=False):
+            try:
+                v = float(value)
+            except (TypeError, ValueError):
+                v = math.nan
+            if not (math.isfinite(v) and lo < v and (v <= hi if closed_hi else v < hi)):
+                raise ParameterError(f"{name} {value!r}: {what}")
+
+        for name in ("max_iterations", "max_rejections", "chunk_points", "chunk_rows"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise ParameterError(f"{name} {v!r}: a whole number")
         if self.max_iterations < 1:
-            raise SapgoError("max_iterations must be at least 1")
-        if not (self.tol_position > 0 and self.tol_angle > 0 and self.tol_sigma0 > 0):
-            raise SapgoError("the convergence tolerances must be positive")
+            raise ParameterError(f"--max-iterations (max_iterations) {self.max_iterations}: "
+                                 f"at least 1")
+        if self.max_rejections < 0:
+            raise ParameterError(f"max_rejections {self.max_rejections}: 0 or more")
+        for name in ("tol_position", "tol_angle", "tol_sigma0"):
+            number(f"--{name.replace('_', '-')} ({name})", getattr(self, name), 0.0, math.inf,
+                   "the convergence tolerances must be positive and finite")
+        number("--alpha (snooping_alpha)", self.snooping_alpha, 0.0, 1.0,
+               "the significance level of data snooping is a probability between 0 and 1 "
+               "(e.g. 0.001)")
+        number("correlation_threshold", self.correlation_threshold, 0.0, 1.0,
+               "a correlation above 0, at most 1", closed_hi=True)
+        number("robust_tolerance", self.robust_tolerance, 0.0, math.inf,
+               "a positive fraction")
+        if self.ordering not in ORDERINGS:
+            raise ParameterError(f"ordering {self.ordering!r}: choose from "
+                                 f"{', '.join(ORDERINGS)}")
         if self.method not in METHODS:
             raise SapgoError(f"method {self.method!r}: one of {', '.join(METHODS)}")
-        if not self.lm_initial_mu > 0 or not self.tol_cost > 0:
-            raise SapgoError("lm_initial_mu and tol_cost must be positive")
+        number("lm_initial_mu", self.lm_initial_mu, 0.0, math.inf, "positive and finite")
+        number("--tol-cost (tol_cost)", self.tol_cost, 0.0, math.inf, "positive and finite")
         if self.chunk_points < 1 or self.chunk_rows < 1:
             raise SapgoError("chunk sizes must be positive")
         if not 0 <= self.pivot_tolerance < 1:
@@ -205,8 +239,8 @@ class Options:
             raise SapgoError(f"solver {self.solver!r}: choose auto, band or tree")
         if self.robust not in (None, "huber", "cauchy"):
             raise SapgoError(f"robust {self.robust!r}: choose huber or cauchy")
-        if not self.robust_threshold_um > 0:
-            raise SapgoError("the robust threshold must be positive (um)")
+        number("--robust-threshold (robust_threshold_um)", self.robust_threshold_um, 0.0, math.inf,
+               "the robust threshold must be positive (um)")
         if isinstance(self.calibrate, str):
             self.calibrate = tuple(x for x in self.calibrate.replace(",", " ").split() if x)
         self.calibrate = tuple(self.calibrate)
@@ -1163,6 +1197,8 @@ def _cost(p: Project, work, blk: _Block, opts: Options):
         img, ctl = point_costs(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
                                c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active,
                                blk.eo, blk.camera, blk.cams, CTRL_MASK)
+        if not math.isfinite(img):
+            raise SapgoError(f"{p.path}: {_nonfinite_ray(p, c, blk)}")
         vpv += img + ctl
     for a, b in p.chunks("station_priors", opts.chunk_points):
         pr = p.read("station_priors", a, b)
@@ -1171,6 +1207,41 @@ def _cost(p: Project, work, blk: _Block, opts: Options):
         v[:, :3] = _wrap(v[:, :3])
         vpv += float(np.einsum("ni,nij,nj->", v, pr["weight"], v))
     return 0.5 * vpv
+
+
+def _diverged(p: Project, work, blk: _Block, opts: Options, it):
+    """The message of a step that made the cost non-finite: its first such observation."""
+    for a, b in p.chunks("points", opts.chunk_points):
+        c = PointChunk(p, a, b, work.xyz_next[a:b], blk.camera, blk.cam_sigma, blk.frame,
+                       blk.rejected, blk.rejected_points)
+        res = np.asarray(work.res_next[c.o0:c.o1])
+        if not np.isfinite(res[c.obs_active]).all():
+            return (f"{p.path}: the adjustment diverged: "
+                    + _nonfinite_ray(p, c, blk, res, f"after iteration {it}"))
+    return f"{p.path}: the adjustment diverged at iteration {it} (sigma0 is not finite)"
+
+
+def _nonfinite_ray(p: Project, c, blk: _Block, res=None, when="at the starting values"):
+    """The one-line message of the first active observation of chunk ``c`` whose residual
+    (``res``, else projected here) is not finite: its record, point and photo."""
+    n = c.stop - c.start
+    if res is None:
+        res = np.zeros((c.o1 - c.o0, 2))
+        point_of = np.repeat(np.arange(n), c.nobs)
+        project_observations(c.obs_station, point_of, blk.eo, c.xyz, blk.camera, blk.cams,
+                             res)
+        res -= c.obs_xy
+    point_of = np.repeat(np.arange(c.start, c.stop), c.nobs)
+    bad = np.flatnonzero(~np.isfinite(res).all(axis=1) & c.obs_active
+                         & (c.active[point_of - c.start] == 0))
+    if not len(bad):
+        return f"the cost is not finite {when} (no single observation at fault)"
+    i = int(bad[0])
+    pid = int(p.read_field("points", "id", int(point_of[i]), int(point_of[i]) + 1)[0])
+    sid = int(blk.station_ids[c.obs_station[i]])
+    return (f"observations record {c.o0 + i} (point id {pid}, photo id {sid}): its "
+            f"residual is not finite {when}: check the point's and the photo's values (units, "
+            f"columns) and the camera")
 
 
 def _factor_solve(p: Project, work: Work, blk: _Block, opts: Options, it=0, mu=0.0):
@@ -1281,7 +1352,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             elif opts.method == "auto":
                 ok = ok and cost <= prev_cost * (1.0 + 1e-9)
         if not ok and not lm and not (reject and opts.method != "gauss-newton"):
-            raise SapgoError("the adjustment diverged (sigma0 is not finite)")
+            raise SapgoError(_diverged(p, work, blk, opts, it))
         accepted = _accepted(log)
         prev = accepted[-1]["sigma0"] if accepted else None
         log.append({
@@ -1399,7 +1470,8 @@ def adjust(path, options: Options | None = None) -> Summary:
             _set_fixed(types.SimpleNamespace(
                 station_ids=p.read_field("stations", "id"),
                 station_active=p.read_field("stations", "status") == STATUS_ACTIVE), p, opts)
-        needs_order = _needs_order(p, opts)
+        n_rejected = _earlier_rejections(p)
+        needs_order = _needs_order(p, opts) or bool(opts.reset_rejections and n_rejected)
         source_uuid = p.attr("uuid", "")
     order_info = None
     checkpoint = Work.load_checkpoint(wpath) if opts.resume else None
@@ -1413,18 +1485,26 @@ def adjust(path, options: Options | None = None) -> Summary:
             checkpoint = None  # (a run on another ordered copy cannot be resumed)
             t0 = time.perf_counter()
             order_info = order_project(path, opts.ordering, memory=opts.memory,
-                                       solver=opts.solver, out=ordered)
+                                       solver=opts.solver, out=ordered,
+                                       reset_rejections=opts.reset_rejections)
             timings["order"] = time.perf_counter() - t0
     else:
         ordered.unlink(missing_ok=True)   # (an interrupted run's, of an older project)
     try:
+        earlier = (0, n_rejected) if opts.reset_rejections else (n_rejected, 0)
         summary = _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings,
-                                  t_start)
+                                  t_start, earlier)
     except SapgoError:
         ordered.unlink(missing_ok=True)
         raise
     ordered.unlink(missing_ok=True)
     return summary
+
+
+def _earlier_rejections(p: Project):
+    """Observations flagged rejected in the project (by an earlier run's data snooping)."""
+    return sum(int((p.read_field("observations", "status", a, b) == STATUS_REJECTED).sum())
+               for a, b in p.chunks("observations"))
 
 
 def ordered_path(path):
@@ -1445,9 +1525,11 @@ def _ordered_copy_of(ordered, source_uuid):
         return False
 
 
-def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_start):
+def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_start,
+                    earlier=(0, 0)):
     """:func:`adjust` on the ordered project ``src`` (``path`` itself, or its ordered copy);
-    the results are committed to ``path``."""
+    the results are committed to ``path``. ``earlier``: the observations an earlier run
+    rejected, (kept out, brought back), for the report."""
     log = []
     resumed_from = None
     with Project(src, "r") as p:
@@ -1565,7 +1647,7 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                                  f"{opts.max_iterations} and a checkpoint at iteration "
                                  f"{work.state})")
             summary = _commit(path, p, work, blk, log, converged, opts, order_info, run,
-                              timings, t_start, resumed_from)
+                              timings, t_start, resumed_from, earlier)
         except SapgoError:
             # the data cannot be adjusted: nothing worth resuming
             work.close()
@@ -1794,7 +1876,7 @@ class ReportSums:
 
 
 def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts, order_info,
-            run, timings, t_start, resumed_from):
+            run, timings, t_start, resumed_from, earlier=(0, 0)):
     """Write the adjusted values and the report into a copy of the project, then replace it.
 
     The project is never opened for writing: the copy gets ``/solution`` and the history and
@@ -1840,6 +1922,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
                                blk.eo[a:b][act])
     excluded_stations = blk.station_ids[~blk.station_active]
     summary = Summary(
+        rejections_kept=earlier[0], rejections_reset=earlier[1],
         path=str(path),
         converged=converged,
         termination=(

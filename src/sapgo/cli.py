@@ -251,7 +251,7 @@ def cmd_adjust(args):
         robust=args.robust,
         robust_threshold_um=args.robust_threshold,
         snooping=args.snooping,
-        snooping_alpha=args.alpha,
+        snooping_alpha=args.alpha, reset_rejections=args.reset_rejections,
         method=args.method,
         tol_cost=args.tol_cost,
         calibrate=args.calibrate or (),
@@ -590,6 +590,8 @@ def _output_options(parser):
 
 
 def build_parser():
+    from .ordering import ORDERINGS
+
     ap = argparse.ArgumentParser(
         prog="sapgo",
         description="Out-of-core bundle block adjustment (after the 1974 SAPGO program).",
@@ -634,10 +636,11 @@ def build_parser():
 
     o = sub.add_parser("order", help="order stations and points to minimise the band width")
     o.add_argument("project")
-    o.add_argument("--method", default="best",
-                   help="best (default: the least band width of all), across_strip, "
-                        "down_strip, diagonal, spiral, reverse_cuthill_mckee, "
-                        "across_strip_by_position, sweep_0 ... sweep_165")
+    o.add_argument("--method", default="best", choices=ORDERINGS, metavar="ORDERING",
+                   help="the band's station order: best (default: the least band width of "
+                        "all), across_strip, down_strip, diagonal, spiral, "
+                        "reverse_cuthill_mckee, across_strip_by_position, sweep_0 ... "
+                        "sweep_165 (every 15 degrees)")
     o.add_argument("--memory", default=None, metavar="SIZE",
                    help="memory budget of the external sorts, e.g. 256M or 2G (default 512M)")
     o.add_argument("--solver", choices=("auto", "band", "tree"), default="auto",
@@ -776,7 +779,11 @@ def build_parser():
                         "(default 0.1)")
     a.add_argument("--tol-sigma0", type=float, default=1e-3,
                    help="convergence: relative change of sigma0 below this (default 1e-3)")
-    a.add_argument("--ordering", default="best", help="ordering when the project is unordered")
+    a.add_argument("--ordering", default="best", choices=ORDERINGS, metavar="ORDERING",
+                   help="the station order when the project is unordered (as sapgo order "
+                        "--method): best (default), across_strip, down_strip, diagonal, "
+                        "spiral, reverse_cuthill_mckee, across_strip_by_position, sweep_0 ... "
+                        "sweep_165")
     a.add_argument("--solver", choices=("auto", "band", "tree"), default="auto",
                    help="the linear solver: band, tree (partition tree), or auto (default: "
                         "as the project is ordered; an unordered project is ordered for the "
@@ -800,6 +807,9 @@ def build_parser():
                    help="Baarda's data snooping: reject the observation with the largest "
                         "normalised residual above the critical value and adjust again, until "
                         "none is left (rejected observations are flagged, not deleted)")
+    a.add_argument("--reset-rejections", action="store_true",
+                   help="bring back the observations an earlier run's data snooping rejected "
+                        "(without it they stay out, and the report says how many)")
     a.add_argument("--alpha", type=float, default=0.001,
                    help="significance level of data snooping (default 0.001: |w| > 3.29)")
     a.add_argument("--method", choices=("auto", "gauss-newton", "levenberg-marquardt"),

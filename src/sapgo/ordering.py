@@ -307,6 +307,13 @@ def grid_orders(kx, ky, across):
     return out
 
 
+#: The station orders ``sapgo order`` and ``adjust --ordering`` take: "best" (the least band
+#: width of all) or one candidate of :func:`candidate_orders` by name.
+ORDERINGS = ("best", "across_strip", "across_strip_by_position", "down_strip", "diagonal",
+             "spiral", *(f"sweep_{deg}" for deg in range(0, 180, 15)),
+             "reverse_cuthill_mckee")
+
+
 def candidate_orders(xy, strip, active, edges, grid=None):
     """Candidate logical orders of the active stations: ``{name: perm}``.
 
@@ -442,7 +449,8 @@ def _ray_range(starts, counts, station, active):
 class _Chunk:
     """Points ``a:b`` of a project with their observations and exclusion flags."""
 
-    def __init__(self, p, a, b, station_active, station_points=None, fields=None):
+    def __init__(self, p, a, b, station_active, station_points=None, fields=None,
+                 reset=False):
         self.a, self.b = a, b
         self.pts = p.read("points", a, b)
         self.o0 = int(self.pts["obs_start"][0]) if b > a else 0
@@ -451,6 +459,11 @@ class _Chunk:
             self.obs = p.read("observations", self.o0, self.o1)
         else:
             self.obs = {f: p.read_field("observations", f, self.o0, self.o1) for f in fields}
+        if reset:   # (earlier rejections brought back)
+            status = self.obs["status"]
+            if isinstance(self.obs, dict):
+                self.obs["status"] = status = status.copy()
+            status[status == STATUS_REJECTED] = STATUS_ACTIVE
         self.starts = np.ascontiguousarray(self.pts["obs_start"] - self.o0)
         self.counts = np.ascontiguousarray(self.pts["n_obs"], dtype=np.int64)
         self.station = np.ascontiguousarray(self.obs["station"])
@@ -476,13 +489,14 @@ def _unique(x):
     return x[keep]
 
 
-def _station_activity(p, chunk):
+def _station_activity(p, chunk, reset=False):
     """Active stations and the station-graph edges after the exclusion rules.
 
     Passes over the point chunks until the active stations stop changing (usually one pass:
     nothing is excluded). Every pass also gathers the unique edges over its active rays, so
     the last pass, the one that changes nothing, delivers the graph as well. Returns
-    ``(active, (s, t))`` with ``s < t`` (int32 when the stations allow).
+    ``(active, (s, t))`` with ``s < t`` (int32 when the stations allow). ``reset``:
+    observations rejected by an earlier run count as active (``--reset-rejections``).
     """
     n_st = p.n_stations
     active = np.ones(n_st, np.bool_)
@@ -490,7 +504,8 @@ def _station_activity(p, chunk):
         per_station = np.zeros(n_st, np.int64)
         parts, n_parts, merged = [], 0, np.zeros(0, np.int64)
         for a, b in p.chunks("points", chunk):
-            c = _Chunk(p, a, b, active, per_station, fields=("station", "status"))
+            c = _Chunk(p, a, b, active, per_station, fields=("station", "status"),
+                       reset=reset)
             k = _unique(_point_pairs(c.starts, c.counts, c.station, c.obs_active, n_st))
             parts.append(k)
             n_parts += len(k)
@@ -513,7 +528,7 @@ SOLVERS = ("auto", "band", "tree")
 
 @writes_project("order", "path")
 def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver="auto",
-                  leaf_stations=None, out=None):
+                  leaf_stations=None, out=None, reset_rejections=False):
     """Order a project: exclusions, station order, point order, records rewritten.
 
     ``method`` is ``"best"`` (smallest band width of all candidates) or one candidate name
@@ -528,6 +543,8 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
     rewritten through a temporary file that replaces it only when complete; with ``out``
     the ordered project is written there instead (attribute ``ordered_from``: the uuid of
     ``path``) and ``path`` is left as it was (``sapgo adjust`` orders into its commit).
+    ``reset_rejections``: observations rejected by an earlier run (data snooping) are
+    active again in the ordered project.
     """
     import time
 
@@ -542,7 +559,8 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
         if solver not in SOLVERS:
             raise ParameterError(f"unknown solver {solver!r}; choose from {', '.join(SOLVERS)}")
         try:
-            result = _order(p, work, method, memory, chunk, solver, leaf_stations, out)
+            result = _order(p, work, method, memory, chunk, solver, leaf_stations, out,
+                            reset_rejections)
         finally:
             shutil.rmtree(work, ignore_errors=True)
     result.seconds = time.perf_counter() - t0
@@ -611,11 +629,12 @@ def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stati
     return None, None, predicted
 
 
-def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, out=None):
+def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, out=None,
+           reset=False):
 
     stations = p.read("stations")
     n_st, n_pt = p.n_stations, p.n_points
-    st_active, edges = _station_activity(p, chunk)
+    st_active, edges = _station_activity(p, chunk, reset)
 
     identity = np.arange(n_st)
     b_before = band_width_of(identity, edges)
@@ -669,7 +688,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
             ProjectWriter(out or p.path, attrs, truth=has_truth, tmp_suffix=".order.tmp") as w:
         # 1. points keyed by (min, max) logical station of their active rays
         for a, b_ in p.chunks("points", chunk):
-            c = _Chunk(p, a, b_, st_active, fields=("station", "status"))
+            c = _Chunk(p, a, b_, st_active, fields=("station", "status"), reset=reset)
             new_st = pos[c.station]
             smin, smax = _ray_range(c.starts, c.counts, new_st, c.obs_active)
             rec = np.zeros(b_ - a, pt_dtype)
@@ -735,7 +754,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
                                 "observations") as obs_sort:
                 maps = rechunk(map_sort.sorted_chunks(), chunk)
                 for (a, b_), m in zip(p.chunks("points", chunk), maps):
-                    c = _Chunk(p, a, b_, st_active)
+                    c = _Chunk(p, a, b_, st_active, reset=reset)
                     rec = np.zeros(c.o1 - c.o0, ob_dtype)
                     rec["point"] = np.repeat(m["new"], c.counts)
                     rec["station"] = pos[c.station]

@@ -541,7 +541,8 @@ def write_pattern(net: Network, path, ordering, max_cells=600):
     np.maximum.at(img, (ri, ci), value)
     img = np.maximum(img, img.T)
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 7))
+    # constrained layout: the legend goes under the axes, outside the matrix
+    fig, ax = plt.subplots(figsize=(7, 7.6), layout="constrained")
     cmap = ListedColormap(["white", "#f4b183", "#1f4e79"])
     ax.imshow(img, cmap=cmap, vmin=0, vmax=2, interpolation="nearest",
               extent=(-0.5, n - 0.5, n - 0.5, -0.5))
@@ -549,9 +550,19 @@ def write_pattern(net: Network, path, ordering, max_cells=600):
         for b in np.flatnonzero(np.diff(lines[perm])) + 0.5:
             ax.axhline(b, color="0.8", lw=0.5)
             ax.axvline(b, color="0.8", lw=0.5)
+    unit = net.kind[:-1] if net.kind.endswith("s") else net.kind
+    ax.set_xlabel(f"{unit} number in the {ordering} order (column of M)")
+    ax.set_ylabel(f"{unit} number (row of M)")
     ax.set_title(f"pattern of M, {ordering}: {n} {net.kind}, "
-                 f"{int((~fill).sum())} blocks (lower), {int(fill.sum())} fill-in")
-    ax.legend(handles=[Patch(color="#1f4e79", label="non-zero block of M"),
-                       Patch(color="#f4b183", label="fill-in")], loc="upper right", fontsize=8)
+                 f"{int((~fill).sum())} blocks (lower), {int(fill.sum())} fill-in"
+                 + (f"\n(drawn in {cells} x {cells} cells)" if cells < n else ""),
+                 fontsize=10)
+    handles = [Patch(color="#1f4e79", label="non-zero block of M"),
+               Patch(color="#f4b183", label="fill-in of the factor")]
+    if n <= max_cells and lines is not None:
+        handles.append(Patch(facecolor="white", edgecolor="0.6",
+                             label="boundaries of the ordering's lines"))
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8,
+               frameon=False)
     fig.savefig(path, dpi=120)
     plt.close(fig)

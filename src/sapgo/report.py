@@ -382,6 +382,10 @@ class Summary:
     image_unit: str = "mm"
     #: Observations rejected by data snooping (photo and point ids, normalised residual).
     rejected: list = dataclasses.field(default_factory=list)
+    #: Observations an earlier run rejected, kept out of this one (0 with
+    #: ``--reset-rejections``, which brought ``rejections_reset`` of them back).
+    rejections_kept: int = 0
+    rejections_reset: int = 0
     #: Planted blunders against the rejections: ``{"planted", "found", "false_rejections",
     #: "rejected_with_point", "detectable", "found_detectable", ...}``.
     blunder_check: dict | None = None
@@ -543,6 +547,12 @@ class Summary:
                    if m["median"] is not None else "")
             L.append(f"  reliability: mean redundancy number {r['mean_redundancy_number']:.2f}"
                      f"{mdb}; {r['uncontrolled']} observations uncontrolled in one direction")
+        if self.rejections_kept:
+            L.append(f"  {self.rejections_kept} observation(s) rejected by an earlier run are "
+                     f"kept out (sapgo adjust --reset-rejections brings them back)")
+        if self.rejections_reset:
+            L.append(f"  {self.rejections_reset} observation(s) rejected by an earlier run were "
+                     f"brought back (--reset-rejections)")
         if self.rejected:
             tested = [r for r in self.rejected if r.get("by", "test") == "test"]
             shown = ", ".join(f"photo {r['photo_id']} point {r['point_id']} (t {r['w']:.1f})"

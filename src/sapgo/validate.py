@@ -84,6 +84,7 @@ def check_values(project: Project, ordered_layout=True):
                 f"inside the format: check the coefficients and their units (k1 mm^-2, "
                 f"k2 mm^-4, k3 mm^-6, p1 and p2 mm^-1)"
             )
+    cam_of_station = np.zeros(n_st, np.int64)
     for a, b in project.chunks("stations"):
         st = project.read("stations", a, b)
         _check_finite("stations", a, st["id"], "eo", st["eo"])
@@ -91,6 +92,8 @@ def check_values(project: Project, ordered_layout=True):
         if i >= 0:
             raise DataError(f"stations record {a + i} (id {st['id'][i]}): camera index "
                             f"{st['camera'][i]} is not one of the {n_cam} cameras")
+        cam_of_station[a:b] = st["camera"]
+    _check_station_spread(project)
     for a, b in project.chunks("station_priors"):
         pr = project.read("station_priors", a, b)
         i = _first_bad((pr["station"] < 0) | (pr["station"] >= n_st))
@@ -125,6 +128,11 @@ def check_values(project: Project, ordered_layout=True):
         pts = project.read("points", a, b)
         ids = pts["id"]
         _check_finite("points", a, ids, "xyz", pts["xyz"])
+        i = _first_bad((np.abs(pts["xyz"]) > MAX_COORDINATE).any(axis=1))
+        if i >= 0:
+            raise DataError(f"points record {a + i} (id {ids[i]}): xyz {_triple(pts['xyz'][i])}"
+                            f" is beyond {MAX_COORDINATE:.0e} m from the frame's origin: "
+                            f"check its units and columns")
         kind = pts["kind"]
         i = _first_bad((kind < 0) | (kind > KIND_CHECK))
         if i >= 0:
@@ -180,6 +188,22 @@ def check_values(project: Project, ordered_layout=True):
         if i >= 0:
             raise DataError(f"observations record {a + i}: sigma must not be negative "
                             f"(0 takes the camera's sigma_image)")
+        c = cams[cam_of_station[obs["station"]]]
+        reach = FORMAT_REACH * np.maximum(c["format_x"], c["format_y"])
+        far = (reach > 0) & ((np.abs(obs["x"] - c["x0"]) > reach)
+                             | (np.abs(obs["y"] - c["y0"]) > reach))
+        i = _first_bad(far)
+        if i >= 0:
+            pid = project.read("points", int(pt[i]), int(pt[i]) + 1)["id"][0]
+            sid = project.read("stations", int(obs["station"][i]),
+                               int(obs["station"][i]) + 1)["id"][0]
+            unit = project.attr("image_unit", "mm") or "mm"
+            raise DataError(
+                f"observations record {a + i} (point id {pid}, photo id {sid}): image "
+                f"coordinates ({obs['x'][i]:.6g}, {obs['y'][i]:.6g}) {unit} lie far outside "
+                f"camera {c['id'][i]}'s format ({c['format_x'][i]:g} x {c['format_y'][i]:g} "
+                f"{unit}, principal point ({c['x0'][i]:g}, {c['y0'][i]:g})): check the "
+                f"measurement's units, its image frame (origin, axes) and its camera")
         i = _first_bad((obs["status"] != STATUS_ACTIVE) & (obs["status"] != STATUS_EXCLUDED)
                        & (obs["status"] != STATUS_REJECTED))
         if i >= 0:
@@ -191,6 +215,53 @@ def check_values(project: Project, ordered_layout=True):
         for a, b in project.chunks("truth/stations"):
             _check_finite("truth/stations", a, None, "eo",
                           project.read_field("truth/stations", "eo", a, b))
+
+
+#: Plausibility: an image coordinate farther than this many format widths from the
+#: principal point is an error (a unit, frame or camera mix-up), not a measurement.
+FORMAT_REACH = 2.0
+#: Plausibility: a coordinate beyond this (m) from the frame's origin is an error (beyond
+#: a planetary frame's reach: the Moon's orbit is 4e8 m).
+MAX_COORDINATE = 1e10
+#: Plausibility: a photo farther from the block's centre than this many times the block's
+#: own size is an error.
+STATION_REACH = 100.0
+
+
+def _triple(v):
+    return "(" + ", ".join(f"{x:.6g}" for x in v) + ")"
+
+
+def _check_station_spread(project):
+    """Photos at absurd positions: beyond :data:`MAX_COORDINATE`, or farther from the
+    median photo than :data:`STATION_REACH` times the block's size (the median distance of
+    the photos from it, at least the median distance of the points from it, at least 1 m)."""
+    pos = np.concatenate([project.read_field("stations", "eo", a, b)[:, 3:6]
+                          for a, b in project.chunks("stations")])
+    ids = project.read_field("stations", "id")
+    i = _first_bad((np.abs(pos) > MAX_COORDINATE).any(axis=1))
+    if i >= 0:
+        raise DataError(f"stations record {i} (id {ids[i]}): X, Y, Z {_triple(pos[i])} are "
+                        f"beyond {MAX_COORDINATE:.0e} m from the frame's origin: check the "
+                        f"photo's units and columns")
+    if len(pos) < 2:
+        return
+    centre = np.median(pos, axis=0)
+    dist = np.linalg.norm(pos - centre, axis=1)
+    size = float(np.median(dist))
+    n_pt = project.n_points
+    if n_pt:
+        starts = np.unique(np.linspace(0, max(n_pt - 4096, 0), 16).astype(np.int64))
+        xyz = np.concatenate([project.read_field("points", "xyz", int(a), int(a) + 4096)
+                              for a in starts])   # (a sample: 16 runs of 4096 points)
+        size = max(size, float(np.median(np.linalg.norm(xyz - centre, axis=1))))
+    size = max(size, 1.0)
+    i = int(np.argmax(dist))
+    if dist[i] > STATION_REACH * size:
+        raise DataError(f"stations record {i} (id {ids[i]}): X, Y, Z {_triple(pos[i])} lie "
+                        f"{dist[i]:.3g} m from the block's median photo, {dist[i] / size:.0f} "
+                        f"times the block's size ({size:.3g} m): check the photo's "
+                        f"coordinates (units, columns, frame)")
 
 
 def _distortion_fold(cam):
