@@ -13,6 +13,10 @@ Python entry points (each command of the ``sapgo`` tool calls one of these)::
 
 __version__ = "0.1.0"
 
+from . import kernelcache as _kernelcache  # noqa: E402
+
+_kernelcache.configure(__version__)   # (before any module defines a kernel)
+
 from .errors import (  # noqa: E402
     DataError,
     DatumDefectError,

@@ -57,6 +57,7 @@ from .geometry import (
     FORWARD,
     INTRINSICS,
     N_CALIBRATION,
+    N_CAMERA,
     camera_array,
     project_observations,
     turned,
@@ -76,11 +77,14 @@ from .normals import (
 from .ordering import order_project
 from .extsort import parse_memory
 from .project import (
-    STATUS_REJECTED,
     CONTROL_MASK,
     EO_NAMES,
     STATUS_ACTIVE,
+    STATUS_REJECTED,
     Project,
+    disk_full_error,
+    ensure_free,
+    is_disk_full,
 )
 from .report import (
     HighCorrelations,
@@ -1198,7 +1202,7 @@ def _cost(p: Project, work, blk: _Block, opts: Options):
                                c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active,
                                blk.eo, blk.camera, blk.cams, CTRL_MASK)
         if not math.isfinite(img):
-            raise SapgoError(f"{p.path}: {_nonfinite_ray(p, c, blk)}")
+            raise _nonfinite_error(p, c, blk)
         vpv += img + ctl
     for a, b in p.chunks("station_priors", opts.chunk_points):
         pr = p.read("station_priors", a, b)
@@ -1207,6 +1211,18 @@ def _cost(p: Project, work, blk: _Block, opts: Options):
         v[:, :3] = _wrap(v[:, :3])
         vpv += float(np.einsum("ni,nij,nj->", v, pr["weight"], v))
     return 0.5 * vpv
+
+
+def _nonfinite_error(p: Project, c, blk: _Block):
+    """The error of a non-finite cost at the starting values in chunk ``c``: its first
+    point behind (or in the plane of) a photo, named as the build names it, else its first
+    observation whose residual is not finite."""
+    rays = np.flatnonzero(c.obs_active)
+    behind = rays[_behind_depths(c, blk, rays) >= 0]
+    if len(behind):
+        j = int(np.searchsorted(c.pt_start, behind[0], side="right") - 1)
+        return _point_error(p, c, j, BEHIND_CAMERA, blk)
+    return SapgoError(f"{p.path}: {_nonfinite_ray(p, c, blk)}")
 
 
 def _diverged(p: Project, work, blk: _Block, opts: Options, it):
@@ -1497,6 +1513,12 @@ def adjust(path, options: Options | None = None) -> Summary:
     except SapgoError:
         ordered.unlink(missing_ok=True)
         raise
+    except (OSError, RuntimeError) as exc:   # a full disk: no temporaries are left
+        if not is_disk_full(exc):
+            raise
+        ordered.unlink(missing_ok=True)
+        shutil.rmtree(wpath, ignore_errors=True)
+        raise disk_full_error(path, exc) from None
     ordered.unlink(missing_ok=True)
     return summary
 
@@ -1532,7 +1554,7 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
     rejected, (kept out, brought back), for the report."""
     log = []
     resumed_from = None
-    with Project(src, "r") as p:
+    with Project(src, "r", shown=path) as p:
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
         _set_fixed(blk, p, opts)
@@ -1980,11 +2002,15 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     )
     its = max(1, len(log))
     summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}
+    solution_bytes = 8 * (p_read.n_stations * (18 + 2 * N_CAMERA) + p_read.n_points * 6
+                          + p_read.n_observations * 6)
     p_read.close()
 
     tmp = path.with_name(path.name + ".commit.tmp")
     try:
-        shutil.copyfile(p_read.path, tmp)   # (the project, or the run's ordered copy of it)
+        ensure_free(tmp, os.path.getsize(p_read.file_path) + solution_bytes,
+                    f"the adjusted copy of {path.name}")
+        shutil.copyfile(p_read.file_path, tmp)   # (the project, or the run's ordered copy of it)
         _fault("commit-copy")
         with Project(tmp, "r+") as q:
             if "ordered_from" in q.file.attrs:

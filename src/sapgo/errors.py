@@ -44,3 +44,8 @@ class ClosedProjectError(SapgoError):
 
 class ParameterError(SapgoError, ValueError):
     """An option or parameter is out of range."""
+
+
+class DiskFullError(SapgoError):
+    """The disk (or the project's folder's filesystem) is full, or would be: nothing was
+    changed and the temporaries are gone."""

@@ -145,6 +145,9 @@ class ExternalSorter:
         buf = self._sorted_buffer()
         if len(buf):
             path = self.dir / f"{self.name}.run{len(self._runs):05d}.bin"
+            from .project import ensure_free
+
+            ensure_free(self.dir, buf.nbytes, "a run of the external sort")
             buf.tofile(path)
             self._runs.append(_Run(path, self.dtype, len(buf)))
 

@@ -113,8 +113,16 @@ def writes_project(command, target):
 
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
+            from .project import disk_full_error, is_disk_full
+
             bound = sig.bind_partial(*args, **kwargs)
-            with project_lock(bound.arguments[target], command):
-                return fn(*args, **kwargs)
+            path = bound.arguments[target]
+            with project_lock(path, command):
+                try:
+                    return fn(*args, **kwargs)
+                except (OSError, RuntimeError) as exc:   # (the writers removed their files)
+                    if is_disk_full(exc):
+                        raise disk_full_error(path, exc) from None
+                    raise
         return wrapper
     return deco

@@ -200,6 +200,59 @@ def solution_dataset(group, name, n):
         chunks=(max(1, min(n, CHUNK_RECORDS)),) + shape, fillvalue=0.0, **CHECKSUM)
 
 
+#: Bytes every writer leaves free beyond its estimate (HDF5's metadata, the chunk cache,
+#: the commit's report): a write that would leave less is refused before it starts
+#: (``SAPGO_DISK_MARGIN`` bytes instead: the tests fill a small disk for real with 0).
+DISK_MARGIN = int(os.environ.get("SAPGO_DISK_MARGIN", 32 << 20))
+
+
+def ensure_free(path, need, what):
+    """Refuse (:class:`~sapgo.errors.DiskFullError`, one line) to write ``need`` more bytes
+    to the filesystem of ``path`` (a file or folder; its nearest existing folder) when fewer
+    than ``need`` + :data:`DISK_MARGIN` are free. ``what``: what would be written."""
+    import shutil as _sh
+
+    from .errors import DiskFullError
+
+    folder = Path(os.path.abspath(path))
+    while not folder.is_dir() and folder != folder.parent:
+        folder = folder.parent
+    free = _sh.disk_usage(folder).free
+    if free < need + DISK_MARGIN:
+        raise DiskFullError(
+            f"{folder}: not enough free space for {what}: it needs about "
+            f"{_size(need + DISK_MARGIN)}, {_size(free)} are free; free some space or give "
+            f"another folder")
+
+
+def _size(n):
+    for unit, k in (("GB", 1 << 30), ("MB", 1 << 20), ("kB", 1 << 10)):
+        if n >= k:
+            return f"{n / k:.1f} {unit}"
+    return f"{n} bytes"
+
+
+def is_disk_full(exc):
+    """Is ``exc`` a write that failed for want of space (ENOSPC, EDQUOT, or HDF5's report
+    of one)?"""
+    import errno as _errno
+
+    if isinstance(exc, OSError) and exc.errno in (_errno.ENOSPC, _errno.EDQUOT):
+        return True
+    return (isinstance(exc, (OSError, RuntimeError))
+            and ("No space left" in str(exc) or "Disk quota exceeded" in str(exc)))
+
+
+def disk_full_error(path, exc=None):
+    """The one-line :class:`~sapgo.errors.DiskFullError` of a write to ``path`` that ran out
+    of space."""
+    from .errors import DiskFullError
+
+    return DiskFullError(f"{path}: the disk is full (no space left on its filesystem): "
+                         f"nothing was changed and the temporary files are removed; free some "
+                         f"space and run the command again")
+
+
 def _now():
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
 
@@ -231,6 +284,7 @@ class ProjectWriter:
         if self.path.is_dir():
             raise IsADirectoryError(21, "Is a directory", str(self.path))
         self.tmp = self.path.with_name(self.path.name + tmp_suffix)
+        ensure_free(self.path.parent, 0, f"the new project {self.path.name}")
         self._f = h5py.File(self.tmp, "w")
         f = self._f
         f.attrs["format"] = FORMAT_NAME
@@ -269,6 +323,7 @@ class ProjectWriter:
         """Append records to dataset ``name``; returns the record number of the first."""
         ds = self._f[name]
         records = np.asarray(records, dtype=ds.dtype)
+        ensure_free(self.tmp, 2 * records.nbytes, f"the new project {self.path.name}")
         n = ds.shape[0]
         if len(records):
             ds.resize((n + len(records),))
@@ -288,8 +343,11 @@ class ProjectWriter:
 
     def abort(self):
         if self._f is not None:
-            self._f.close()
-            self._f = None
+            f, self._f = self._f, None
+            try:
+                f.close()
+            except (OSError, RuntimeError):   # (a full disk: the file goes anyway)
+                pass
         self.tmp.unlink(missing_ok=True)
 
     def __enter__(self):
@@ -377,8 +435,11 @@ class Project:
             print(p.n_stations, p.band_width)
     """
 
-    def __init__(self, path, mode="r"):
-        self.path = Path(path)
+    def __init__(self, path, mode="r", shown=None):
+        # ``shown``: the name messages give (``sapgo adjust`` reads an unordered project's
+        # ordered copy, ``file_path``, under the project's own name)
+        self.file_path = Path(path)
+        self.path = self.file_path
         if mode not in ("r", "r+"):
             raise ValueError("mode must be 'r' or 'r+'")
         if not self.path.exists():
@@ -391,7 +452,7 @@ class Project:
             )
         self._held = {}
         try:
-            self._f = h5py.File(self.path, mode)
+            self._f = h5py.File(self.file_path, mode)
         except OSError as exc:
             raise ProjectFormatError(f"{self.path}: cannot open as HDF5 ({exc})") from None
         try:
@@ -399,6 +460,8 @@ class Project:
         except Exception:
             self._f.close()
             raise
+        if shown is not None:
+            self.path = Path(shown)
 
     # -- validation ---------------------------------------------------------------------
     def _validate_structure(self):

@@ -35,11 +35,18 @@ FAULT_ENV = "SAPGO_FAULT"
 
 
 def _fault(phase, iteration=0):
+    """``SAPGO_FAULT=phase:iteration`` kills the process there; ``enospc@phase:iteration``
+    raises the error of a full disk there instead (the disk-full tests)."""
     spec = os.environ.get(FAULT_ENV)
     if not spec:
         return
+    kind, _, spec = spec.rpartition("@")
     want_phase, _, want_it = spec.partition(":")
     if want_phase == phase and want_it in ("*", "", str(iteration)):
+        if kind == "enospc":
+            import errno
+
+            raise OSError(errno.ENOSPC, "No space left on device")
         os.kill(os.getpid(), signal.SIGKILL)
 
 
@@ -65,6 +72,12 @@ class Work:
             self.dir.mkdir(parents=True)
         bw = band_width
         k = self.block = block
+        if create:   # (the files are sparse: the bytes they can come to)
+            from .project import ensure_free
+
+            need = 8 * (self.n_st * k * (k * bw + 1 + n_border) + 2 * self.n_pt * 3
+                        + 2 * self.n_obs * 2)
+            ensure_free(self.dir, need, "the run's work files")
         self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=mode)
         self.y = RawArray(self.dir / "y.bin", (self.n_st, k), mode=mode)
         # self-calibration: the border columns of the band rows, then W = U'^-1 B

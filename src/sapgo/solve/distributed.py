@@ -250,7 +250,7 @@ def distributed_step(p, work, blk, opts, tree, solver, per, top, lam, iteration,
     with _Forwarded(client, bar or _NoBar()) as fw:
         results, futures = _round(
             client, "step", part_step,
-            [(str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts, tree_f,
+            [(str(p.file_path), str(work.dir), work.band_width, work.state, wblk, wopts, tree_f,
               (per, top), w, lam, iteration, solver.tile, TRACE["on"], fw.key)
              for w in range(len(per))], keep=True)
     work._dask_parts = [(f, r["update_nodes"]) for f, r in zip(futures, results)]
@@ -421,7 +421,7 @@ def distributed_update(p, work, blk, delta, opts, iteration, lam, dtheta, cams_n
     ranges = [[(int(pt[a]), int(pt[b])) for a, b in per[w]] for w in range(len(per))]
     with _Forwarded(client, bar or _NoBar()) as fw:
         results = _round(client, "update", part_update,
-                         [(str(p.path), str(work.dir), work.band_width, work.state, wblk,
+                         [(str(p.file_path), str(work.dir), work.band_width, work.state, wblk,
                            wopts, delta, ranges[w], cams_new, lam, dtheta, iteration, fw.key)
                           for w in range(len(per))])
     fw.finish(sum(b - a for rr in ranges for a, b in rr))
@@ -499,7 +499,7 @@ def distributed_quality(client, p, work, blk, opts, tree, per, held, sigma0, til
     for ranges in per:
         mine = {i: z for i, z in held.items()
                 if any(a <= i < b for a, b in ranges)}   # (the part's subtree roots)
-        args.append((str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts,
+        args.append((str(p.file_path), str(work.dir), work.band_width, work.state, wblk, wopts,
                      tree_f, ranges, mine, sigma0, tile, xb, threshold))
     for w, res in enumerate(_round(client, "quality", part_quality, args)):
         for (a, b), v in zip(per[w], res["var"]):
@@ -548,7 +548,7 @@ def distributed_report(client, p, work, blk, opts, sums):
     wblk = dataclasses.replace(blk, tree=None)
     ranges = [[(int(pt[a]), int(pt[b])) for a, b in r] for r in per]
     results = _round(client, "report", part_report,
-                     [(str(p.path), str(work.dir), work.band_width, work.state, wblk, wopts,
+                     [(str(p.file_path), str(work.dir), work.band_width, work.state, wblk, wopts,
                        ranges[w], sums.reliability is not None) for w in range(len(per))])
     for res in results:
         sums.merge(res["sums"])
@@ -1028,7 +1028,7 @@ def distributed_top(client, p, work, blk, opts, tree, solver, top, parts, lam, d
     layout = factor_layout(tree, k)
     wopts = dataclasses.replace(opts, client=None, progress=False)
     tree_f = work._tree_future
-    common = (str(p.path), str(work.dir), work.band_width, work.state, work._blk_future,
+    common = (str(p.file_path), str(work.dir), work.band_width, work.state, work._blk_future,
               wopts, tree_f)
     inputs = _top_inputs(p, work, blk, opts, tree, top, lam, diag)
     addresses = worker_addresses(client)
