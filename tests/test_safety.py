@@ -104,3 +104,42 @@ def test_earlier_rejections_are_reported_and_can_be_reset(block_cache, tmp_path,
     assert f"planted blunders: {found} of 3 found" in out
     s = sapgo.adjust(path, sapgo.Options(reset_rejections=True, progress=False))
     assert s.rejections_reset == n and s.rejections_kept == 0 and rejected() == 0
+
+
+def _exported(small_block, tmp_path, dx_mm):
+    """The small block as text files, its first measurement given again ``dx_mm`` apart."""
+    code = run_cli_plain("export", small_block, tmp_path / "txt")
+    assert code == 0
+    m = tmp_path / "txt" / "measurements.txt"
+    lines = m.read_text().splitlines()
+    first = lines[1].split()
+    again = " ".join([first[0], first[1], repr(float(first[2]) + dx_mm)] + first[3:])
+    m.write_text("\n".join(lines + [again]) + "\n")
+    args = ["import", tmp_path / "t.h5"]
+    for kind in ("cameras", "photos", "measurements", "control"):
+        args += [f"--{kind}", tmp_path / "txt" / f"{kind}.txt"]
+    return args, len(lines) + 1
+
+
+def run_cli_plain(*args):
+    from sapgo.cli import main
+
+    return main([str(a) for a in args])
+
+
+def test_conflicting_duplicates_are_an_error_unless_merged(small_block, tmp_path, capsys):
+    args, line = _exported(small_block, tmp_path, 0.5)   # 500 um apart, sigma 6 um
+    capsys.readouterr()
+    code, _, err = run_cli(capsys, *args)
+    assert_one_line_error(code, err, "measurements.txt:2 and", f"measurements.txt:{line}",
+                          "500.0 um apart", "--merge-duplicates")
+    assert not (tmp_path / "t.h5").exists()
+    code, out, err = run_cli(capsys, *args, "--merge-duplicates")
+    assert code == 0 and "duplicate image measurement(s) merged" in err + out
+
+
+def test_agreeing_duplicates_are_merged_with_a_warning(small_block, tmp_path, capsys):
+    args, _ = _exported(small_block, tmp_path, 0.002)   # 2 um apart: within 3 sigma
+    capsys.readouterr()
+    code, out, err = run_cli(capsys, *args)
+    assert code == 0 and "1 duplicate image measurement(s) merged" in err + out

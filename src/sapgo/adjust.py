@@ -104,6 +104,11 @@ from .validate import check_values
 ARCSEC = math.pi / (180 * 3600)
 #: Solution methods (:attr:`Options.method`).
 METHODS = ("auto", "gauss-newton", "levenberg-marquardt")
+#: Iterations of a run without ``max_iterations``: Gauss-Newton converges in a few, the
+#: damped steps of Levenberg-Marquardt (a free network, a BAL problem) may need many
+#: (Ceres' default, 50).
+GN_MAX_ITERATIONS = 10
+LM_MAX_ITERATIONS = 50
 #: Columns of the observations' quality (work file ``quality.bin``, ``/solution/obs_quality``).
 #: At most this many ids of excluded points or stations are listed in a report.
 LISTED_IDS = 1000
@@ -113,8 +118,9 @@ LISTED_IDS = 1000
 class Options:
     """How to adjust. Every default is what a SAPGO-P block needs."""
 
-    #: Stop after this many Gauss-Newton iterations even if not converged.
-    max_iterations: int = 10
+    #: Stop after this many iterations even if not converged (None: 10 Gauss-Newton
+    #: iterations, or :data:`LM_MAX_ITERATIONS` for a free network or Levenberg-Marquardt).
+    max_iterations: int | None = None
     #: Converged when every station position and point correction is below this (m) ...
     tol_position: float = 1e-4
     #: ... and every station angle correction below this (rad; default 0.1").
@@ -209,9 +215,11 @@ class Options:
 
         for name in ("max_iterations", "max_rejections", "chunk_points", "chunk_rows"):
             v = getattr(self, name)
+            if name == "max_iterations" and v is None:
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
                 raise ParameterError(f"{name} {v!r}: a whole number")
-        if self.max_iterations < 1:
+        if self.max_iterations is not None and self.max_iterations < 1:
             raise ParameterError(f"--max-iterations (max_iterations) {self.max_iterations}: "
                                  f"at least 1")
         if self.max_rejections < 0:
@@ -1472,7 +1480,7 @@ def _work_band(blk: _Block):
 @writes_project("adjust", "path")
 def adjust(path, options: Options | None = None) -> Summary:
     """Adjust the project at ``path``; see the module docstring. Returns a :class:`Summary`."""
-    opts = (options or Options()).check()
+    opts = dataclasses.replace(options or Options()).check()   # (a copy: filled in below)
     path = Path(path)
     t_start = time.perf_counter()
     timings = {"order": 0.0, "build": 0.0, "solve": 0.0, "update": 0.0, "commit": 0.0}
@@ -1563,6 +1571,10 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
 
             check_tree_memory(blk.tree, blk.npar, opts, path, len(blk.station_ids))
         blk.held = _hold_records(p, blk, opts)
+        if opts.max_iterations is None:
+            opts.max_iterations = (LM_MAX_ITERATIONS if blk.free
+                                   or opts.method == "levenberg-marquardt"
+                                   else GN_MAX_ITERATIONS)
         if blk.n_stations == 0:
             raise DatumDefectError(f"{path}: no station can be adjusted (every photo has fewer "
                                    f"than 3 determinable points)")

@@ -213,6 +213,8 @@ class _Import:
         self.chunk_bytes = max(64 << 10, memory // 32)
         self.block_records = max(4096, memory // (64 * MEAS_DTYPE.itemsize))
         self.src = _Sources()
+        #: conflicting duplicates (beyond 3 sigma) merged too, not refused
+        self.merge_all = False
         self.warnings = []
         self.lines = 0
         self.bytes = 0
@@ -743,6 +745,8 @@ class _Import:
         spread = np.maximum(
             np.maximum.reduceat(sub["x"], starts) - np.minimum.reduceat(sub["x"], starts),
             np.maximum.reduceat(sub["y"], starts) - np.minimum.reduceat(sub["y"], starts))
+        if not self.merge_all:
+            self._refuse_conflicts(sub, starts, sz, spread)
         out = o[g]  # a copy
         out["x"][dup_g] = xs / sz
         out["y"][dup_g] = ys / sz
@@ -759,6 +763,27 @@ class _Import:
             self.dup_examples.append(f"point {sub['point'][a]} on photo "
                                      f"{st_ids[sub['station'][a]]} ({where}{more})")
         return out
+
+    def _refuse_conflicts(self, sub, starts, sz, spread):
+        """Duplicates further apart than 3 sigma (their larger sigma, else the camera's) are
+        not one measurement: the first such pair is an error naming both lines."""
+        sig = np.maximum.reduceat(sub["sigma"], starts)
+        cam_sig = self.cameras["sigma_image"][self.stations["camera"][sub["station"][starts]]]
+        sig = np.where(sig > 0, sig, cam_sig)
+        bad = np.flatnonzero(spread > 3.0 * sig)
+        if not len(bad):
+            return
+        j = int(bad[0])
+        a, k = int(starts[j]), int(sz[j])
+        grp = sub[a:a + k]
+        d = np.hypot(grp["x"][:, None] - grp["x"][None, :], grp["y"][:, None] - grp["y"][None, :])
+        i1, i2 = np.unravel_index(int(np.argmax(d)), d.shape)
+        raise DataError(
+            f"{self.src.where(grp['loc'][i1])} and {self.src.where(grp['loc'][i2])}: point "
+            f"{grp['point'][i1]} is measured twice on photo "
+            f"{self.stations['id'][grp['station'][i1]]}, {d[i1, i2] * 1000.0:.1f} um apart "
+            f"(more than 3 sigma, {3000.0 * sig[j]:.1f} um): correct or remove one, or give "
+            f"--merge-duplicates to average them")
 
     def _assemble(self, o, ctl, point_base):
         """Point and observation records of one block of point ids."""
@@ -1062,8 +1087,12 @@ def read_image_frames(paths, cam_ids):
 def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles="deg",
                 memory=None, append=False, force=False, priors=(), prior_covariances=(),
                 crs=None, orientation="tangent", photos_matrix=(), rotation="opk",
-                image_frames=(), axis_order="en"):
+                image_frames=(), axis_order="en", merge_duplicates=False):
     """Import a block from text files into the project ``out``; returns a summary dict.
+
+    The same point measured more than once on one photo is merged (averaged, with a
+    warning) when the measurements agree within 3 sigma; measurements further apart are an
+    error naming their lines, unless ``merge_duplicates`` (``--merge-duplicates``).
 
     ``cameras``, ``photos``, ``measurements``, ``control``, ``priors`` (exposure-station
     priors with a sigma per parameter) and ``prior_covariances`` (with a full 6x6
@@ -1140,9 +1169,11 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     try:
-        summary = _Import(out, files, angles, memory, work,
-                          out if (append and exists) else None, crs, orientation,
-                          rotation, axis_order).run()
+        imp = _Import(out, files, angles, memory, work,
+                      out if (append and exists) else None, crs, orientation,
+                      rotation, axis_order)
+        imp.merge_all = bool(merge_duplicates)
+        summary = imp.run()
     finally:
         shutil.rmtree(work, ignore_errors=True)
     summary["seconds"] = time.perf_counter() - t0
