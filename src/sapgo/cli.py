@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -12,8 +13,36 @@ from . import __version__
 from .errors import ParameterError, SapgoError
 
 
+def _say(text=""):
+    """Print a line of a command's output on standard output, at once. When the reader
+    has gone (``sapgo info P | head -3``), the rest of the output is dropped without a
+    word and the command goes on (the files it writes are still written; its exit code
+    is its own)."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        _silence("stdout")
+
+
 def _warn(msg):
-    print(f"sapgo: warning: {msg}", file=sys.stderr)
+    try:
+        print(f"sapgo: warning: {msg}", file=sys.stderr, flush=True)
+    except BrokenPipeError:
+        _silence("stderr")
+
+
+def _silence(name):
+    """Send what is still to come on ``sys.stdout`` or ``sys.stderr`` (``name``) to
+    the null device: its reader closed the pipe (Python's recipe for SIGPIPE, so that
+    neither a later write nor the flush at exit complains about the broken pipe)."""
+    stream = getattr(sys, name)
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, stream.fileno())
+    except (AttributeError, OSError, ValueError):  # (not a file: a test's stand-in)
+        setattr(sys, name, open(os.devnull, "w"))
+    finally:
+        os.close(null)
 
 
 def _ids(ids, limit=20):
@@ -62,9 +91,9 @@ def cmd_generate(args):
         distortion=args.distortion, blunders=args.blunders, force=args.force,
         **irregular,
     )
-    print(f"generated {info['path']}: {info['photos']} photos in {info['strips']} strips, "
-          f"{info['points']} points ({info['control_points']} control, "
-          f"{info['check_points']} check), {info['observations']} image observations")
+    _say(f"generated {info['path']}: {info['photos']} photos in {info['strips']} strips, "
+         f"{info['points']} points ({info['control_points']} control, "
+         f"{info['check_points']} check), {info['observations']} image observations")
     return 0
 
 
@@ -76,19 +105,19 @@ def cmd_order(args):
     _report_exclusions(r.excluded_points, r.excluded_stations, r.n_excluded_points,
                        r.n_excluded_stations)
     cands = ", ".join(f"{k} {v}" for k, v in r.candidates.items())
-    print(f"band width before: {r.band_width_before}")
+    _say(f"band width before: {r.band_width_before}")
     if r.solver == "tree":
         t = r.tree
-        print(f"solver: tree ({t['method']} bisection): {t['nodes']} nodes, {t['leaves']} "
-              f"leaves, depth {t['depth']}, largest front {t['largest_front']} stations "
-              f"({t['largest_front_bytes'] / 2**20:.1f} MiB), fronts in core "
-              f"{t['fronts_bytes'] / 2**20:.1f} MiB (tiled beyond adjust's --memory), factor "
-              f"{t['factor_bytes'] / 2**20:.1f} MiB, {t['flops'] / 1e9:.2f} GFlop")
+        _say(f"solver: tree ({t['method']} bisection): {t['nodes']} nodes, {t['leaves']} "
+             f"leaves, depth {t['depth']}, largest front {t['largest_front']} stations "
+             f"({t['largest_front_bytes'] / 2**20:.1f} MiB), fronts in core "
+             f"{t['fronts_bytes'] / 2**20:.1f} MiB (tiled beyond adjust's --memory), factor "
+             f"{t['factor_bytes'] / 2**20:.1f} MiB, {t['flops'] / 1e9:.2f} GFlop")
     else:
-        print(f"band width after:  {r.band_width}  ({r.ordering}; candidates: {cands})")
+        _say(f"band width after:  {r.band_width}  ({r.ordering}; candidates: {cands})")
     if r.predicted:
         pred = ", ".join(f"{k} {v:.3g} s" for k, v in r.predicted.items())
-        print(f"predicted factorisation: {pred}")
+        _say(f"predicted factorisation: {pred}")
     return 0
 
 
@@ -96,9 +125,9 @@ def cmd_init(args):
     from .init import initialise
 
     r = initialise(args.project, method=args.method)
-    print(f"placed {r.photos_placed} of {r.photos} photos and intersected "
-          f"{r.points_intersected} points ({r.method} start, {r.sweeps} sweeps of resection "
-          f"and intersection); next: sapgo adjust {args.project}")
+    _say(f"placed {r.photos_placed} of {r.photos} photos and intersected "
+         f"{r.points_intersected} points ({r.method} start, {r.sweeps} sweeps of resection "
+         f"and intersection); next: sapgo adjust {args.project}")
     if r.photos_not_placed:
         _warn(f"{r.photos - r.photos_placed} photo(s) are not connected to two points of "
               f"known X, Y and keep their values: ids "
@@ -126,9 +155,9 @@ def cmd_import(args):
         r = import_photomodeler(args.paths[0], args.paths[1], force=args.force)
         datum = ("a free network" if r["free"] else
                  f"{r['control_points']} control points")
-        print(f"imported {r['path']}: {r['photos']} photos, {r['cameras']} camera(s) (held; "
-              f"the measurements freed of PhotoModeler's lens distortion), {r['points']} "
-              f"points, {r['observations']} image observations; {datum}")
+        _say(f"imported {r['path']}: {r['photos']} photos, {r['cameras']} camera(s) (held; "
+             f"the measurements freed of PhotoModeler's lens distortion), {r['points']} "
+             f"points, {r['observations']} image observations; {datum}")
         return 0
     if args.format == "opensfm":
         from .formats.opensfm import import_opensfm
@@ -142,10 +171,10 @@ def cmd_import(args):
                            force=args.force)
         many = (f" (reconstruction {r['index']} of {r['reconstructions']})"
                 if r["reconstructions"] > 1 else "")
-        print(f"imported {r['path']}{many}: {r['cameras']} cameras (held), {r['photos']} "
-              f"photos, {r['points']} points, {r['observations']} image observations "
-              f"(pixels); a free network; OpenSfM's mean reprojection error "
-              f"{r['mean_error_px']:.4g} px")
+        _say(f"imported {r['path']}{many}: {r['cameras']} cameras (held), {r['photos']} "
+             f"photos, {r['points']} points, {r['observations']} image observations "
+             f"(pixels); a free network; OpenSfM's mean reprojection error "
+             f"{r['mean_error_px']:.4g} px")
         return 0
     if args.format in ("bal", "bundler"):
         if args.format == "bal":
@@ -159,13 +188,16 @@ def cmd_import(args):
                                  f"create: sapgo import --format {args.format} {example} "
                                  f"block.h5")
         r = load(args.paths[0], args.paths[1], force=args.force,
-                 intrinsics="fixed" if args.fixed_intrinsics else "adjusted")
+                 intrinsics="fixed" if args.fixed_intrinsics else "adjusted",
+                 merge_duplicates=args.merge_duplicates)
+        for w in r.get("warnings", ()):
+            _warn(w)
         skipped = (f" ({r['not_reconstructed']} camera(s) not reconstructed left out)"
                    if r.get("not_reconstructed") else "")
-        print(f"imported {r['path']}: {r['photos']} photos (one camera each, f, k1, k2 "
-              f"{'held' if args.fixed_intrinsics else 'adjusted'}){skipped}, {r['points']} "
-              f"points, {r['observations']} image observations (pixels); a free network; "
-              f"initial cost {r['initial_cost']:.6e}")
+        _say(f"imported {r['path']}: {r['photos']} photos (one camera each, f, k1, k2 "
+             f"{'held' if args.fixed_intrinsics else 'adjusted'}){skipped}, {r['points']} "
+             f"points, {r['observations']} image observations (pixels); a free network; "
+             f"initial cost {r['initial_cost']:.6e}")
         return 0
     if args.format == "colmap":
         return _import_colmap(args)
@@ -181,10 +213,11 @@ def cmd_import(args):
         prior_covariances=args.prior_covariances, crs=args.crs, orientation=args.orientation,
         photos_matrix=args.photos_matrix, rotation=args.rotation,
         image_frames=args.image_frames, axis_order=args.axis_order,
+        merge_duplicates=args.merge_duplicates,
     )
     for w in summary["warnings"]:
         _warn(w)
-    print(summary_text(summary))
+    _say(summary_text(summary))
     return 0
 
 
@@ -218,18 +251,18 @@ def _import_colmap(args):
         _warn(w)
     models = ", ".join(f"{n} {m}" for m, n in r["camera_models"].items())
     kinds = ", ".join(f"{n} {k}" for k, n in r["points_by_kind"].items() if n)
-    print(f"imported {r['path']}: {r['cameras']} camera(s) ({models}; intrinsics held), "
-          f"{r['photos']} photo(s), {r['points']} point(s) ({kinds}), {r['observations']} "
-          f"image observations (pixels), {r['points2D_without_3D']} 2D points without a 3D "
-          f"point kept; mean reprojection error {r['mean_reprojection_error']:.4f} px")
+    _say(f"imported {r['path']}: {r['cameras']} camera(s) ({models}; intrinsics held), "
+         f"{r['photos']} photo(s), {r['points']} point(s) ({kinds}), {r['observations']} "
+         f"image observations (pixels), {r['points2D_without_3D']} 2D points without a 3D "
+         f"point kept; mean reprojection error {r['mean_reprojection_error']:.4f} px")
     if r["y_scaled_cameras"]:
-        print(f"{r['y_scaled_cameras']} camera(s) with fx != fy: image y scaled by fx/fy")
+        _say(f"{r['y_scaled_cameras']} camera(s) with fx != fy: image y scaled by fx/fy")
     if r["free"]:
-        print("no control: a free network (adjusted by Levenberg-Marquardt)")
+        _say("no control: a free network (adjusted by Levenberg-Marquardt)")
     elif r["aligned"]:
         a = r["aligned"]
-        print(f"model aligned to {a['points']} full control points ({r['frame']}): scale "
-              f"{a['scale']:.6g}, rotation {a['rotation_deg']:.4f} deg, RMS {a['rms']:.4g} m")
+        _say(f"model aligned to {a['points']} full control points ({r['frame']}): scale "
+             f"{a['scale']:.6g}, rotation {a['rotation_deg']:.4f} deg, RMS {a['rms']:.4g} m")
     return 0
 
 
@@ -293,7 +326,7 @@ def cmd_adjust(args):
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(summary.to_json() + "\n")
     if not args.quiet:
-        print(summary.full_report())
+        _say(summary.full_report())
     _outputs(args)
     return 0
 
@@ -304,13 +337,13 @@ def _outputs(args):
         from .tables import write_tables
 
         r = write_tables(args.project, args.csv)
-        print(f"wrote {', '.join(f'{n} {k}' for k, n in r['counts'].items())} to "
-              f"{args.csv} (CSV)")
+        _say(f"wrote {', '.join(f'{n} {k}' for k, n in r['counts'].items())} to "
+             f"{args.csv} (CSV)")
     if args.plots:
         from .plots import write_plots
 
         r = write_plots(args.project, args.plots)
-        print(f"wrote {len(r)} plots to {args.plots}: {', '.join(Path(x).name for x in r)}")
+        _say(f"wrote {len(r)} plots to {args.plots}: {', '.join(Path(x).name for x in r)}")
 
 
 def cmd_report(args):
@@ -326,10 +359,10 @@ def cmd_report(args):
                             f"'sapgo adjust' first")
         data = json.loads(p.file["solution/report"][()])
     if args.json:
-        print(json.dumps(data, indent=2))
+        _say(json.dumps(data, indent=2))
     elif not args.quiet:
         names = {f.name for f in dataclasses.fields(Summary)}
-        print(Summary(**{k: v for k, v in data.items() if k in names}).full_report())
+        _say(Summary(**{k: v for k, v in data.items() if k in names}).full_report())
     _outputs(args)
     return 0
 
@@ -345,16 +378,16 @@ def cmd_export(args):
         r = export_colmap(args.project, args.directory, adjusted=args.adjusted,
                           pixel_size=args.pixel_size)
         models = ", ".join(f"{n} {m}" for m, n in r["models"].items())
-        print(f"wrote {'the adjusted' if args.adjusted else 'the input'} COLMAP model "
-              f"{args.directory}: {r['cameras']} cameras ({models}), {r['images']} images, "
-              f"{r['points']} points, {r['observations']} observations")
+        _say(f"wrote {'the adjusted' if args.adjusted else 'the input'} COLMAP model "
+             f"{args.directory}: {r['cameras']} cameras ({models}), {r['images']} images, "
+             f"{r['points']} points, {r['observations']} observations")
     elif args.format == "bal":
         from .formats.bal import export_bal
 
         r = export_bal(args.project, args.directory, adjusted=args.adjusted)
-        print(f"wrote {'the adjusted' if args.adjusted else 'the input'} BAL problem "
-              f"{args.directory}: {r['cameras']} cameras, {r['points']} points, "
-              f"{r['observations']} observations")
+        _say(f"wrote {'the adjusted' if args.adjusted else 'the input'} BAL problem "
+             f"{args.directory}: {r['cameras']} cameras, {r['points']} points, "
+             f"{r['observations']} observations")
     elif args.format == "photomodeler":
         from .formats.photomodeler import export_photomodeler
 
@@ -362,33 +395,33 @@ def cmd_export(args):
                                 pixel_size=args.pixel_size)
         part = (f"; {r['partial_control']} horizontal or vertical control point(s) written "
                 f"as object points only" if r["partial_control"] else "")
-        print(f"wrote {'the adjusted' if args.adjusted else 'the input'} PhotoModeler export "
-              f"{args.directory}: {r['photos']} photos, {r['points']} points "
-              f"({r['control_points']} control), {r['observations']} marked points{part}")
+        _say(f"wrote {'the adjusted' if args.adjusted else 'the input'} PhotoModeler export "
+             f"{args.directory}: {r['photos']} photos, {r['points']} points "
+             f"({r['control_points']} control), {r['observations']} marked points{part}")
     elif args.format == "opensfm":
         from .formats.opensfm import export_opensfm
 
         r = export_opensfm(args.project, args.directory, adjusted=args.adjusted)
-        print(f"wrote {'the adjusted' if args.adjusted else 'the input'} OpenSfM dataset "
-              f"{args.directory}: {r['cameras']} cameras, {r['photos']} shots, "
-              f"{r['points']} points, {r['observations']} observations")
+        _say(f"wrote {'the adjusted' if args.adjusted else 'the input'} OpenSfM dataset "
+             f"{args.directory}: {r['cameras']} cameras, {r['photos']} shots, "
+             f"{r['points']} points, {r['observations']} observations")
     elif args.format == "bundler":
         from .formats.bundler import export_bundler
 
         r = export_bundler(args.project, args.directory, adjusted=args.adjusted)
-        print(f"wrote {'the adjusted' if args.adjusted else 'the input'} Bundler file "
-              f"{args.directory}: {r['cameras']} cameras ({r['photos']} photos), "
-              f"{r['points']} points, {r['observations']} observations")
+        _say(f"wrote {'the adjusted' if args.adjusted else 'the input'} Bundler file "
+             f"{args.directory}: {r['cameras']} cameras ({r['photos']} photos), "
+             f"{r['points']} points, {r['observations']} observations")
     elif args.adjusted:
         r = export_adjusted(args.project, args.directory, angles=args.angles,
                             orientation=args.orientation, rotation=args.rotation)
-        print(f"wrote {r['counts']['photos']} adjusted photos and {r['counts']['points']} "
-              f"points to {args.directory}")
+        _say(f"wrote {r['counts']['photos']} adjusted photos and {r['counts']['points']} "
+             f"points to {args.directory}")
     else:
         r = export_text(args.project, args.directory, angles=args.angles,
                         rotation=args.rotation)
-        print(f"wrote {', '.join(f'{n} {k}' for k, n in r['counts'].items())} to "
-              f"{args.directory}")
+        _say(f"wrote {', '.join(f'{n} {k}' for k, n in r['counts'].items())} to "
+             f"{args.directory}")
     return 0
 
 
@@ -427,19 +460,29 @@ def cmd_info(args):
             "station_priors": p.n_priors,
             "frame": p.frame().describe(),
             "ordered": p.ordered,
-            "ordering": p.attr("ordering"),
-            "band_width": p.band_width,
+            "ordering": p.attr("ordering") if p.ordered else None,
+            "band_width": p.band_width if p.ordered else None,
             "solver": p.solver if p.ordered else None,
             "tree": _tree_info(p),
             "has_truth": p.has_truth,
             "adjusted": p.has_solution and p.file["solution"].attrs.get("state") == "adjusted",
         }
     if args.json:
-        print(json.dumps(info, indent=2))
-    else:
-        for k, v in info.items():
-            print(f"{k:16s} {v}")
+        _say(json.dumps(info, indent=2))
+        return 0
+    for k, v in info.items():
+        if k == "band_width" and not info["ordered"]:
+            v = NOT_ORDERED
+        elif v is None:
+            v = "-"
+        elif isinstance(v, dict):
+            v = ", ".join(f"{a} {b}" for a, b in v.items()) or "-"
+        _say(f"{k:16s} {v}")
     return 0
+
+
+#: ``sapgo info``'s word for the band width of a project not yet ordered.
+NOT_ORDERED = "not ordered yet (sapgo order, or adjust orders it)"
 
 
 def _tree_info(p):
@@ -494,14 +537,16 @@ def _design_arguments(parser):
     """The options of an irregular flight design (sapgo plan and sapgo generate)."""
     parser.add_argument("--shift", type=float,
                         help="irregular design: every other strip shifted by this fraction of "
-                             "the base")
+                             "the base (default 0)")
     parser.add_argument("--strip-lengths", metavar="N,N,...",
-                        help="irregular design: photos of each strip")
+                        help="irregular design: photos of each strip (default: "
+                             "--photos-per-strip each)")
     parser.add_argument("--strip-starts", metavar="X,X,...",
-                        help="irregular design: where each strip starts, in bases")
+                        help="irregular design: where each strip starts, in bases (default 0 "
+                             "each)")
     parser.add_argument("--scales", metavar="C,C,...",
                         help="irregular design: each strip's photo scale relative to the others "
-                             "(its footprint's side)")
+                             "(its footprint's side; default 1 each)")
 
 
 def cmd_plan(args):
@@ -540,10 +585,10 @@ def cmd_plan(args):
     if args.plot:
         write_pattern(net, args.plot, args.plot_ordering or result["recommended"])
     unit = f"{net.kind} ({net.params} parameters)"
-    print(f"{net.n} {unit}, {len(net.s)} joined pairs")
+    _say(f"{net.n} {unit}, {len(net.s)} joined pairs")
     head = (f"{'ordering':14s} {'T':>7s} {'m':>9s} {'W':>6s} {'D':>6s} {'F.I.':>10s} "
             f"{'band MB':>9s} {'envelope MB':>12s} {'sparse MB':>10s} {'solve s':>9s}")
-    print(head)
+    _say(head)
     for name, r in result["orderings"].items():
         b = r["storage_bytes"]
         if "predicted_solve_s" not in r:
@@ -552,41 +597,42 @@ def cmd_plan(args):
             bound = "<=" if r["timed_units"] == 0 else ""
             t = f"{bound + format(r['predicted_solve_s'], '.3f'):>9s}"
         mark = " *" if name == result["recommended"] else ""
-        print(f"{name:14s} {r['dimension']:7d} {r['nonzero_blocks']:9d} "
-              f"{r['band_width_m']:6d} {r['band_width_b']:6d} {r['fill_in_blocks']:10d} "
-              f"{b['band'] / 1e6:9.2f} {b['envelope'] / 1e6:12.2f} {b['sparse'] / 1e6:10.2f} "
-              f"{t}{mark}")
+        _say(f"{name:14s} {r['dimension']:7d} {r['nonzero_blocks']:9d} "
+             f"{r['band_width_m']:6d} {r['band_width_b']:6d} {r['fill_in_blocks']:10d} "
+             f"{b['band'] / 1e6:9.2f} {b['envelope'] / 1e6:12.2f} {b['sparse'] / 1e6:10.2f} "
+             f"{t}{mark}")
     if "adjust" in result:
         a = result["adjust"]
         t = f", predicted solve {a['predicted_solve_s']:.3f} s" if "predicted_solve_s" in a \
             else ""
         if a.get("solver") == "tree":
-            print(f"sapgo order will choose the partition tree ({a['ordering']}){t}")
+            _say(f"sapgo order will choose the partition tree ({a['ordering']}){t}")
         else:
-            print(f"sapgo order will choose {a['ordering']}: band width W "
-                  f"{a['band_width_m']}, fill-in {a['fill_in_blocks']} blocks{t}")
+            _say(f"sapgo order will choose {a['ordering']}: band width W "
+                 f"{a['band_width_m']}, fill-in {a['fill_in_blocks']} blocks{t}")
     tr = result.get("tree")
     if tr:
-        print(f"partition tree ({tr['method']}): {tr['nodes']} nodes, depth {tr['depth']}, "
-              f"largest front {tr['largest_front']} units, fronts in core "
-              f"{tr['fronts_bytes'] / 2**20:.1f} MiB (tiled beyond adjust's --memory), factor "
-              f"{tr['factor_bytes'] / 2**20:.1f} MiB, {tr['flops']:.3g} flops, predicted "
-              f"solve {tr['predicted_solve_s']:.3f} s")
-    print(f"recommended: {result['recommended']} (the least work: a band ordering, or the "
-          f"partition tree; T units, "
-          f"m non-zero blocks, W band width in blocks, D in whole sub-matrices of lines, F.I. "
-          f"fill-in blocks; solve s <=: not timed, over ten times the least work, a bound)")
+        _say(f"partition tree ({tr['method']}): {tr['nodes']} nodes, depth {tr['depth']}, "
+             f"largest front {tr['largest_front']} units, fronts in core "
+             f"{tr['fronts_bytes'] / 2**20:.1f} MiB (tiled beyond adjust's --memory), factor "
+             f"{tr['factor_bytes'] / 2**20:.1f} MiB, {tr['flops']:.3g} flops, predicted "
+             f"solve {tr['predicted_solve_s']:.3f} s")
+    _say(f"recommended: {result['recommended']} (the least work: a band ordering, or the "
+         f"partition tree; T units, "
+         f"m non-zero blocks, W band width in blocks, D in whole sub-matrices of lines, F.I. "
+         f"fill-in blocks; solve s <=: not timed, over ten times the least work, a bound)")
     return 0
 
 
 def _output_options(parser):
     parser.add_argument("--csv", metavar="DIR",
                         help="write photos.csv, points.csv and observations.csv (residuals, "
-                             "precision, redundancy numbers, flags) into DIR")
+                             "precision, redundancy numbers, flags) into DIR (default: no "
+                             "tables)")
     parser.add_argument("--plots", metavar="DIR",
                         help="write the plots (block layout, residuals per camera, check-point "
                              "errors, reduced-matrix pattern) into DIR as PNG; needs "
-                             "matplotlib (pip install 'sapgo[plot]')")
+                             "matplotlib (pip install 'sapgo[plot]'; default: no plots)")
 
 
 def build_parser():
@@ -607,19 +653,36 @@ def build_parser():
 
     g.add_argument("output", help="project file to create (e.g. data/generated/p3.h5)")
     g.add_argument("--preset", choices=ALL_PRESETS,
-                   help="a block of seeds/002: SAPGO-P (Table 2) or SAPGO-MFL (Table 5)")
-    g.add_argument("--strips", type=int)
-    g.add_argument("--photos-per-strip", type=int)
-    g.add_argument("--pattern", type=int, choices=(9, 25), help="points per photo")
-    g.add_argument("--control-points", type=int, help="number of full control points")
-    g.add_argument("--forelap", type=float, help="fraction, default 0.6")
-    g.add_argument("--sidelap", type=float, help="fraction, default 0.2")
-    g.add_argument("--sigma-image", type=float, help="image perturbation, um (default 6)")
-    g.add_argument("--station-position-perturbation", type=float, help="m (default 5)")
-    g.add_argument("--station-angle-perturbation", type=float, help="arc seconds (default 20)")
-    g.add_argument("--control-perturbation", type=float, help="m (default 0.001)")
-    g.add_argument("--terrain-relief", type=float,
-                   help="standard deviation of terrain heights, m (default 100)")
+                   help="a block of seeds/002: SAPGO-P (Table 2) or SAPGO-MFL (Table 5); the "
+                        "options below change a SAPGO-P preset's values (default: none, "
+                        "SAPGO-P data set 1 with the options' values)")
+    g.add_argument("--strips", type=int, metavar="N",
+                   help="number of strips (default 4, or the preset's)")
+    g.add_argument("--photos-per-strip", type=int, metavar="N",
+                   help="photos in each strip (default 25, or the preset's)")
+    g.add_argument("--pattern", type=int, choices=(9, 25),
+                   help="points per photo, 3 x 3 or 5 x 5 (default 9, or the preset's)")
+    g.add_argument("--control-points", type=int, metavar="N",
+                   help="number of full control points; the other known points are check "
+                        "points (default 16, or the preset's)")
+    g.add_argument("--forelap", type=float,
+                   help="forelap, a fraction (default 0.6, or the preset's)")
+    g.add_argument("--sidelap", type=float,
+                   help="sidelap, a fraction (default 0.2, or the preset's)")
+    g.add_argument("--sigma-image", type=float, metavar="UM",
+                   help="perturbation and standard error of the image coordinates, um "
+                        "(default 6)")
+    g.add_argument("--station-position-perturbation", type=float, metavar="M",
+                   help="perturbation of the photos' approximate positions, m (default 5)")
+    g.add_argument("--station-angle-perturbation", type=float, metavar="ARCSEC",
+                   help="perturbation of the photos' approximate angles, arc seconds "
+                        "(default 20)")
+    g.add_argument("--control-perturbation", type=float, metavar="M",
+                   help="perturbation of the control points' known coordinates, m (default "
+                        "0.001)")
+    g.add_argument("--terrain-relief", type=float, metavar="M",
+                   help="standard deviation of terrain heights, m (default 100; 30 for an "
+                        "irregular design)")
     g.add_argument("--distortion", type=_five_numbers, metavar="K1,K2,K3,P1,P2",
                    help="the camera's lens distortion (Brown; mm^-2, mm^-4, mm^-6, mm^-1, "
                         "mm^-1), applied to the simulated image coordinates; write it with "
@@ -630,12 +693,19 @@ def build_parser():
                         "in /truth/blunders; default 0)")
     g.add_argument("--seed", type=int, help="random seed (default 1)")
     g.add_argument("--force", action="store_true",
-                   help="replace an existing project file at OUTPUT")
+                   help="replace an existing project file at OUTPUT (default: refuse to)")
     _design_arguments(g)
     g.set_defaults(func=cmd_generate)
 
-    o = sub.add_parser("order", help="order stations and points to minimise the band width")
-    o.add_argument("project")
+    o = sub.add_parser("order", help="order stations and points to minimise the band width",
+                       description="Order a project's stations (photos) and points for the "
+                                   "solver: a band ordering of the least band width, or a "
+                                   "partition tree (nested dissection), whichever is predicted "
+                                   "to factor faster (--solver auto). Points seen on fewer "
+                                   "than 2 photos and photos with fewer than 3 such points are "
+                                   "left out of the adjustment (they stay in the project). "
+                                   "sapgo adjust orders an unordered project itself.")
+    o.add_argument("project", help="the project file (e.g. block.h5)")
     o.add_argument("--method", default="best", choices=ORDERINGS, metavar="ORDERING",
                    help="the band's station order: best (default: the least band width of "
                         "all), across_strip, down_strip, diagonal, spiral, "
@@ -662,7 +732,7 @@ def build_parser():
                                      "resection and intersection. The project's "
                                      "approximations are replaced (a stored solution is "
                                      "dropped). Then: sapgo adjust.")
-    ini.add_argument("project")
+    ini.add_argument("project", help="the project file (e.g. block.h5)")
     ini.add_argument("--method", choices=("auto", "vertical", "resection"), default="auto",
                      help="vertical: aerial blocks, from a planimetric block adjustment; "
                           "resection: convergent (close-range) blocks, photos resected "
@@ -708,30 +778,35 @@ def build_parser():
                    help="with --format opensfm: which reconstruction of the file (default 0, "
                         "the first)")
     m.add_argument("--fixed-intrinsics", action="store_true",
-                   help="with --format bal or bundler: hold each photo's f, k1, k2 fixed")
+                   help="with --format bal or bundler: hold each photo's f, k1, k2 fixed "
+                        "(default: adjusted with the photo)")
     m.add_argument("--cameras", action="append", default=[], metavar="FILE",
                    help="id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2 "
                         "[b1 b2 [forward|backward]]] (mm; the distortion model: forward, "
                         "added to the ideal point, the default; backward, correcting the "
-                        "measured point as PhotoModeler and DBAT)")
+                        "measured point as PhotoModeler and DBAT; repeatable; default none)")
     m.add_argument("--photos", action="append", default=[], metavar="FILE",
-                   help="id camera strip omega phi kappa X Y Z (angles: --angles; m)")
+                   help="id camera strip omega phi kappa X Y Z (angles: --angles; m; "
+                        "repeatable; default none)")
     m.add_argument("--photos-matrix", action="append", default=[], metavar="FILE",
                    help="photos with a rotation matrix: id camera strip m11 m12 m13 m21 m22 "
-                        "m23 m31 m32 m33 X Y Z (object to image, row by row)")
+                        "m23 m31 m32 m33 X Y Z (object to image, row by row; repeatable; "
+                        "default none)")
     m.add_argument("--measurements", action="append", default=[], metavar="FILE",
-                   help="photo point x y [sigma] (mm; sigma 0 or missing = the camera's)")
+                   help="photo point x y [sigma] (mm; sigma 0 or missing = the camera's; "
+                        "repeatable; default none)")
     m.add_argument("--control", action="append", default=[], metavar="FILE",
                    help="point X Y Z sX sY sZ [full|horizontal|vertical|check] (m; '-' = "
-                        "unknown; with --format colmap the points are POINT3D_IDs)")
+                        "unknown; with --format colmap the points are POINT3D_IDs; "
+                        "repeatable; default: no control, a free network)")
     m.add_argument("--priors", action="append", default=[], metavar="FILE",
                    help="exposure-station priors (GNSS/INS, orbit): photo omega phi kappa X Y "
                         "Z s_omega s_phi s_kappa sX sY sZ (angle sigmas in arc seconds, m; 0 "
-                        "or '-' = unconstrained)")
+                        "or '-' = unconstrained; repeatable; default none)")
     m.add_argument("--prior-covariances", action="append", default=[], metavar="FILE",
                    help="priors with a full covariance: photo omega phi kappa X Y Z and the "
                         "21 terms c11 c12 ... c16 c22 ... c66 of its upper triangle (arc "
-                        "seconds, m)")
+                        "seconds, m; repeatable; default none)")
     m.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg",
                    help="unit of omega, phi, kappa in the photos and priors files (default "
                         "deg; in deg they may also be written in degrees, minutes and "
@@ -744,8 +819,8 @@ def build_parser():
     m.add_argument("--image-frames", action="append", default=[], metavar="FILE",
                    help="per camera, how its photos' measurements are given: camera unit "
                         "(mm|px) pixel_x pixel_y (um, '-' for mm) width height (in the unit) "
-                        "origin (centre|topleft|bottomleft) y_axis (up|down); cameras not "
-                        "listed: mm from the centre, y up")
+                        "origin (centre|topleft|bottomleft) y_axis (up|down) (default, and "
+                        "cameras not listed: mm from the centre, y up)")
     m.add_argument("--rotation", choices=("opk", "pok", "kpo"), default="opk",
                    help="the order of the three angles in the photos' and priors' columns "
                         "and how they compose: opk omega-phi-kappa M = R3(k) R2(p) R1(o) "
@@ -764,14 +839,31 @@ def build_parser():
     m.add_argument("--memory", default=None, metavar="SIZE",
                    help="memory budget of the external sorts, e.g. 256M or 2G (default 512M)")
     m.add_argument("--append", action="store_true",
-                   help="add the files to an existing project (as if imported together)")
-    m.add_argument("--force", action="store_true", help="replace an existing project")
+                   help="add the files to an existing project (as if imported together; "
+                        "default: a new project)")
+    m.add_argument("--force", action="store_true",
+                   help="replace an existing project (default: refuse to)")
+    m.add_argument("--merge-duplicates", action="store_true",
+                   help="average a point measured more than once on one photo even when the "
+                        "measurements lie more than 3 sigma apart (default: such conflicting "
+                        "duplicates are an error naming their lines; agreeing ones are merged "
+                        "with a warning); text, BAL and Bundler files")
     m.set_defaults(func=cmd_import)
 
-    a = sub.add_parser("adjust", help="adjust the block (orders it first if needed)")
-    a.add_argument("project")
-    a.add_argument("--json", metavar="PATH", help="write the report as JSON")
-    a.add_argument("--max-iterations", type=int, default=10)
+    a = sub.add_parser("adjust", help="adjust the block (orders it first if needed)",
+                       description="Adjust the block by least squares: Gauss-Newton (or "
+                                   "Levenberg-Marquardt) iterations of the reduced normal "
+                                   "equations until the corrections fall below the "
+                                   "tolerances; the solution, its precision and the report "
+                                   "are stored in the project. An unordered project is "
+                                   "ordered first (as sapgo order).")
+    a.add_argument("project", help="the project file (e.g. block.h5)")
+    a.add_argument("--json", metavar="PATH",
+                   help="write the report as JSON to PATH (default: none)")
+    a.add_argument("--max-iterations", type=int, default=None, metavar="N",
+                   help="the most iterations (default 10, and 50 for a free network or "
+                        "Levenberg-Marquardt; data snooping allows as many again after each "
+                        "rejection)")
     a.add_argument("--tol-position", type=float, default=1e-4,
                    help="convergence: corrections of positions below this, m (default 1e-4)")
     a.add_argument("--tol-angle", type=float, default=0.1,
@@ -791,14 +883,17 @@ def build_parser():
                         "solver is ordered again first")
     a.add_argument("--workers", type=int, metavar="N",
                    help="build and factor the partition tree's subtrees on N worker "
-                        "processes (a Dask LocalCluster for the run; needs sapgo[dask])")
+                        "processes (a Dask LocalCluster for the run; needs sapgo[dask]; "
+                        "default: threads of this process)")
     a.add_argument("--scheduler", metavar="ADDRESS",
                    help="the same on an existing Dask cluster (tcp://host:port); its workers "
-                        "must see the project and its work directory at the same paths")
+                        "must see the project and its work directory at the same paths; "
+                        "default: none)")
     a.add_argument("--robust", choices=("huber", "cauchy"),
                    help="robust estimation of the image observations: least squares first, "
                         "then reweighted every iteration from the standardised residuals "
-                        "(control and priors are not); cauchy is the stronger")
+                        "(control and priors are not); cauchy is the stronger (default: "
+                        "none, least squares)")
     a.add_argument("--robust-threshold", type=float, default=30.0, metavar="UM",
                    help="threshold of the robust weights, um of standardised image residual "
                         "(the residual divided by the square root of its redundancy number; "
@@ -806,10 +901,11 @@ def build_parser():
     a.add_argument("--snooping", action="store_true",
                    help="Baarda's data snooping: reject the observation with the largest "
                         "normalised residual above the critical value and adjust again, until "
-                        "none is left (rejected observations are flagged, not deleted)")
+                        "none is left (rejected observations are flagged, not deleted; "
+                        "default: no snooping)")
     a.add_argument("--reset-rejections", action="store_true",
                    help="bring back the observations an earlier run's data snooping rejected "
-                        "(without it they stay out, and the report says how many)")
+                        "(default: they stay out, and the report says how many)")
     a.add_argument("--alpha", type=float, default=0.001,
                    help="significance level of data snooping (default 0.001: |w| > 3.29)")
     a.add_argument("--method", choices=("auto", "gauss-newton", "levenberg-marquardt"),
@@ -822,44 +918,60 @@ def build_parser():
     a.add_argument("--calibrate", default=None, metavar="PARAMS",
                    help="self-calibration: adjust these parameters of every camera (shared "
                         "by its photos) with the block, e.g. f,x0,y0,k1,k2 (any of f, x0, y0, "
-                        "k1, k2, k3, p1, p2, b1, b2; of either distortion model)")
+                        "k1, k2, k3, p1, p2, b1, b2; of either distortion model; default: "
+                        "none, the cameras held)")
     a.add_argument("--calibrate-cameras", default=None, metavar="IDS",
-                   help="with --calibrate: only these camera ids, e.g. 1,3")
+                   help="with --calibrate: only these camera ids, e.g. 1,3 (default: every "
+                        "camera)")
     a.add_argument("--datum", action="append", default=[], metavar="fix:IDS:PARAMS",
                    help="hold station parameters fixed (true constraints, repeatable): "
                         "fix:101:all fix:102:X,Y,Z fix:103,104:Z (X, Y, Z, and omega, phi, kappa "
                         "only together); "
                         "their photos define the datum with whatever control there is, e.g. "
-                        "7 parameters for a block without control")
+                        "7 parameters for a block without control (default: none, the "
+                        "control and priors give the datum)")
     a.add_argument("--calibrate-per-photo", default=None, metavar="PARAMS",
                    help="self-calibration: adjust these camera parameters per photo (each "
                         "photo of a calibrated camera its own value), e.g. x0,y0 with "
-                        "--calibrate f,k1,k2 shared by the camera's photos")
+                        "--calibrate f,k1,k2 shared by the camera's photos; default none)")
     a.add_argument("--resume", action="store_true",
-                   help="continue an interrupted run from its last completed iteration")
+                   help="continue an interrupted run from its last completed iteration "
+                        "(default: start from the project's values)")
     a.add_argument("--memory", default=None, metavar="SIZE",
                    help="memory budget, e.g. 2G: of the external sorts when the project is "
                         "ordered first (default 512M) and, on the partition tree, of the whole "
                         "adjustment (default 1G; larger fronts are tiled)")
     a.add_argument("--keep-scratch", action="store_true",
-                   help="keep the work directory NAME.h5.work (band and factor rows)")
-    a.add_argument("--no-progress", action="store_true", help="no progress bars")
-    a.add_argument("--quiet", action="store_true", help="do not print the report")
+                   help="keep the work directory NAME.h5.work (band and factor rows; "
+                        "default: removed after the run)")
+    a.add_argument("--no-progress", action="store_true",
+                   help="no progress bars (default: progress bars when standard error is a "
+                        "terminal)")
+    a.add_argument("--quiet", action="store_true",
+                   help="do not print the report (default: print it)")
     _output_options(a)
     a.set_defaults(func=cmd_adjust)
 
     r = sub.add_parser("report", help="the report of an adjusted project, its CSV tables and "
-                                      "plots")
-    r.add_argument("project")
-    r.add_argument("--json", action="store_true", help="print the report as JSON")
-    r.add_argument("--quiet", action="store_true", help="do not print the report")
+                                      "plots",
+                       description="Print the report that sapgo adjust stored with the "
+                                   "solution, and write its CSV tables (--csv) and plots "
+                                   "(--plots).")
+    r.add_argument("project", help="the project file (e.g. block.h5)")
+    r.add_argument("--json", action="store_true",
+                   help="print the report as JSON (default: as text)")
+    r.add_argument("--quiet", action="store_true",
+                   help="do not print the report (default: print it)")
     _output_options(r)
     r.set_defaults(func=cmd_report)
 
     e = sub.add_parser("export", help="write a project as text files (inputs, or with "
                                       "--adjusted the adjusted photos and points), or as "
-                                      "BAL, Bundler, COLMAP, OpenSfM or PhotoModeler")
-    e.add_argument("project")
+                                      "BAL, Bundler, COLMAP, OpenSfM or PhotoModeler",
+                       description="Write a project's inputs (or with --adjusted its adjusted "
+                                   "photos and points) as text files that sapgo import "
+                                   "reads, or in another program's format.")
+    e.add_argument("project", help="the project file (e.g. block.h5)")
     e.add_argument("directory", help="output directory (created); with --format bal or "
                                      "bundler the file")
     e.add_argument("--format", choices=("text", "bal", "bundler", "colmap", "opensfm",
@@ -872,11 +984,11 @@ def build_parser():
     e.add_argument("--adjusted", action="store_true",
                    help="adjusted_photos.txt and adjusted_points.txt in the user's CRS (with "
                         "--format bal, bundler or colmap: the adjusted values in that "
-                        "format)")
+                        "format; default: the inputs)")
     e.add_argument("--pixel-size", type=float, metavar="UM",
                    help="with --format colmap or photomodeler: the pixel size in "
                         "micrometres, to write a project whose image coordinates are in mm "
-                        "in pixels")
+                        "in pixels (default: none; needed for such a project)")
     e.add_argument("--angles", choices=("deg", "gon", "rad"), default="deg",
                    help="unit of the photos' angles (default deg)")
     e.add_argument("--rotation", choices=("opk", "pok", "kpo"), default="opk",
@@ -889,49 +1001,121 @@ def build_parser():
 
     pl = sub.add_parser(
         "plan", help="predict the reduced matrix's pattern, band width, fill-in, storage and "
-                     "solve time of a flight design or a project, for each ordering")
-    pl.add_argument("project", nargs="?", help="an existing project (its actual network)")
-    pl.add_argument("--strips", type=int, help="flight design: number of strips")
-    pl.add_argument("--photos-per-strip", type=int, help="flight design: photos per strip")
+                     "solve time of a flight design or a project, for each ordering",
+        description="Predict, for each ordering, the reduced normal matrix's pattern, band "
+                    "width, fill-in, storage and solve time, of a flight design (--strips, "
+                    "--photos-per-strip, ...) or of an existing project; the ordering of "
+                    "the least work is recommended.")
+    pl.add_argument("project", nargs="?",
+                    help="an existing project (its actual network; default: none, give a "
+                         "flight design)")
+    pl.add_argument("--strips", type=int, metavar="N",
+                    help="flight design: number of strips (no default: needed without a "
+                         "project)")
+    pl.add_argument("--photos-per-strip", type=int, metavar="N",
+                    help="flight design: photos per strip (no default: needed without a "
+                         "project)")
     pl.add_argument("--forelap", default="60", help="forelap, %% or fraction (default 60)")
     pl.add_argument("--sidelap", default="20", help="sidelap, %% or fraction (default 20)")
     pl.add_argument("--units", choices=("photos", "models"), default="photos",
-                    help="photos (bundle, 6 parameters) or independent models (7)")
+                    help="photos (bundle, 6 parameters; the default) or independent models "
+                         "(7)")
     pl.add_argument("--cross", action="store_true",
                     help="with --units models: cross models between the strips (+C; a "
-                         "sidelap of 50 %% or more)")
+                         "sidelap of 50 %% or more; default: none)")
     pl.add_argument("--model-step", type=int, default=None,
                     help="models from photos this many apart (default 1; 2 from 75 %% "
                          "forelap on, as Rostom assumes for 80 %%)")
     _design_arguments(pl)
-    pl.add_argument("--json", metavar="PATH", help="write the counts as JSON")
+    pl.add_argument("--json", metavar="PATH",
+                    help="write the counts as JSON to PATH (default: none)")
     pl.add_argument("--plot", metavar="PNG",
-                    help="draw the pattern of M with its fill-in (needs matplotlib)")
+                    help="draw the pattern of M with its fill-in into PNG (needs matplotlib; "
+                         "default: none)")
     pl.add_argument("--plot-ordering", choices=("down_strip", "across_strip", "diagonal",
                                                 "rcm", "spiral", "adjust"),
                     help="the ordering drawn (default: the recommended one; adjust: the "
                          "order 'sapgo order' gives a project)")
     pl.add_argument("--no-timing", action="store_true",
-                    help="do not measure this machine's solver rate (no predicted times)")
+                    help="do not measure this machine's solver rate (no predicted times; "
+                         "default: measured)")
     pl.set_defaults(func=cmd_plan)
 
-    i = sub.add_parser("info", help="describe a project file")
-    i.add_argument("project")
-    i.add_argument("--json", action="store_true")
+    i = sub.add_parser("info", help="describe a project file",
+                       description="Describe a project file: its counts of cameras, photos, "
+                                   "points and observations, its frame, whether and how it "
+                                   "is ordered, and whether it holds an adjusted solution.")
+    i.add_argument("project", help="the project file (e.g. block.h5)")
+    i.add_argument("--json", action="store_true",
+                   help="print it as JSON (default: one item a line)")
     i.set_defaults(func=cmd_info)
     return ap
 
 
+#: The first run's compilation of the kernels, measured on a cold cache on 2 cores: the
+#: README's demo command (generate and adjust of SAPGO-P-3 on the band) 38 s, a tree run
+#: 30 s, then the band's kernels 20 s more (README).
+FIRST_RUN_SECONDS = "30-50"
+
+
+def _quiet_hdf5_teardown(unraisable):
+    """After a full disk, HDF5's objects fail again when Python collects them; their
+    tracebacks say nothing the one-line error has not said."""
+    if isinstance(unraisable.exc_value, RuntimeError) and "ref count" in str(
+            unraisable.exc_value):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
+def _os_message(exc):
+    """One line for an ``OSError``: the file and the system's words, or the first line of
+    HDF5's message without its error-stack details."""
+    where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+    text = exc.strerror or str(exc)
+    text = text.splitlines()[0] if text else type(exc).__name__
+    if "(" in text and "Unable to" in text:   # h5py: "Unable to ... (detail)"
+        text = text.split("(")[0].strip() + " (" + text.split("(", 1)[1].split(",")[0]
+        text = text.rstrip(")") + ")"
+    return f"{where}{text}"
+
+
 def main(argv=None):
+    from .errors import DiskFullError
+    from .project import is_disk_full
+
     args = build_parser().parse_args(argv)
+    sys.unraisablehook = _quiet_hdf5_teardown
+    from . import kernelcache
+
+    if kernelcache.FIRST_RUN and args.func not in (cmd_info,):
+        print(f"sapgo: compiling the numerical kernels for this installation, once (about "
+              f"{FIRST_RUN_SECONDS} s; kept in {kernelcache.CACHE_DIR})", file=sys.stderr)
+        kernelcache.FIRST_RUN = False
     try:
         return args.func(args)
+    except DiskFullError as exc:
+        print(f"sapgo: error: {exc}", file=sys.stderr)
+        if argv is None:   # (the command line: no teardown of HDF5 on a full disk)
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(2)
+        return 2
     except SapgoError as exc:
         print(f"sapgo: error: {exc}", file=sys.stderr)
         return 2
-    except OSError as exc:
-        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-        print(f"sapgo: error:{where}: {exc.strerror or exc}", file=sys.stderr)
+    except (OSError, RuntimeError) as exc:
+        if is_disk_full(exc):
+            print(f"sapgo: error: {getattr(args, 'project', '')} the disk is full (no space "
+                  f"left on its filesystem): free some space and run the command again",
+                  file=sys.stderr)
+            if argv is None:
+                sys.stdout.flush()
+                sys.stderr.flush()
+                os._exit(2)
+            return 2
+        if isinstance(exc, RuntimeError):
+            raise
+        print(f"sapgo: error: {_os_message(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("sapgo: interrupted", file=sys.stderr)

@@ -7,10 +7,19 @@ chunk of points with their observations):
 - ``photos.csv``: per photo its adjusted orientation, standard deviations, number of points
   and image residual statistics (RMS, max);
 - ``points.csv``: per point its adjusted coordinates, standard deviations, kind (control and
-  check points marked), number of rays, largest image residual and, for control and check
-  points, adjusted minus known;
+  check points marked), status, number of rays, largest image residual and, for control and
+  check points, adjusted minus known;
 - ``observations.csv``: per image observation its residuals, redundancy numbers, normalised
   residuals, test statistic, minimal detectable blunder, robust weight and flag.
+
+A point's ``status`` says whether the adjustment determined it: ``active`` (adjusted),
+``excluded`` (left out before the run: too few rays), ``rejected`` (data snooping took
+its rays, or the rays left do not determine it) or ``set_aside`` (its rays (nearly)
+parallel when the run ended). Only an active point has standard deviations, a largest
+residual and adjusted minus known; the others have empty fields there (their X, Y, Z are
+the values they had when they were left out), never numbers the adjustment did not
+compute. Likewise a photo left out has empty standard deviations, and a photo without
+active rays empty residual statistics.
 
 Coordinates are those of the computation frame (m); a project with a CRS gets the user's
 coordinates as well (geographic degrees to 9 decimals, about 0.1 mm). Adjusted minus known
@@ -91,6 +100,9 @@ def write_tables(project_path, out_dir, chunk=TABLE_CHUNK, alpha=None, power=0.8
         except OSError as exc:
             raise DataError(f"{out_dir}: cannot create the directory ({exc.strerror})") from exc
         report = json.loads(p.file["solution/report"][()])
+        # points the run set aside and never brought back: not adjusted
+        aside = np.array(sorted({int(e["point"]) for e in report.get("set_aside") or ()
+                                 if e.get("back") is None}), np.int64)
         if alpha is None:
             alpha = (report.get("reliability") or {}).get("alpha", 0.001)
         lam0 = noncentrality(alpha, power)
@@ -128,9 +140,10 @@ def write_tables(project_path, out_dir, chunk=TABLE_CHUNK, alpha=None, power=0.8
                 np.add.at(st_n, s[act], 1)
                 np.add.at(st_ss, s[act], res[act] ** 2)
                 np.maximum.at(st_max, s[act], length[act])
-                # points
+                # points: rays are counted once per photo (sapgo.ordering's rule)
                 owner = np.repeat(np.arange(len(pts)), pts["n_obs"])
-                n_rays = np.bincount(owner, weights=act, minlength=len(pts)).astype(np.int64)
+                pairs = np.unique(owner[act] * n_st + s[act])
+                n_rays = np.bincount(pairs // n_st, minlength=len(pts)).astype(np.int64)
                 max_res = np.zeros(len(pts))
                 np.maximum.at(max_res, owner, length)
                 known = (pts["kind"] >= 1) & (pts["kind"] <= 4)
@@ -141,24 +154,29 @@ def write_tables(project_path, out_dir, chunk=TABLE_CHUNK, alpha=None, power=0.8
                 need = np.where((pts["kind"] == KIND_CONTROL) | (pts["kind"] == KIND_VERTICAL),
                                 1, MIN_RAYS_PASS)
                 status = np.where(pts["status"] != STATUS_ACTIVE, "excluded",
-                                  np.where(n_rays >= need, "active", "rejected"))
+                                  np.where(n_rays >= need, "active", "rejected")).astype("U9")
+                status[np.isin(pts["id"], aside) & (status == "active")] = "set_aside"
+                adjusted = status == "active"
                 kind = [KIND_NAMES.get(int(k), str(int(k))) for k in pts["kind"].tolist()]
                 user = frame.to_user(xyz) if user_names else np.zeros((len(pts), 0))
                 _write(fp, ["%d", "%s", "%s", "%.6f", "%.6f", "%.6f"] + user_fmts
-                       + ["%s", "%s", "%s", "%d", "%.3f", "%s", "%s", "%s"],
+                       + ["%s", "%s", "%s", "%d", "%s", "%s", "%s", "%s"],
                        [pts["id"], kind, status.tolist(), xyz[:, 0], xyz[:, 1], xyz[:, 2]]
                        + [user[:, k] for k in range(user.shape[1])]
-                       + [_opt(psig[:, k], "%.6g", (status == "active") & (psig[:, k] > 0))
-                          for k in range(3)] + [n_rays, max_res]
-                       + [_opt(diff[:, k], "%.6f", known) for k in range(3)])
+                       + [_opt(psig[:, k], "%.6g", adjusted & (psig[:, k] > 0))
+                          for k in range(3)]
+                       + [n_rays, _opt(max_res, "%.3f", adjusted & (n_rays > 0))]
+                       + [_opt(diff[:, k], "%.6f", known & adjusted) for k in range(3)])
                 counts["points"] += len(pts)
                 # observations
                 sig = np.where(ob["sigma"] > 0, ob["sigma"], cam_sigma[st["camera"][s]])
                 mdb = 1000.0 * minimal_detectable_blunder(
                     sig, weakest_redundancy(q[:, 0], q[:, 1], q[:, 2]), lam0)
                 live = act & (q[:, 6] > 0)  # adjusted with this observation
-                flag = np.where(act, "ok", np.where(ob["status"] == STATUS_REJECTED,
-                                                    "rejected", "excluded"))
+                # (an observation of a point the run did not adjust is not used either)
+                used = act & adjusted[ob["point"] - a]
+                flag = np.where(used, "ok", np.where(ob["status"] == STATUS_REJECTED,
+                                                     "rejected", "excluded"))
                 _write(fo, ["%d", "%d", "%s", "%.6f", "%.6f", "%.3f", "%.3f", "%s", "%s", "%s",
                             "%s", "%s", "%s", "%.4g", "%s"],
                        [st_ids[s], pts["id"][ob["point"] - a],
@@ -194,9 +212,13 @@ def write_tables(project_path, out_dir, chunk=TABLE_CHUNK, alpha=None, power=0.8
                     cols += [opk[:, k] * RAD2DEG for k in range(3)]
                     cols += [user[:, k] for k in range(3)]
                     fmts += ["%.9f"] * 3 + user_fmts
-                cols += [sg[:, k] * RAD2SEC for k in range(3)] + [sg[:, k] for k in (3, 4, 5)]
-                cols += [n, rms, rms_xy[:, 0], rms_xy[:, 1], st_max[a:b]]
-                fmts += ["%.6g"] * 6 + ["%d", "%.3f", "%.3f", "%.3f", "%.3f"]
+                # (a photo left out has no sigmas, one without active rays no residuals)
+                in_run = st["status"][a:b] == STATUS_ACTIVE
+                cols += [_opt(sg[:, k] * RAD2SEC, "%.6g", in_run) for k in range(3)]
+                cols += [_opt(sg[:, k], "%.6g", in_run) for k in (3, 4, 5)]
+                cols += [n] + [_opt(v, "%.3f", n > 0)
+                               for v in (rms, rms_xy[:, 0], rms_xy[:, 1], st_max[a:b])]
+                fmts += ["%s"] * 6 + ["%d", "%s", "%s", "%s", "%s"]
                 _write(f, fmts, cols)
                 counts["photos"] += b - a
     return {"paths": {k: str(v) for k, v in paths.items()}, "counts": counts}

@@ -154,7 +154,86 @@ def read_bal(path):
         raise DataError(f"{path}:{k + 1}: camera {int(bad[0])}: focal length "
                         f"{float(cams[bad[0], 6]):g} is not positive")
     return {"cameras": cams, "points": pts, "obs_camera": cam_i.astype(np.int64),
-            "obs_point": pt_i.astype(np.int64), "obs_xy": obs[:, 2:].copy()}
+            "obs_point": pt_i.astype(np.int64), "obs_xy": obs[:, 2:].copy(),
+            "obs_line": np.asarray(obs_lines, np.int64) + 1}
+
+
+#: Two observations of one point on one photo at most this many image sigmas apart are one
+#: measurement written twice: they are merged (averaged) with a warning. Farther apart
+#: they contradict each other, and the import stops unless asked to average them.
+DUPLICATE_SIGMAS = 3.0
+
+
+def _merge_duplicates(path, d, sigma=1.0, merge=False, where=None):
+    """Each (camera, point) pair observed more than once in ``d`` (a :func:`read_bal` or
+    :func:`sapgo.formats.bundler.read_bundler` dict, changed in place) reduced to its first
+    observation, moved to the mean of the pair's observations (the other ``obs_*`` arrays
+    keep the first one's values). Observations of a pair more than :data:`DUPLICATE_SIGMAS`
+    ``sigma`` pixels apart raise a :class:`DataError` naming the file, both lines, the
+    camera, the point and their distance, unless ``merge``. ``where(i)``: the line of
+    observation ``i`` in the file as a message gives it (default ``d["obs_line"]``).
+    Returns warning lines for the user (none without duplicates)."""
+    cam, pt, xy = d["obs_camera"], d["obs_point"], d["obs_xy"]
+    if where is None:
+        lines = d["obs_line"]
+
+        def where(i):
+            return str(int(lines[i]))
+
+    key = cam * (int(pt.max(initial=0)) + 1) + pt
+    _, first, group, counts = np.unique(key, return_index=True, return_inverse=True,
+                                        return_counts=True)
+    if len(first) == len(key):
+        return []
+    group = group.ravel()
+    by_group = np.argsort(group, kind="stable")   # group g: by_group[start[g]:start[g + 1]]
+    start = np.concatenate([[0], np.cumsum(counts)])
+
+    def members(g):
+        return by_group[start[g]:start[g + 1]]
+
+    tol = DUPLICATE_SIGMAS * sigma
+    # only a pair whose observations span more than tol can hold two farther apart
+    lo = np.full((len(first), 2), np.inf)
+    hi = np.full((len(first), 2), -np.inf)
+    np.minimum.at(lo, group, xy)
+    np.maximum.at(hi, group, xy)
+    wide = np.flatnonzero(np.hypot(*(hi - lo).T) > tol)
+    conflicts = []   # per such pair, its two farthest observations (in file order), distance
+    for g in wide[np.argsort(first[wide], kind="stable")].tolist():
+        m = members(g)
+        dist = np.hypot(*(xy[m, None, :] - xy[None, m, :]).transpose(2, 0, 1))
+        i, j = np.unravel_index(int(np.argmax(dist)), dist.shape)
+        if dist[i, j] > tol:
+            conflicts.append((*sorted((int(m[i]), int(m[j]))), float(dist[i, j])))
+    if conflicts and not merge:
+        i, j, dist = conflicts[0]
+        more = f" (and {len(conflicts) - 1} more such pair(s))" if len(conflicts) > 1 else ""
+        raise DataError(f"{path}: lines {where(i)} and {where(j)}: camera {int(cam[i])} observes "
+                        f"point {int(pt[i])} twice, {dist:.4g} px apart (more than "
+                        f"{DUPLICATE_SIGMAS:g} sigma = {tol:g} px){more}: use "
+                        f"--merge-duplicates to average them")
+    mean = np.column_stack([np.bincount(group, weights=xy[:, k]) / counts for k in (0, 1)])
+    keep = np.sort(first)
+    pairs = np.sort(first[counts > 1])
+    shown = "; ".join(f"camera {int(cam[i])} point {int(pt[i])} (lines "
+                      + ", ".join(where(k) for k in members(group[i])[:3].tolist())
+                      + ")" for i in pairs[:5].tolist())
+    close = "" if conflicts else (f" within {DUPLICATE_SIGMAS:g} sigma ({tol:g} px) of "
+                                  f"each other")
+    out = [f"{path}: {len(pairs)} (camera, point) pair(s) observed more than once{close}: "
+           f"each merged into one observation at their mean ({len(key) - len(keep)} "
+           f"observation(s) dropped): {shown}{'; ...' if len(pairs) > 5 else ''}"]
+    if conflicts:
+        i, j, dist = max(conflicts, key=lambda c: c[2])
+        out.append(f"{path}: {len(conflicts)} of these pairs lie more than "
+                   f"{DUPLICATE_SIGMAS:g} sigma ({tol:g} px) apart and were averaged as "
+                   f"asked (--merge-duplicates); the farthest: camera {int(cam[i])} point "
+                   f"{int(pt[i])}, lines {where(i)} and {where(j)}, {dist:.4g} px")
+    for name in [k for k in d if k.startswith("obs_")]:
+        d[name] = d[name][keep]
+    d["obs_xy"] = mean[group[keep]]
+    return out
 
 
 def rodrigues(rvec):
@@ -240,20 +319,29 @@ def write_bal(path, cams, pts, obs_camera, obs_point, obs_xy):
 
 
 @writes_project("import", "out")
-def import_bal(path, out, force=False, intrinsics="adjusted"):
+def import_bal(path, out, force=False, intrinsics="adjusted", merge_duplicates=False):
     """Import the BAL problem ``path`` into a new project ``out``: one photo and one camera
     per BAL camera (ids = BAL indices; its f, k1, k2 ``"adjusted"`` with the photo, as
     9-parameter stations, or held ``"fixed"``), the points as pass
     points with the file's coordinates as approximations, image units pixels with sigma 1
-    (the project attribute ``image_unit`` is ``"px"``). Returns a summary dict."""
+    (the project attribute ``image_unit`` is ``"px"``). A (camera, point) pair observed
+    more than once is merged into one averaged observation with a warning when its
+    observations lie within :data:`DUPLICATE_SIGMAS` pixels of each other; farther apart
+    they are an error unless ``merge_duplicates`` (then averaged too). Returns a summary
+    dict (``warnings``: lines for the user; ``initial_cost`` of the observations
+    imported)."""
     out = _check_out(out, force, intrinsics)
     d = read_bal(path)
+    n_read = len(d["obs_camera"])
+    warnings = _merge_duplicates(path, d, merge=merge_duplicates)
     eo, rows = bal_to_sapgo(d["cameras"])
     n = write_snavely_project(out, {"command": "import", "format": "bal", "file": str(path)},
                               eo, rows, np.arange(len(eo)), d["points"], d["obs_camera"],
                               d["obs_point"], d["obs_xy"], intrinsics)
     return {"path": str(out), "cameras": len(eo), "photos": len(eo),
-            "points": len(d["points"]), "observations": n, "initial_cost": bal_cost(d)}
+            "points": len(d["points"]), "observations": n,
+            "duplicates_dropped": n_read - n, "warnings": warnings,
+            "initial_cost": bal_cost(d)}
 
 
 def _check_out(out, force, intrinsics):

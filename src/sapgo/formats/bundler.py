@@ -27,6 +27,7 @@ from ..lock import writes_project
 from ..errors import DataError
 from .bal import (
     _check_out,
+    _merge_duplicates,
     read_text,
     sapgo_to_snavely,
     snavely_block,
@@ -75,7 +76,9 @@ def read_bundler(path):
     """Read a Bundler ``.out`` file (plain, ``.gz`` or ``.bz2``): a dict of ``rotations``
     (n x 3 x 3), ``translations`` (n x 3), ``fk`` (n x 3: f, k1, k2), ``reconstructed`` (n: a camera
     not all zeros), ``points`` (m x 3), ``colors`` (m x 3), ``obs_camera``, ``obs_point``,
-    ``obs_key`` (int64), ``obs_xy`` (k x 2) and ``version``. Errors name the file and line."""
+    ``obs_key`` (int64), ``obs_xy`` (k x 2), ``obs_line`` and ``obs_view`` (an
+    observation's line and its place in the line's view list, from 1) and ``version``.
+    Errors name the file and line."""
     path = Path(path)
     lines = read_text(path).splitlines()
     data = [k for k, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
@@ -176,10 +179,14 @@ def read_bundler(path):
         o = int(bad[0])
         raise DataError(f"{path}:{view_line(o)}: point {int(obs_point[o])}: an image "
                         f"coordinate is not finite")
+    line = np.asarray(pts_lines[2::3], np.int64)[obs_point] + 1 if len(obs_point) else \
+        np.zeros(0, np.int64)
+    view = np.arange(len(obs_point)) - np.repeat(np.cumsum(counts) - counts, counts) + 1
     return {"rotations": rot, "translations": t, "fk": fk, "reconstructed": reconstructed,
             "points": pts, "colors": rgb.astype(np.uint8), "obs_camera": obs_camera,
             "obs_point": obs_point, "obs_key": views[:, 1].astype(np.int64),
-            "obs_xy": views[:, 2:].copy(), "version": version}
+            "obs_xy": views[:, 2:].copy(), "obs_line": line, "obs_view": view,
+            "version": version}
 
 
 def bundler_cost(d):
@@ -216,15 +223,22 @@ def write_bundler(path, r, t, fk, pts, colors, obs_camera, obs_point, obs_key, o
 
 
 @writes_project("import", "out")
-def import_bundler(path, out, force=False, intrinsics="adjusted"):
+def import_bundler(path, out, force=False, intrinsics="adjusted", merge_duplicates=False):
     """Import the Bundler file ``path`` into a new project ``out``: one photo and one
     camera per reconstructed camera (ids: the cameras' indices in the file; f, k1, k2
     ``"adjusted"`` with the photo or held ``"fixed"``), the points as pass points (ids:
     their indices) with the file's coordinates as approximations, image units pixels with
-    sigma 1, a free network; the colours and keypoint indices in ``/bundler``. Returns a
-    summary dict."""
+    sigma 1, a free network; the colours and keypoint indices in ``/bundler``. A camera
+    listed twice in a point's view list is merged as :func:`sapgo.formats.bal.import_bal`
+    merges BAL duplicates (the first keypoint index kept; beyond 3 pixels an error unless
+    ``merge_duplicates``). Returns a summary dict (``warnings``: lines for the user)."""
     out = _check_out(out, force, intrinsics)
     d = read_bundler(path)
+    n_read = len(d["obs_camera"])
+    warnings = _merge_duplicates(
+        path, d, merge=merge_duplicates,
+        where=lambda i, line=d["obs_line"], view=d["obs_view"]: (
+            f"{int(line[i])} (view {int(view[i])})"))
     rec = np.flatnonzero(d["reconstructed"])
     index = np.full(len(d["fk"]), -1)
     index[rec] = np.arange(len(rec))
@@ -249,7 +263,8 @@ def import_bundler(path, out, force=False, intrinsics="adjusted"):
                               extra)
     return {"path": str(out), "cameras": len(rec), "photos": len(rec),
             "not_reconstructed": int(len(d["fk"]) - len(rec)), "points": len(d["points"]),
-            "observations": n, "initial_cost": bundler_cost(d), "version": d["version"]}
+            "observations": n, "duplicates_dropped": n_read - n, "warnings": warnings,
+            "initial_cost": bundler_cost(d), "version": d["version"]}
 
 
 def export_bundler(project_path, out_path, adjusted=True):

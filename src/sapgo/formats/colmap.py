@@ -826,7 +826,7 @@ def export_colmap(project_path, out_dir, adjusted=False, pixel_size=None):
     bad = np.flatnonzero(rows[:, 5] != 0.0)
     if len(bad):
         raise DataError(f"{project_path}: camera {int(cams['id'][bad[0]])} has k3 = "
-                        f"{rows[bad[0], 5]!r}, which COLMAP's camera models cannot hold")
+                        f"{float(rows[bad[0], 5]):g}, which COLMAP's camera models cannot hold")
     # pixels: f, x0, y0 times scale; k1 / scale^2, k2 / scale^4, p / scale
     rows = rows[:, :8] * np.array([scale, scale, scale, scale ** -2, scale ** -4, 0.0,
                                    1 / scale, 1 / scale])

@@ -1,10 +1,11 @@
 """The plain-text block formats: cameras, photos, image measurements and control.
 
 Whitespace-separated columns, ``#`` starts a comment (a whole line or the rest of a line),
-blank lines are ignored. Units: image coordinates, focal length, principal point, format and
-image sigmas in mm; ground coordinates and their sigmas in m; angles in the unit the user
-chooses (``deg``, ``gon`` or ``rad``), stored in radians. Ids are int64. The formats are
-documented field by field in ``docs/formats.md``::
+blank lines are ignored; lines may end as on Unix (LF), Windows (CR LF) or classic Mac OS
+(CR). Units: image coordinates, focal length, principal point, format and image sigmas in
+mm; ground coordinates and their sigmas in m; angles in the unit the user chooses (``deg``,
+``gon`` or ``rad``), stored in radians. Ids are int64. The formats are documented field by
+field in ``docs/formats.md``::
 
     cameras       id focal_length x0 y0 format_x format_y sigma_image
                   [k1 k2 k3 p1 p2 [b1 b2 [forward|backward]]]
@@ -270,8 +271,10 @@ def angle_strings(rad, angles):
 def read_chunks(path, chunk_bytes):
     """Yield ``(first_line_number, block)``: blocks of whole lines of about ``chunk_bytes``.
 
-    Line numbers count from 1. A UTF-8 byte-order mark is skipped; a last line without a
-    newline gets one.
+    Line numbers count from 1. A line ends in ``\\n`` (Unix), ``\\r\\n`` (Windows) or ``\\r``
+    alone (classic Mac OS); the blocks hold ``\\n`` only, one for each line end, so that
+    line numbers count the lines as an editor shows them. A UTF-8 byte-order mark is
+    skipped; a last line without a line end gets one.
     """
     chunk_bytes = max(4096, int(chunk_bytes))
     max_line = max(chunk_bytes, MAX_LINE)
@@ -293,19 +296,31 @@ def read_chunks(path, chunk_bytes):
                 start = False
             if not block:
                 if rest:
-                    yield first, rest + b"\n"
+                    rest = _unix_line_ends(rest)
+                    yield first, rest if rest.endswith(b"\n") else rest + b"\n"
                 return
             data = rest + block if rest else block
+            tail = b""
+            if b"\r" in data:
+                if data.endswith(b"\r"):  # (its \n, if any, is in the next block)
+                    data, tail = data[:-1], b"\r"
+                data = _unix_line_ends(data)
             cut = data.rfind(b"\n")
             if cut < 0:
                 if len(data) > max_line:
                     raise DataError(f"{path}:{first}: the line is longer than "
                                     f"{max_line >> 20} MiB: not a text file of this format?")
-                rest = data
+                rest = data + tail
                 continue
-            chunk, rest = data[:cut + 1], data[cut + 1:]
+            chunk, rest = data[:cut + 1], data[cut + 1:] + tail
             yield first, chunk
             first += chunk.count(b"\n")
+
+
+def _unix_line_ends(data):
+    """``data`` with its Windows (``\\r\\n``) and classic Mac OS (``\\r``) line ends made
+    ``\\n``."""
+    return data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
 
 
 def _first_data_line(chunk):
