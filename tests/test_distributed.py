@@ -561,3 +561,32 @@ def test_a_tls_cluster_works_unchanged(blocks, tmp_path):
         sd = sapgo.adjust(path, dataclasses.replace(opts, client=c))
     assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-12)
     assert_same_solution(path, ref, rtol=1e-12)
+
+
+def test_a_free_network_on_two_workers(blocks, tmp_path, client):
+    """A free network (inner constraints, sapgo.freenet): the workers' factor gives the
+    threaded run's solution and precision."""
+    import h5py
+
+    from conftest import read_records, rewrite
+
+    rec = read_records(blocks["square"])
+    rec["points"]["kind"] = 0
+    src = tmp_path / "free.h5"
+    rewrite(src, rec)
+    with h5py.File(src, "r+") as f:
+        f.attrs["datum"] = "free"
+    opts = dataclasses.replace(TIGHT, progress=False, tol_cost=1e-14, max_iterations=60)
+    ref, path, sr, sd, _ = _both(src, tmp_path, opts, client)
+    assert sd.converged and sd.datum == "free" and sd.precision is not None
+    assert sd.sigma0 == pytest.approx(sr.sigma0, rel=1e-10)
+    from test_tree_adjust import by_id
+
+    a, b = by_id(path), by_id(ref)
+    for k in ("station_corr", "point_corr", "residuals", "station_sigma", "point_sigma"):
+        np.testing.assert_allclose(a[k], b[k], rtol=1e-8, atol=1e-8 * np.abs(b[k]).max(),
+                                   err_msg=k)
+    # the redundancy numbers (their normalised residuals divide by sqrt(r), which is all
+    # but 0 for some rays of a block of pass points only: those are not compared)
+    np.testing.assert_allclose(a["obs_quality"][:, :3], b["obs_quality"][:, :3], rtol=0,
+                               atol=2e-6)

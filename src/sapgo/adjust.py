@@ -1566,6 +1566,10 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
         _set_fixed(blk, p, opts)
+        if blk.free:   # 7 station parameters held (the inner constraints come at the commit)
+            from .freenet import minimal_constraints
+
+            minimal_constraints(blk)
         if blk.tree is not None:
             from .solve.tree import check_tree_memory
 
@@ -1581,13 +1585,6 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
         if blk.redundancy <= 0:
             raise SapgoError(f"{path}: the block has no redundancy ({blk.redundancy}): more "
                              f"unknowns than observations")
-        if blk.free and (opts.snooping or opts.robust is not None):
-            raise SapgoError(f"{path}: a free network (no control, no priors) has no "
-                             f"precision or redundancy numbers without a datum: data snooping "
-                             f"and robust estimation need control points or station priors")
-        if blk.free and opts.method == "gauss-newton":
-            raise SapgoError(f"{path}: a free network needs Levenberg-Marquardt (method auto "
-                             f"or levenberg-marquardt), not gauss-newton")
         ident = _identity(p, blk.band_width)
         ident["solver"] = blk.solver
         if blk.border:  # a run with another self-calibration is another run
@@ -1926,14 +1923,25 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     xyz_ds, res_ds = work.xyz_current, work.res_current
     t_prec = time.perf_counter()
     correlations = HighCorrelations(opts.correlation_threshold)
-    no_precision = blk.free
+    # a free network: the solution and precision of the inner constraints (sapgo.freenet);
+    # with self-calibration as well, no precision
+    no_precision = blk.free and blk.n_border > 0
     if no_precision:  # no datum, no precision: zeros, and no report of it
         station_sigma = np.zeros((len(blk.station_ids), 6))
         psig = quality = None
         correlations = reliability = None
     else:
+        if blk.free:
+            from .freenet import to_inner
+
+            to_inner(p_read, work, blk, opts)
+            correlations = None   # (those of the minimal constraints' datum mean nothing)
         station_sigma, psig, quality = _precision(p_read, work, blk, opts,
                                                       last["sigma0"], correlations)
+        if blk.free:
+            from .freenet import inner_precision
+
+            inner_precision(p_read, work, blk, opts, last["sigma0"], station_sigma, psig)
         _note_planted(p_read, blk, quality, run)
         reliability = reliability_statistics(opts.snooping_alpha)
     # the report's sums over the points and their observations: each Dask part's points on
@@ -1999,7 +2007,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         frame=frame_info(p_read.frame()),
         precision=None if no_precision else precision_summary(
             station_sigma[blk.station_active], psig, p_read, opts.chunk_points),
-        correlations=None if no_precision else correlations.result(),
+        correlations=None if correlations is None else correlations.result(),
         reliability=None if no_precision else reliability.result(),
         calibration=_calibration_report(p_read, blk, run, last["sigma0"]) if blk.border
         else None,

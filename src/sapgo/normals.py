@@ -583,9 +583,10 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
 def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                  obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                  ctrl_mask, max_rays, zb, base, res, out, out_r, out_w, npar=6, cal=None,
-                 xw=None, xbase=0, sig_b=None, st_fixed=None):
+                 xw=None, xbase=0, sig_b=None, st_fixed=None, behind_ok=False):
     """Precision of the points of a chunk and the quality of their observations (stations
-    of ``npar`` parameters: 6, or 9 with the photo's intrinsics).
+    of ``npar`` parameters: 6, or 9 with the photo's intrinsics). ``behind_ok``: a point
+    behind a camera is a point all the same (BAL problems), as in the build.
 
     ``out`` (n x 6): the points' cofactor standard deviations (multiply by sigma0) and the
     correlations of X-Y, X-Z and Y-Z, from the point block of the inverse of the full normal
@@ -640,7 +641,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
         k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                           obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                           cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all, st_all, nn, cc, b_all, o_all,
-                          0.0, False, st_fixed)
+                          0.0, behind_ok, st_fixed)
         if k < 0 or not _chol3(nn, lo):
             for c in range(out.shape[1]):
                 out[j, c] = np.nan
@@ -935,3 +936,58 @@ def point_costs(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt
                     v += pt_rot[j, c, q] * (xyz[q] - pt_ctrl[j, q])
                 vpv_ctl += v * v / (pt_csig[j, c] * pt_csig[j, c])
     return vpv_img, vpv_ctl
+
+
+@njit(cache=True, nogil=True)
+def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
+                  obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
+                  ctrl_mask, max_rays, h_pt, x_st, r_st, b_pt, behind_ok=False,
+                  st_fixed=None):
+    """The points' share of a solve of the full normal equations ``N [x_s; x_p] = [0; h]``
+    for several right-hand sides at once (columns), ``h`` on the points only (``h_pt``,
+    chunk points x 3 x c; a free network's inner constraints, :mod:`sapgo.freenet`).
+
+    Without ``x_st`` (None): the reduced right-hand side of the stations,
+    ``r_s -= sum Nbar Ndd^-1 h`` into ``r_st`` (stations x npar x c). With ``x_st`` (the
+    stations' solution, stations x npar x c): the points', ``x_p = Ndd^-1 (h - sum Nbar'
+    x_s)``, into ``b_pt`` (chunk points x 3 x c). The normals as the build forms them
+    (undamped; fixed station parameters' columns zero). Returns the first point that
+    cannot be linearised (index + 1), else 0."""
+    npar = r_st.shape[1]
+    nc = h_pt.shape[2]
+    nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all, o_all = _workspace(max_rays, npar)
+    col = np.empty(3)
+    sol = np.empty(3)
+    for j in range(pt_xyz.shape[0]):
+        if pt_active[j] != 0:
+            continue
+        k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
+                          obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
+                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
+                          st_all, nn, cc, b_all, o_all, 0.0, behind_ok, st_fixed)
+        if k < 0 or not _chol3(nn, lo):
+            return j + 1
+        for c in range(nc):
+            for r in range(3):
+                col[r] = h_pt[j, r, c]
+            if x_st is None:
+                _solve3(lo, col, sol)
+                for q in range(k):
+                    s = st_all[q]
+                    for u in range(npar):
+                        x = 0.0
+                        for r in range(3):
+                            x += nbar[q, u, r] * sol[r]
+                        r_st[s, u, c] -= x
+            else:
+                for q in range(k):
+                    s = st_all[q]
+                    for r in range(3):
+                        x = 0.0
+                        for u in range(npar):
+                            x += nbar[q, u, r] * x_st[s, u, c]
+                        col[r] -= x
+                _solve3(lo, col, sol)
+                for r in range(3):
+                    b_pt[j, r, c] = sol[r]
+    return 0

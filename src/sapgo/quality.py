@@ -194,7 +194,7 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
     point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, st,
                  c.obs_xy, c.obs_sigma, c.obs_active, eo, camera, blk.cams, CTRL_MASK,
                  c.max_rays, zb, base, np.ascontiguousarray(work.res_current[c.o0:c.o1]), out,
-                 out_r, out_w, blk.npar, cal, xw, xlo, sig_b, fixed)
+                 out_r, out_w, blk.npar, cal, xw, xlo, sig_b, fixed, blk.behind_ok)
     psig[a:b] = sigma0 * out[:, :3]
     if weight is None:
         weight = np.ones(c.o1 - c.o0)

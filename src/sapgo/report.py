@@ -490,8 +490,11 @@ class Summary:
             L.append("  datum: station parameters held fixed (--datum fix), with the control "
                      "and priors given; their standard deviations are 0")
         if self.datum == "free":
-            L.append("  a free network: no control or priors fix the datum, so no precision "
-                     "is computed")
+            L.append("  a free network (no control or priors): datum by inner constraints on "
+                     "the object points (their least change from the approximations: "
+                     "centroid, rotation and scale kept)" + (
+                         "; precision in that datum" if self.precision else
+                         "; with self-calibration no precision is computed"))
         if self.calibration:
             unit = self.image_unit
             L.append(f"  self-calibration (camera, parameter: initial -> adjusted +- sigma; "

@@ -400,6 +400,30 @@ def border_back_substitute(factor_ds, border_ds, n_st, band_width, step=256, out
         stop = start
 
 
+def band_solve_columns(factor_ds, r, n_st, band_width, step=256):
+    """``M^-1 R`` for the columns ``R`` (n_st x k x c, in core) with the band's factor
+    ``M = U'U`` (``factor_ds``, diagonal-first rows): the forward substitution of
+    :func:`border_solve` and the back substitution of :func:`border_back_substitute`."""
+    kb = factor_ds.shape[1]
+    c = r.shape[2]
+    n = kb * n_st
+    win = np.ascontiguousarray(np.asarray(r, dtype=np.float64).reshape(-1, c))
+    s_mat, t_vec, yy = np.zeros((c, c)), np.zeros(c), np.zeros(1)
+    step = max(1, step)
+    for base in range(0, n_st, step):   # W = U'^-1 R, in place (rows after it: in win)
+        stop = min(n_st, base + step)
+        fac = np.ascontiguousarray(factor_ds[base:stop], dtype=np.float64)
+        _border_rows(fac, win[kb * base:], np.zeros((stop - base, kb)), base, n, s_mat,
+                     t_vec, yy)
+    stop = n_st
+    while stop > 0:   # X = U^-1 W
+        start = max(0, stop - step)
+        fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
+        _border_back_rows(fac, win[kb * start:], start, n)
+        stop = start
+    return win.reshape(n_st, kb, c)
+
+
 class BorderPivotError(Exception):
     """A border parameter that the block cannot determine (a non-positive pivot of the
     border's Schur complement); ``index`` is its border column."""

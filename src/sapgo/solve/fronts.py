@@ -725,6 +725,52 @@ class TreeSolver:
                 col[:m], r, lower=True, trans="T", check_finite=False)
         return x.reshape(n_stations, k, ng)
 
+    def solve_columns(self, r):
+        """``M^-1 R`` for the columns ``R`` (k n_stations x c; stations outside the tree
+        0) with the factor in the file: forward substitution up the tree (post-order), back
+        substitution down it (a tiled front a panel at a time)."""
+        t, k = self.tree, self.k
+        y = np.array(r, dtype=np.float64, copy=True)
+        for i in range(t.n_nodes):
+            own = slice(k * int(t.lo[i]), k * int(t.hi[i]))
+            bnd = _scalar(t.bnd(i), k)
+            m = own.stop - own.start
+            if self.tiled[i]:
+                bounds = self.bounds(i)
+                for q in range(len(bounds) - 1):
+                    q0, q1 = int(bounds[q]), int(bounds[q + 1])
+                    if q0 >= m:
+                        break
+                    lq = self.file.read_cols(i, q0, q1, q0)   # (rows from q0)
+                    w = q1 - q0
+                    yq = scipy.linalg.solve_triangular(lq[:w], y[own][q0:q1], lower=True,
+                                                       check_finite=False)
+                    y[own.start + q0:own.start + q1] = yq
+                    y[own.start + q1:own.stop] -= lq[w:m - q0] @ yq
+                    if len(bnd):
+                        y[bnd] -= lq[m - q0:] @ yq
+                continue
+            col, _ = self.file.read(i)
+            yo = scipy.linalg.solve_triangular(col[:m], y[own], lower=True, check_finite=False)
+            y[own] = yo
+            if col.shape[0] > m:
+                y[bnd] -= col[m:] @ yo
+        x = np.zeros_like(y)
+        for i in range(t.n_nodes - 1, -1, -1):
+            own = slice(k * int(t.lo[i]), k * int(t.hi[i]))
+            bnd = _scalar(t.bnd(i), k)
+            if self.tiled[i]:
+                x[own] = self._back_tiled(i, y[own], x[bnd])
+                continue
+            col, _ = self.file.read(i)
+            m = col.shape[1]
+            rr = y[own]
+            if col.shape[0] > m:
+                rr = rr - col[m:].T @ x[bnd]
+            x[own] = scipy.linalg.solve_triangular(col[:m], rr, lower=True, trans="T",
+                                                   check_finite=False)
+        return x
+
     def inverse(self, on_node, nodes=None, held=None):
         """Selected inversion top-down: ``on_node(i, z)`` with ``z`` (kf x kf, F order,
         symmetric) the inverse of the reduced matrix over node ``i``'s front.

@@ -1,0 +1,171 @@
+"""A free network (issue 18): its solution and precision by inner constraints on the object
+points equal a dense reference -- a dense Gauss-Newton under minimal constraints, moved onto
+the approximations by a similarity (the least change of the points), and the inverse of
+the bordered normal matrix ``[[N, G'], [G, 0]]`` (the pseudo-inverse in the points' norm)
+-- on the band and on the tree."""
+
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+import naive
+import sapgo
+from conftest import read_records, rewrite
+from sapgo.geometry import attitude_jacobians
+from sapgo.project import CONTROL_MASK, Project
+
+
+def procrustes(y, x):
+    """``(s, R, t)`` minimising ``sum |s R y_i + t - x_i|^2`` (Umeyama), written again."""
+    my, mx = y.mean(axis=0), x.mean(axis=0)
+    u, d, vt = np.linalg.svd((x - mx).T @ (y - my))
+    e = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    r = u @ e @ vt
+    s = np.trace(np.diag(d) @ e) / ((y - my) ** 2).sum()
+    return s, r, mx - s * r @ my
+
+
+def skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+@pytest.fixture(scope="module")
+def free_block(tmp_path_factory, block_cache):
+    """A 3 x 6 block whose points are all pass points, marked a free network."""
+    src = block_cache("free", strips=3, photos_per_strip=6, control_points=4)
+    path = tmp_path_factory.mktemp("free") / "free.h5"
+    rec = read_records(src)
+    rec["points"]["kind"] = 0
+    rewrite(path, rec)
+    with h5py.File(path, "r+") as f:
+        f.attrs["datum"] = "free"
+    return path, rec
+
+
+@pytest.fixture(scope="module")
+def reference(free_block):
+    """The dense reference: the solution and the points' and photos' sigmas."""
+    _, rec = free_block
+    st, pt, ob = rec["stations"], rec["points"], rec["observations"]
+    cam = rec["cameras"][0]
+    f = cam["focal_length"]
+    fixed = np.zeros((len(st), 6), bool)
+    fixed[0] = True
+    fixed[-1, 3] = True
+    xy = np.column_stack([ob["x"], ob["y"]])
+    eo, xyz, s0, _ = naive.dense_bundle_adjustment(
+        st["eo"], pt["xyz"], f, ob["station"], ob["point"], xy, ob["sigma"],
+        CONTROL_MASK[pt["kind"]].astype(bool), pt["control"], pt["control_sigma"],
+        iterations=50, fixed_station=fixed)
+    # the similarity onto the approximations, applied to the points and the photos
+    s, r, t = procrustes(xyz, pt["xyz"])
+    xyz = s * xyz @ r.T + t
+    m = naive.rotation(eo[:, 0], eo[:, 1], eo[:, 2]).transpose(2, 0, 1) @ r.T
+    opk = np.array([[np.arctan2(-q[2, 1], q[2, 2]), np.arcsin(q[2, 0]),
+                     np.arctan2(-q[1, 0], q[0, 0])] for q in m])
+    eo = np.column_stack([opk, s * eo[:, 3:6] @ r.T + t])
+    # the dense normals at the solution: photos (rotation vector, centre), points
+    ns, npt = len(st), len(pt)
+    jac = np.zeros((2 * len(ob), 6 * ns + 3 * npt))
+    for i, (a, j) in enumerate(zip(ob["station"], ob["point"])):
+        ja, jb = naive.jacobian_rotvec_complex_step(eo[a], xyz[j], f)
+        jac[2 * i:2 * i + 2, 6 * a:6 * a + 6] = ja / ob["sigma"][i]
+        jac[2 * i:2 * i + 2, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = jb / ob["sigma"][i]
+    n = jac.T @ jac
+    centre = xyz.mean(axis=0)
+    g = np.zeros((7, n.shape[0]))   # inner constraints on the points: G = H_p'
+    for j in range(npt):
+        h = np.zeros((3, 7))
+        h[:, :3] = np.eye(3)
+        h[:, 3:6] = -skew(xyz[j] - centre)
+        h[:, 6] = xyz[j] - centre
+        g[:, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = h.T
+    hfull = g.T.copy()   # the null space: the points' rows and the photos'
+    for a in range(ns):
+        hfull[6 * a:6 * a + 3, 3:6] = np.eye(3)
+        hfull[6 * a + 3:6 * a + 6, :3] = np.eye(3)
+        hfull[6 * a + 3:6 * a + 6, 3:6] = -skew(eo[a, 3:6] - centre)
+        hfull[6 * a + 3:6 * a + 6, 6] = eo[a, 3:6] - centre
+    big = np.block([[n, g.T], [g, np.zeros((7, 7))]])
+    q = np.linalg.inv(big)[:n.shape[0], :n.shape[0]]
+    qs = np.array([q[6 * a:6 * a + 6, 6 * a:6 * a + 6] for a in range(ns)])
+    tj = np.zeros((ns, 6, 6))
+    tj[:, :3, :3] = attitude_jacobians(eo[:, :3])
+    tj[:, 3:, 3:] = np.eye(3)
+    qs = tj @ qs @ tj.transpose(0, 2, 1)
+    st_sig = s0 * np.sqrt(np.diagonal(qs, axis1=1, axis2=2))
+    pt_sig = s0 * np.sqrt(np.diag(q)[6 * ns:].reshape(npt, 3))
+    return {"eo": eo, "xyz": xyz, "sigma0": s0, "station_sigma": st_sig,
+            "point_sigma": pt_sig,
+            "null": np.abs(n @ hfull).max() / (np.abs(n).max() * np.abs(hfull).max())}
+
+
+@pytest.mark.parametrize("solver", ["band", "tree"])
+def test_free_network_equals_the_dense_inner_constraints(free_block, reference, tmp_path,
+                                                         solver):
+    path, rec = free_block
+    assert reference["null"] < 1e-9   # (H spans the normals' null space)
+    run = tmp_path / f"{solver}.h5"
+    shutil.copy(path, run)
+    s = sapgo.adjust(run, sapgo.Options(progress=False, solver=solver, tol_position=1e-10,
+                                        tol_angle=1e-12, tol_cost=1e-14, max_iterations=60))
+    assert s.converged and s.datum == "free" and s.precision is not None
+    assert s.sigma0 == pytest.approx(reference["sigma0"], rel=1e-7)
+    with Project(run) as p:
+        sid = p.read_field("stations", "id")
+        eo = p.read_field("stations", "eo") + p.solution("station_corr")
+        ssig = p.solution("station_sigma")
+        pid = p.read_field("points", "id")
+        xyz = p.read_field("points", "xyz") + p.solution("point_corr")
+        psig = p.solution("point_sigma")
+    so, ro = np.argsort(sid), np.argsort(rec["stations"]["id"])
+    po, rpo = np.argsort(pid), np.argsort(rec["points"]["id"])
+    np.testing.assert_allclose(xyz[po], reference["xyz"][rpo], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(eo[so, 3:], reference["eo"][ro, 3:], rtol=0, atol=1e-6)
+    turn = np.angle(np.exp(1j * (eo[so, :3] - reference["eo"][ro, :3])))   # (mod 2 pi)
+    np.testing.assert_allclose(turn, 0.0, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(psig[po], reference["point_sigma"][rpo], rtol=1e-7)
+    np.testing.assert_allclose(ssig[so], reference["station_sigma"][ro], rtol=1e-7)
+    # the inner constraints hold: the points' sum, rotation and scale against their
+    # approximations are those of the approximations
+    x0 = rec["points"]["xyz"][rpo]
+    d, v = xyz[po] - x0, xyz[po] - xyz[po].mean(axis=0)
+    size = np.abs(v).max()
+    assert np.abs(d.sum(axis=0)).max() < 1e-8 * size * len(d)
+    assert np.abs(np.cross(v, d).sum(axis=0)).max() < 1e-8 * size ** 2 * len(d)
+    assert abs((v * d).sum()) < 1e-8 * size ** 2 * len(d)
+
+
+def test_free_network_of_the_minimal_constraints_has_the_same_shape(free_block, tmp_path):
+    """The minimal constraints chosen are only the adjustment's: the residuals and sigma0
+    are those of any datum (here the user's own 7 fixed parameters)."""
+    path, rec = free_block
+    st = rec["stations"]
+    a, b = int(st["id"][0]), int(st["id"][-1])
+    runs = {}
+    for name, fix in (("inner", ()), ("fixed", (f"fix:{a}:all", f"fix:{b}:X"))):
+        run = tmp_path / f"{name}.h5"
+        shutil.copy(path, run)
+        runs[name] = sapgo.adjust(run, sapgo.Options(progress=False, fix=fix,
+                                                     tol_position=1e-10, tol_angle=1e-12,
+                                                     tol_cost=1e-14, max_iterations=60))
+        with Project(run) as p:
+            runs[name + "_res"] = p.solution("residuals")
+    assert runs["inner"].sigma0 == pytest.approx(runs["fixed"].sigma0, rel=1e-9)
+    np.testing.assert_allclose(runs["inner_res"], runs["fixed_res"], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("options", [dict(snooping=True), dict(robust="huber"),
+                                     dict(method="gauss-newton")])
+def test_snooping_robust_and_gauss_newton_on_a_free_network(free_block, tmp_path, options):
+    """With its datum held while it adjusts, a free network takes every method; the
+    redundancy numbers are those of any datum."""
+    path, _ = free_block
+    run = tmp_path / "run.h5"
+    shutil.copy(path, run)
+    s = sapgo.adjust(run, sapgo.Options(progress=False, max_iterations=40, **options))
+    assert s.converged and s.datum == "free" and s.precision is not None
+    assert s.reliability["mean_redundancy_number"] == pytest.approx(
+        s.redundancy / (2 * s.n_observations), rel=1e-3)
