@@ -510,7 +510,11 @@ def test_bad_datum_fixes_are_one_line(small_block, tmp_path, capsys):
     shutil.copy(small_block, path)
     before = digest(path)
     pid = int(read_records(path)["stations"]["id"][0])
-    for args, words in [(["--datum", "free"], "expected fix:IDS:PARAMS"),
+    for args, words in [(["--datum", "somewhere"], "expected control, priors, free or "
+                                                   "fix:IDS:PARAMS"),
+                        (["--datum", "free", "--datum", "control"], "choose one"),
+                        (["--datum", "free", "--datum", f"fix:{pid}:X"],
+                         "a free network's datum is its inner constraints"),
                         (["--datum", "fix:424242:X"], "photo id 424242: no such photo"),
                         (["--datum", f"fix:{pid}:height"], "unknown station parameter"),
                         (["--datum", f"fix:{pid}"], "expected fix:IDS:PARAMS"),

@@ -169,3 +169,86 @@ def test_snooping_robust_and_gauss_newton_on_a_free_network(free_block, tmp_path
     assert s.converged and s.datum == "free" and s.precision is not None
     assert s.reliability["mean_redundancy_number"] == pytest.approx(
         s.redundancy / (2 * s.n_observations), rel=1e-3)
+
+
+def _by_id(path):
+    with Project(path) as p:
+        pid = p.read_field("points", "id")
+        xyz = p.read_field("points", "xyz") + p.solution("point_corr")
+        sid = p.read_field("stations", "id")
+        eo = p.read_field("stations", "eo") + p.solution("station_corr")
+    return dict(zip(pid.tolist(), xyz)), dict(zip(sid.tolist(), eo))
+
+
+def test_datum_free_makes_control_points_tie_points(block_cache, free_block, tmp_path):
+    """``--datum free`` on a block with control is the free network of the same points
+    (its control points tie points; here every one has two rays or more)."""
+    src = block_cache("free", strips=3, photos_per_strip=6, control_points=4)
+    free_path, _ = free_block
+    runs = {}
+    for name, path, datum in (("chosen", src, "free"), ("marked", free_path, None)):
+        run = tmp_path / f"{name}.h5"
+        shutil.copy(path, run)
+        runs[name] = sapgo.adjust(run, sapgo.Options(progress=False, datum=datum,
+                                                     tol_position=1e-10, tol_angle=1e-12,
+                                                     tol_cost=1e-14, max_iterations=60))
+        runs[name + "_xyz"], runs[name + "_eo"] = _by_id(run)
+    assert runs["chosen"].datum == "free" and runs["chosen"].precision is not None
+    assert runs["chosen"].sigma0 == pytest.approx(runs["marked"].sigma0, rel=1e-9)
+    for i, x in runs["marked_xyz"].items():
+        np.testing.assert_allclose(runs["chosen_xyz"][i], x, rtol=0, atol=1e-7)
+    # every point of the generated block is control or check: now all check points
+    assert runs["chosen"].check_points["n"] == runs["chosen"].n_points
+    assert runs["marked"].check_points["n"] == 0
+
+
+def _with_priors(rec, sigma_pos=0.05, sigma_ang=1e-4):
+    """The records with a prior of every photo at its true orientation."""
+    from sapgo.project import PRIOR_DTYPE
+
+    st = rec["stations"]
+    pr = np.zeros(len(st), PRIOR_DTYPE)
+    pr["station"] = np.arange(len(st))
+    pr["value"] = rec["truth"]["stations"]["eo"]
+    pr["weight"] = np.diag([sigma_ang ** -2] * 3 + [sigma_pos ** -2] * 3)
+    rec["station_priors"] = pr
+    return rec
+
+
+def test_datum_control_and_priors_leave_out_the_other(block_cache, tmp_path):
+    """``--datum control`` is the block without its priors; ``--datum priors`` the block
+    whose control points are check points."""
+    src = block_cache("free", strips=3, photos_per_strip=6, control_points=4)
+    rec = _with_priors(read_records(src))
+    both = tmp_path / "both.h5"
+    rewrite(both, rec)
+    no_priors = tmp_path / "no_priors.h5"
+    rewrite(no_priors, dict(read_records(src), station_priors=rec["station_priors"][:0]))
+    checks = read_records(src)
+    checks["station_priors"] = rec["station_priors"]
+    checks["points"]["kind"][checks["points"]["kind"] == 1] = 4
+    as_checks = tmp_path / "as_checks.h5"
+    rewrite(as_checks, checks)
+    tight = dict(progress=False, tol_position=1e-10, tol_angle=1e-12, max_iterations=40)
+    for datum, ref_path in (("control", no_priors), ("priors", as_checks)):
+        run = tmp_path / f"{datum}.h5"
+        shutil.copy(both, run)
+        s = sapgo.adjust(run, sapgo.Options(datum=datum, **tight))
+        r = sapgo.adjust(ref_path, sapgo.Options(**tight))
+        assert s.datum == datum
+        assert s.sigma0 == pytest.approx(r.sigma0, rel=1e-9)
+        assert s.redundancy == r.redundancy
+        assert s.check_points["n"] == r.check_points["n"]
+        xs, _ = _by_id(run)
+        xr, _ = _by_id(ref_path)
+        for i, x in xr.items():
+            np.testing.assert_allclose(xs[i], x, rtol=0, atol=1e-7)
+
+
+def test_datum_priors_without_priors_is_one_line(small_block, capsys):
+    from conftest import assert_one_line_error, digest, run_cli
+
+    before = digest(small_block)
+    code, _, err = run_cli(capsys, "adjust", small_block, "--datum", "priors")
+    assert_one_line_error(code, err, "--datum priors", "no station priors")
+    assert digest(small_block) == before

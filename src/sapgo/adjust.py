@@ -79,6 +79,8 @@ from .extsort import parse_memory
 from .project import (
     CONTROL_MASK,
     EO_NAMES,
+    KIND_CHECK,
+    KIND_CONTROL,
     STATUS_ACTIVE,
     STATUS_REJECTED,
     Project,
@@ -104,6 +106,8 @@ from .validate import check_values
 ARCSEC = math.pi / (180 * 3600)
 #: Solution methods (:attr:`Options.method`).
 METHODS = ("auto", "gauss-newton", "levenberg-marquardt")
+#: The datums ``--datum`` names (:attr:`Options.datum`; None: the project's).
+DATUMS = (None, "control", "priors", "free")
 #: Iterations of a run without ``max_iterations``: Gauss-Newton converges in a few, the
 #: damped steps of Levenberg-Marquardt (a free network, a BAL problem) may need many
 #: (Ceres' default, 50).
@@ -190,6 +194,12 @@ class Options:
     #: ``(photo ids, parameter names)`` of omega, phi, kappa, X, Y, Z (or "IDS:PARAMS"
     #: strings). With them the datum is the user's: no control is required.
     fix: tuple = ()
+    #: The datum (``--datum``): None (the project's: its control and priors, or a free
+    #: network when it has neither), "control" (the control points alone; station priors
+    #: not used), "priors" (the station priors alone; control points used as check points)
+    #: or "free" (neither: a free network by inner constraints, control points as check
+    #: points; :mod:`sapgo.freenet`). ``fix`` adds held parameters to any but "free".
+    datum: str | None = None
     #: The linear solver: "band" (recursive partitioning of the band: long strips), "tree"
     #: (the partition tree of nested dissection: any block shape) or "auto" (the project's
     #: order as ``sapgo order`` chose it by predicted cost; an unordered project is ordered
@@ -277,6 +287,12 @@ class Options:
                              f"named twice (a parameter is shared by a camera's photos or "
                              f"adjusted per photo, not both)")
         self.fix = tuple(parse_fix(f) for f in self.fix)
+        if self.datum not in DATUMS:
+            raise ParameterError(f"datum {self.datum!r}: choose control, priors or free (or "
+                                 f"fix:IDS:PARAMS)")
+        if self.datum == "free" and self.fix:
+            raise ParameterError("--datum free and --datum fix: a free network's datum is "
+                                 "its inner constraints; held parameters make it another")
         if self.calibrate_cameras is not None:
             self.calibrate_cameras = tuple(int(c) for c in self.calibrate_cameras)
             if len(set(self.calibrate_cameras)) != len(self.calibrate_cameras):
@@ -346,7 +362,7 @@ class _PriorCursor:
             for s in lo + np.flatnonzero(fixed[lo:hi]):
                 bits = (int(fixed[s]) >> np.arange(6)) & 1
                 out.append((int(s), np.diag(bits.astype(np.float64)), np.zeros(6)))
-        recs = self.records(lo, hi)
+        recs = self.records(lo, hi) if self.blk.use_priors else []
         if recs:
             recs = np.array(recs, dtype=self.buf.dtype)
             w, r = prior_terms(recs, self.blk.eo[recs["station"]])
@@ -412,9 +428,19 @@ class _Block:
     aside: dict = dataclasses.field(default_factory=dict)
     aside_log: list = dataclasses.field(default_factory=list)
     n_prior_params: int = 0
-    #: a free network (no control, no priors; the project attribute ``datum`` is "free"):
-    #: adjusted by Levenberg-Marquardt, its gauge left to the damping, no precision
+    #: a free network (no control, no priors; the project attribute ``datum`` is "free",
+    #: or ``--datum free``): adjusted under minimal constraints, given in the inner
+    #: constraints' datum (:mod:`sapgo.freenet`)
     free: bool = False
+    #: which control components the kernels use (by point kind): the control's
+    #: ``CTRL_MASK``, or none when the datum is not the control's (``--datum free|priors``)
+    ctrl_mask: np.ndarray = dataclasses.field(default_factory=lambda: CTRL_MASK)
+    #: the station priors are observations (not with ``--datum free|control``)
+    use_priors: bool = True
+    #: control points left out of the run: one ray, their control not used (``--datum``)
+    one_ray_control: int = 0
+    #: the datum as the user chose it (``Options.datum``), or None: the project's
+    datum: str | None = None
     #: parameters per station: 6, or 9 with the photo's own intrinsics adjusted (project
     #: attribute ``station_intrinsics`` "adjusted"; f, k1 f^2, k2 f^4, see
     #: :data:`sapgo.geometry.INTRINSICS`; one camera per photo)
@@ -682,6 +708,43 @@ def _set_fixed(blk: _Block, p: Project, opts: Options):
     blk.free = False   # (the user's datum)
 
 
+def _set_datum(blk: _Block, p: Project, opts: Options):
+    """The datum the user chose (``Options.datum``): the control's components and the
+    priors in or out of the normals (the counts of the redundancy with them); a control
+    point left with one ray when its control is out is left out of the run."""
+    if opts.datum is None:
+        return
+    blk.datum = opts.datum
+    if opts.datum in ("priors", "free"):
+        blk.ctrl_mask = np.zeros_like(CTRL_MASK)
+        blk.n_weighted_control = blk.n_fixed = 0
+        one_ray = []
+        for a, b in p.chunks("points"):
+            pts = p.read("points", a, b)
+            ctrl = (CONTROL_MASK[pts["kind"]].any(axis=1)) & (pts["status"] == STATUS_ACTIVE)
+            for j in np.flatnonzero(ctrl):
+                o0 = int(pts["obs_start"][j])
+                ob = p.read("observations", o0, o0 + int(pts["n_obs"][j]))
+                seen = np.unique(ob["station"][ob["status"] == STATUS_ACTIVE])
+                if len(seen) < 2:
+                    one_ray.append(a + int(j))
+        if one_ray:
+            blk.rejected_points = np.union1d(blk.rejected_points, one_ray).astype(np.int64)
+            blk.n_points -= len(one_ray)
+            blk.n_rays -= sum(int(p.read("points", j, j + 1)["n_obs"][0]) for j in one_ray)
+        blk.one_ray_control = len(one_ray)
+    if opts.datum in ("control", "free"):
+        blk.use_priors = False
+        blk.n_prior_params = 0
+    if opts.datum == "free":
+        blk.free = True
+    elif opts.datum == "priors" and blk.n_prior_params == 0 and not blk.n_fixed_params:
+        raise DatumDefectError(f"{p.path}: --datum priors: the project has no station priors "
+                               f"(import them with --priors, or choose another datum)")
+    elif opts.datum in ("control", "priors"):
+        blk.free = False
+
+
 def _border_names(blk: _Block, p: Project):
     """``"camera <id> <field>"`` (``"photo <id> <field>"`` for a field calibrated per photo)
     of every border column (for messages and the report)."""
@@ -769,13 +832,23 @@ def _datum_advice(nh, nv, n_priors):
     )
 
 
-def check_datum(p: Project, fixed=False):
+def check_datum(p: Project, fixed=False, datum=None):
     """Raise :class:`DatumDefectError` when the control cannot fix the datum (a project
     marked as a free network, ``datum = "free"``, needs none, nor one whose datum the user
-    gives by fixed station parameters, ``fixed``)."""
-    if p.attr("datum", "") == "free" or fixed:
+    gives by fixed station parameters, ``fixed``, or chooses free). ``datum``: the user's
+    choice (:attr:`Options.datum`): "control" counts the control alone, "priors" the
+    priors alone."""
+    if datum == "free" or fixed or (datum is None and p.attr("datum", "") == "free"):
         return
     nh, nv, npr = _datum_counts(p)
+    if datum == "priors":
+        if npr == 0:
+            raise DatumDefectError(f"{p.path}: --datum priors: the project has no station "
+                                   f"priors (import them with --priors, or choose another "
+                                   f"datum)")
+        return
+    if datum == "control":
+        npr = 0
     if npr == 0 and (nh < 2 or nv < 3):
         raise DatumDefectError(f"{p.path}: datum defect: " + _datum_advice(nh, nv, npr))
 
@@ -935,7 +1008,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
                 j, status, bad = build_points_parallel(
                     j, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.smin, c.smax,
                     c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
-                    blk.camera, blk.cams, CTRL_MASK, band, rhs, base,
+                    blk.camera, blk.cams, blk.ctrl_mask, band, rhs, base,
                     c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS, blk.cal,
                     bord, ovf_bord, cnn_t, ccg_t, cdiag_t, lam, blk.behind_ok, blk.fixed,
                 )
@@ -1013,7 +1086,7 @@ def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, st
         update_points(
             c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
             c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
-            blk.cams, CTRL_MASK, c.max_rays, xyz_out, res_out,
+            blk.cams, blk.ctrl_mask, c.max_rays, xyz_out, res_out,
             stats, lam, blk.behind_ok, cams_new, dtheta, blk.fixed, eo_next,
         )
         if stats[7]:
@@ -1059,7 +1132,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
 
             client_seconds("update", time.perf_counter() - t0)
     vpv_prior = 0.0
-    for a, b in p.chunks("station_priors", opts.chunk_points):
+    for a, b in p.chunks("station_priors", opts.chunk_points) if blk.use_priors else ():
         pr = p.read("station_priors", a, b)
         pr = pr[blk.station_active[pr["station"]]]
         v = next_orientations(blk.eo[pr["station"]], delta[pr["station"]]) - pr["value"]
@@ -1208,11 +1281,11 @@ def _cost(p: Project, work, blk: _Block, opts: Options):
         reweight(c, work, opts)
         img, ctl = point_costs(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
                                c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active,
-                               blk.eo, blk.camera, blk.cams, CTRL_MASK)
+                               blk.eo, blk.camera, blk.cams, blk.ctrl_mask)
         if not math.isfinite(img):
             raise _nonfinite_error(p, c, blk)
         vpv += img + ctl
-    for a, b in p.chunks("station_priors", opts.chunk_points):
+    for a, b in p.chunks("station_priors", opts.chunk_points) if blk.use_priors else ():
         pr = p.read("station_priors", a, b)
         pr = pr[blk.station_active[pr["station"]]]
         v = blk.eo[pr["station"]] - pr["value"]
@@ -1487,7 +1560,7 @@ def adjust(path, options: Options | None = None) -> Summary:
     wpath = work_path(path)
     with Project(path, "r") as p:
         check_values(p)
-        check_datum(p, fixed=bool(opts.fix))
+        check_datum(p, fixed=bool(opts.fix), datum=opts.datum)
         if opts.fix:   # (refused before the implicit ordering rewrites the project)
             import types
 
@@ -1566,6 +1639,7 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
         _set_fixed(blk, p, opts)
+        _set_datum(blk, p, opts)
         if blk.free:   # 7 station parameters held (the inner constraints come at the commit)
             from .freenet import minimal_constraints
 
@@ -1628,8 +1702,9 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                                                 np.int64))
                 blk.planted = checkpoint.get("planted")
                 blk.n_rays -= len(blk.rejected)
-                blk.rejected_points = np.array(checkpoint.get("rejected_points", []), np.int64)
-                blk.n_points -= len(blk.rejected_points)
+                kept = np.array(checkpoint.get("rejected_points", []), np.int64)
+                blk.n_points -= len(np.setdiff1d(kept, blk.rejected_points))
+                blk.rejected_points = np.union1d(blk.rejected_points, kept).astype(np.int64)
                 blk.aside = {int(a[0]): [int(x) for x in a]
                              for a in checkpoint.get("aside", [])}
                 blk.aside_log = list(checkpoint.get("aside_log", []))
@@ -1880,8 +1955,13 @@ class ReportSums:
             self.n_excluded += len(out)
             self.excluded.extend((a0 + int(j), int(pts["id"][j]))
                                  for j in out[:LISTED_IDS - len(self.excluded)])
-            self.checks.add(pts[act], adj[act],
-                            control_rotations(pts["kind"][act], pts["control"][act], blk.frame))
+            used = act & (chunk.active == 0)   # (and not left out of this run)
+            if not blk.ctrl_mask.any():   # the control unused (--datum priors|free): checks
+                pts = pts.copy()
+                pts["kind"][pts["kind"] == KIND_CONTROL] = KIND_CHECK
+            self.checks.add(pts[used], adj[used],
+                            control_rotations(pts["kind"][used], pts["control"][used],
+                                              blk.frame))
             if self.truth is not None:
                 self.truth.add_points(p.read_field("truth/points", "xyz", a0, b0)[act],
                                       adj[act])
@@ -1965,6 +2045,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     excluded_stations = blk.station_ids[~blk.station_active]
     summary = Summary(
         rejections_kept=earlier[0], rejections_reset=earlier[1],
+        datum_chosen=blk.datum is not None,
         path=str(path),
         converged=converged,
         termination=(
@@ -2014,7 +2095,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         method=run.get("method", "gn"),
         initial_cost=run.get("initial_cost"),
         final_cost=run.get("cost"),
-        datum="free" if blk.free else ("fixed" if blk.n_fixed_params else "control"),
+        datum="free" if blk.free else ("fixed" if blk.n_fixed_params else
+                                       (blk.datum or "control")),
         set_aside=list(blk.aside_log),
         image_unit=str(p_read.attr("image_unit", "mm") or "mm"),
         rejected=_rejected_list(p_read, blk),

@@ -291,7 +291,7 @@ def cmd_adjust(args):
         calibrate_cameras=(None if args.calibrate_cameras is None else
                            _int_list(args.calibrate_cameras, "--calibrate-cameras")),
         calibrate_per_photo=args.calibrate_per_photo or (),
-        fix=tuple(_datum_fixes(args.datum)),
+        fix=tuple(_datum_fixes(args.datum)), datum=_datum_choice(args.datum),
     )
     if args.plots:  # before a long run: matplotlib is there
         from .plots import check_matplotlib
@@ -426,13 +426,21 @@ def cmd_export(args):
 
 
 def _datum_fixes(values):
-    """``--datum`` values: ``fix:IDS:PARAMS`` each (the only kind taken)."""
+    """``--datum`` values of the kind ``fix:IDS:PARAMS``."""
     for v in values:
-        if not v.lower().startswith("fix:"):
-            raise ParameterError(f"--datum {v!r}: expected fix:IDS:PARAMS (e.g. "
-                                 f"fix:101:omega,phi,kappa,X,Y,Z); the control and priors "
-                                 f"of the project give the datum otherwise")
-        yield v
+        if v.lower().startswith("fix:"):
+            yield v
+        elif v.lower() not in ("control", "priors", "free"):
+            raise ParameterError(f"--datum {v!r}: expected control, priors, free or "
+                                 f"fix:IDS:PARAMS (e.g. fix:101:omega,phi,kappa,X,Y,Z)")
+
+
+def _datum_choice(values):
+    """The ``--datum`` value control, priors or free (at most one), or None."""
+    words = [v.lower() for v in values if not v.lower().startswith("fix:")]
+    if len(set(words)) > 1:
+        raise ParameterError(f"--datum {' and '.join(sorted(set(words)))}: choose one")
+    return words[0] if words else None
 
 
 def cmd_info(args):
@@ -923,13 +931,18 @@ def build_parser():
     a.add_argument("--calibrate-cameras", default=None, metavar="IDS",
                    help="with --calibrate: only these camera ids, e.g. 1,3 (default: every "
                         "camera)")
-    a.add_argument("--datum", action="append", default=[], metavar="fix:IDS:PARAMS",
-                   help="hold station parameters fixed (true constraints, repeatable): "
-                        "fix:101:all fix:102:X,Y,Z fix:103,104:Z (X, Y, Z, and omega, phi, kappa "
-                        "only together); "
-                        "their photos define the datum with whatever control there is, e.g. "
-                        "7 parameters for a block without control (default: none, the "
-                        "control and priors give the datum)")
+    a.add_argument("--datum", action="append", default=[],
+                   metavar="control|priors|free|fix:IDS:PARAMS",
+                   help="the datum (repeatable for fix): control (the control points alone, "
+                        "station priors not used), priors (the station priors alone, control "
+                        "points used as check points), free (neither: a free network by inner "
+                        "constraints on the object points, control points as check points), "
+                        "or hold station parameters fixed as true constraints, "
+                        "fix:101:all fix:102:X,Y,Z fix:103,104:Z (X, Y, Z, and omega, phi, "
+                        "kappa only together), their photos defining the datum with whatever "
+                        "else there is, e.g. 7 parameters for a block without control "
+                        "(default: the project's control and priors, or a free network when "
+                        "it has neither)")
     a.add_argument("--calibrate-per-photo", default=None, metavar="PARAMS",
                    help="self-calibration: adjust these camera parameters per photo (each "
                         "photo of a calibrated camera its own value), e.g. x0,y0 with "

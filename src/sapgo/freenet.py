@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .normals import CTRL_MASK, PointChunk, datum_columns
+from .normals import PointChunk, datum_columns
 
 #: The station parameters held for a free network's adjustment: all six of one photo.
 ALL_SIX = 0b111111
@@ -176,7 +176,7 @@ def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk):
         b_pt = np.zeros_like(h)
         bad = datum_columns(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
                             c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active,
-                            blk.eo, blk.camera, blk.cams, CTRL_MASK, c.max_rays, h, x_st,
+                            blk.eo, blk.camera, blk.cams, blk.ctrl_mask, c.max_rays, h, x_st,
                             r_st, b_pt, blk.behind_ok, blk.fixed)
         if bad:
             raise _point_error(p, c, bad - 1, BEHIND_CAMERA, blk)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .normals import CTRL_MASK, PointChunk, point_sigmas
+from .normals import PointChunk, point_sigmas
 from .project import STATUS_ACTIVE
 from .rawfile import RawArray
 from .report import station_correlations
@@ -192,7 +192,7 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
                                  if stations is None else
                                  stations(c.obs_station, c.obs_active))
     point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, st,
-                 c.obs_xy, c.obs_sigma, c.obs_active, eo, camera, blk.cams, CTRL_MASK,
+                 c.obs_xy, c.obs_sigma, c.obs_active, eo, camera, blk.cams, blk.ctrl_mask,
                  c.max_rays, zb, base, np.ascontiguousarray(work.res_current[c.o0:c.o1]), out,
                  out_r, out_w, blk.npar, cal, xw, xlo, sig_b, fixed, blk.behind_ok)
     psig[a:b] = sigma0 * out[:, :3]

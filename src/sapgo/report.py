@@ -370,10 +370,13 @@ class Summary:
     #: at the end: the cost as Ceres reports it.
     initial_cost: float | None = None
     final_cost: float | None = None
-    #: "control" (control points and priors fix the datum), "fixed" (station parameters
-    #: held fixed, ``--datum fix``, with whatever control there is) or "free" (a free
-    #: network).
+    #: "control" (control points and priors fix the datum; ``--datum control``: the
+    #: control alone), "priors" (``--datum priors``: the station priors alone), "fixed"
+    #: (station parameters held fixed, ``--datum fix``, with whatever control there is) or
+    #: "free" (a free network: inner constraints).
     datum: str = "control"
+    #: the datum was the user's choice (``--datum``), not the project's
+    datum_chosen: bool = False
     #: Pass points set aside during the run, their rays (nearly) parallel at the values of
     #: the time: ``{"point": id, "set_aside": iteration, "back": iteration or None}``.
     set_aside: list = dataclasses.field(default_factory=list)
@@ -489,6 +492,12 @@ class Summary:
         if self.datum == "fixed":
             L.append("  datum: station parameters held fixed (--datum fix), with the control "
                      "and priors given; their standard deviations are 0")
+        if self.datum == "priors":
+            L.append("  datum: the station priors alone (--datum priors); the control points "
+                     "are used as check points")
+        if self.datum == "control" and self.datum_chosen:
+            L.append("  datum: the control points alone (--datum control); the station priors "
+                     "are not used")
         if self.datum == "free":
             L.append("  a free network (no control or priors): datum by inner constraints on "
                      "the object points (their least change from the approximations: "

@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from ..geometry import N_CALIBRATION
-from ..normals import CTRL_MASK, OK, PointChunk, station_diagonal
+from ..normals import OK, PointChunk, station_diagonal
 from .fronts import FactorFile, TreeSolver, build_front, factor_layout
 from .tiles import Panels
 
@@ -456,7 +456,7 @@ def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slo
                 status, bad = build_front(
                     j - a0, j1 - a0, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start,
                     c.nobs, c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo,
-                    fronts.camera, blk.cams, CTRL_MASK, *state["a"], state["rhs"],
+                    fronts.camera, blk.cams, blk.ctrl_mask, *state["a"], state["rhs"],
                     c.max_rays, k, lam, blk.behind_ok, cal, state["bord"], cnn, ccg, cdiag,
                     0, state["a"][0].shape[1], fronts.fixed)
                 if status != OK:
@@ -523,7 +523,7 @@ def build_panel(p, blk, fronts, chunks, lam, a, rhs, bord, sums, c0, c1):
         status, bad = build_front(
             0, len(c.active), c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
             c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, fronts.eo, fronts.camera,
-            blk.cams, CTRL_MASK, a, _EMPTY, rhs, c.max_rays, k, lam, blk.behind_ok, cal,
+            blk.cams, blk.ctrl_mask, a, _EMPTY, rhs, c.max_rays, k, lam, blk.behind_ok, cal,
             bord, *sums, c0, c1, fronts.fixed)
         if status != OK:
             raise _point_error(p, c, bad, status, blk)
