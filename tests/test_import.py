@@ -523,7 +523,7 @@ MALFORMED = [
     ("control", 4, 5, "-1", ["sY must not be negative"]),
     ("control", 5, 3, "-", ["Z is unknown ('-' or nan) but a"]),
     ("cameras", 0, 1, "0", ["focal_length must be positive, found 0.0 (column 2)"]),
-    ("cameras", 0, None, 6, ["expected 7 to 15 columns"]),
+    ("cameras", 0, None, 6, ["expected 7 to 22 columns"]),
 ]
 
 
@@ -823,11 +823,14 @@ def test_a_block_in_another_angle_order_adjusts_alike(exported, tmp_path, capsys
 
 # -- image coordinate conventions (--image-frames) -------------------------------------
 
+@pytest.mark.parametrize("given", ["image-frames", "cameras"])
 @pytest.mark.parametrize("frame", ["px topleft down", "mm bottomleft up", "px centre down"])
-def test_measurements_in_other_image_frames_adjust_alike(exported, tmp_path, capsys, frame):
+def test_measurements_in_other_image_frames_adjust_alike(exported, tmp_path, capsys, frame,
+                                                         given):
     """The block's measurements rewritten in pixels from the top-left corner with y down
     (4.6 x 5.0 um pixels), in mm from the bottom-left corner, or in pixels from the centre
-    with y down, read with --image-frames: the same observations and adjustment."""
+    with y down, read with --image-frames or with the frame in the cameras file (columns
+    16-22): the same observations and adjustment."""
     gen, d = exported
     files = files_of(d)
     ref = tmp_path / "ref.h5"
@@ -850,13 +853,21 @@ def test_measurements_in_other_image_frames_adjust_alike(exported, tmp_path, cap
         s = float(sigma) * 1000 / float(np.sqrt(px * py))
         lines.append(f"{photo} {point} {u!r} {v!r} {s!r}")
     files["measurements"] = write_lines(tmp_path / "m.txt", lines)
-    size = ("-", "-") if origin == "centre" else (repr(w), repr(h))
-    pix = (repr(px), repr(py)) if unit == "px" else ("-", "-")
-    frames = write_lines(tmp_path / "frames.txt",
-                         [" ".join([c[0], unit, *pix, *size, origin, axis]) for c in cams])
+    none = "-" if given == "image-frames" else "0"
+    size = (none, none) if origin == "centre" else (repr(w), repr(h))
+    pix = (repr(px), repr(py)) if unit == "px" else (none, none)
     out = tmp_path / "other.h5"
-    code, _, err = run_cli(capsys, "import", out, "--image-frames", frames,
-                           *cli_args(files))
+    if given == "image-frames":
+        frames = write_lines(tmp_path / "frames.txt",
+                             [" ".join([c[0], unit, *pix, *size, origin, axis]) for c in cams])
+        extra = ["--image-frames", frames]
+    else:   # the first 15 columns, then the frame
+        full = [c + ["0"] * (14 - len(c)) + ["forward"] if len(c) < 15 else c for c in cams]
+        files["cameras"] = write_lines(tmp_path / "cams.txt",
+                                       [" ".join(c + [unit, *pix, *size, origin, axis])
+                                        for c in full])
+        extra = []
+    code, _, err = run_cli(capsys, "import", out, *extra, *cli_args(files))
     assert code == 0, err
     def observations(path):
         rec = read_records(path)
@@ -890,4 +901,29 @@ def test_bad_image_frames_name_the_line(exported, tmp_path, capsys, line, words)
     code, _, err = run_cli(capsys, "import", tmp_path / "x.h5", "--image-frames", frames,
                            *cli_args(files_of(d)))
     assert_one_line_error(code, err, "frames.txt:2", words)
+    assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.parametrize("tail, frames, words", [
+    ("pixels 4.6 4.6 0 0 centre down", None, "unknown image unit; expected mm or px, found "
+                                             "'pixels' (column 16)"),
+    ("px 4.6 4.6 0 0 middle down", None, "(column 21)"),
+    ("px 0 4.6 0 0 centre down", None, "pixel_x 0 must be a positive number"),
+    ("px 4.6 4.6 0 0 topleft down", None, "width 0 must be a positive number"),
+    ("px 4.6 4.6 0 0 centre down", "1 px 4.6 4.6 - - centre down",
+     "camera 1's image frame is given here and in --image-frames"),
+])
+def test_bad_frames_in_the_cameras_file_name_the_line(exported, tmp_path, capsys, tail,
+                                                      frames, words):
+    """The image frame in columns 16-22 of the cameras file: bad values, or a frame given
+    there and in --image-frames, are one line naming the cameras file's line."""
+    gen, d = exported
+    files = files_of(d)
+    cams = [ln.split() for ln in data_lines(d / "cameras.txt")]
+    full = [c + ["0"] * (14 - len(c)) + ["forward"] for c in cams]
+    files["cameras"] = write_lines(tmp_path / "cams.txt",
+                                   [" ".join(c) + " " + tail for c in full])
+    extra = ["--image-frames", write_lines(tmp_path / "f.txt", [frames])] if frames else []
+    code, _, err = run_cli(capsys, "import", tmp_path / "x.h5", *extra, *cli_args(files))
+    assert_one_line_error(code, err, "cams.txt:2", words)
     assert not (tmp_path / "x.h5").exists()

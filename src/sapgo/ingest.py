@@ -275,10 +275,16 @@ class _Import:
             cams = p.cameras()
             recs.append(np.array(cams, CAMERA_DTYPE))
             locs.append(self.src.loc(src, np.arange(len(cams))))
+        self.camera_frames = []   # (camera id, frame columns, loc): columns 16-22
         for path in self.files["cameras"]:
             for rec, loc in self._read(CAMERAS, path):
-                recs.append(rec.astype(CAMERA_DTYPE))
+                cam = np.zeros(len(rec), CAMERA_DTYPE)   # (the first 15 columns, by place)
+                for name, col in zip(CAMERA_DTYPE.names, rec.dtype.names):
+                    cam[name] = rec[col]
+                recs.append(cam)
                 locs.append(loc)
+                for i in np.flatnonzero(rec["frame"] >= 0):
+                    self.camera_frames.append((int(rec["id"][i]), rec[i], int(loc[i])))
         if not recs:
             raise DataError("no camera: give a cameras file (--cameras)")
         cams = np.concatenate(recs)
@@ -657,6 +663,7 @@ class _Import:
                                         f"file(s) (column 1)")]
 
         frames = read_image_frames(self.files.get("image_frames", ()), self.cameras["id"])
+        self._camera_file_frames(frames)
         for path in self.files["measurements"]:
             for rec, loc in self._read(MEASUREMENTS, path, known_photo):
                 k = np.searchsorted(st_ids, rec["photo"])
@@ -667,6 +674,25 @@ class _Import:
                                                           rec["x"], rec["y"], rec["sigma"])
                 r["loc"] = loc
                 sorter.add(r)
+
+    def _camera_file_frames(self, frames):
+        """The image frames given in the cameras file (columns 16-22) into ``frames``; a
+        camera with a line in ``--image-frames`` too is an error naming both."""
+        from .formats.text import FRAME_AXIS_WORDS, FRAME_ORIGIN_WORDS, FRAME_UNIT_WORDS
+
+        words = [{v: k for k, v in w.items()} for w in (FRAME_UNIT_WORDS, FRAME_ORIGIN_WORDS,
+                                                        FRAME_AXIS_WORDS)]
+        cam_ids = self.cameras["id"]
+        for cid, r, loc in getattr(self, "camera_frames", ()):
+            j = int(np.searchsorted(cam_ids, cid))
+            where = self.src.where(loc)
+            if j in frames.given:
+                raise DataError(f"{where}: camera {cid}'s image frame is given here and in "
+                                f"--image-frames ({frames.given[j]}): give it once")
+            unit, origin, axis = (words[0][int(r["frame"])], words[1][int(r["origin"])],
+                                  words[2][int(r["y_axis"])])
+            set_frame(frames, j, unit, r["pixel_x"], r["pixel_y"], r["frame_width"],
+                      r["frame_height"], origin, axis, where, zero_ok=True)
 
     # -- the merge-join ------------------------------------------------------------------
     def _point_blocks(self, chunks):
@@ -1010,10 +1036,45 @@ class ImageFrames:
     def __init__(self, n):
         self.sx, self.sy, self.ss = np.ones(n), np.ones(n), np.ones(n)
         self.ox, self.oy, self.fy = np.zeros(n), np.zeros(n), np.ones(n)
+        self.given = {}   # camera record -> where its frame was given
 
     def to_mm(self, cam, x, y, sigma):
         return ((x + self.ox[cam]) * self.sx[cam],
                 (self.fy[cam] * y + self.oy[cam]) * self.sy[cam], sigma * self.ss[cam])
+
+
+def set_frame(frames, j, unit, px, py, w, h, origin, axis, where, zero_ok=False):
+    """Camera record ``j``'s image frame into ``frames``: ``unit`` mm or px, pixel sizes
+    ``px``, ``py`` (um; ``-`` or, with ``zero_ok``, 0 for mm), ``w``, ``h`` the image's size
+    in the unit (not needed with origin ``centre``), ``origin`` and y ``axis``; bad values
+    an error at ``where``."""
+    def number(tok, name, needed):
+        if (tok == "-" or (zero_ok and not isinstance(tok, str) and float(tok) == 0.0)) \
+                and not needed:
+            return None
+        try:
+            v = float(tok)
+        except ValueError:
+            v = float("nan")
+        if not (np.isfinite(v) and v > 0):
+            raise DataError(f"{where}: {name} {repr(tok) if isinstance(tok, str) else f'{v:g}'} "
+                            f"must be a positive number" + ("" if needed else
+                                                            " or '-'" if not zero_ok
+                                                            else " or 0"))
+        return v
+
+    px = number(px, "pixel_x", unit == "px")
+    py = number(py, "pixel_y", unit == "px")
+    w = number(w, "width", origin != "centre")
+    h = number(h, "height", origin != "centre")
+    cx, cy = IMAGE_ORIGINS[origin]
+    frames.ox[j] = cx * (w or 0.0)
+    frames.oy[j] = cy * (h or 0.0)
+    frames.fy[j] = -1.0 if axis == "down" else 1.0
+    if unit == "px":
+        frames.sx[j], frames.sy[j] = px / 1000.0, py / 1000.0
+        frames.ss[j] = np.sqrt(px * py) / 1000.0
+    frames.given[j] = where
 
 
 def read_image_frames(paths, cam_ids):
@@ -1057,29 +1118,7 @@ def read_image_frames(paths, cam_ids):
             if axis not in ("up", "down"):
                 raise DataError(f"{where}: y axis {axis!r}: up or down")
 
-            def number(tok, name, needed):
-                if tok == "-" and not needed:
-                    return None
-                try:
-                    v = float(tok)
-                except ValueError:
-                    v = float("nan")
-                if not (np.isfinite(v) and v > 0):
-                    raise DataError(f"{where}: {name} {tok!r} must be a positive number"
-                                    + ("" if needed else " or '-'"))
-                return v
-
-            px = number(t[2], "pixel_x", unit == "px")
-            py = number(t[3], "pixel_y", unit == "px")
-            w = number(t[4], "width", origin != "centre")
-            h = number(t[5], "height", origin != "centre")
-            cx, cy = IMAGE_ORIGINS[origin]
-            frames.ox[j] = cx * (w or 0.0)
-            frames.oy[j] = cy * (h or 0.0)
-            frames.fy[j] = -1.0 if axis == "down" else 1.0
-            if unit == "px":
-                frames.sx[j], frames.sy[j] = px / 1000.0, py / 1000.0
-                frames.ss[j] = np.sqrt(px * py) / 1000.0
+            set_frame(frames, j, unit, t[2], t[3], t[4], t[5], origin, axis, where)
     return frames
 
 

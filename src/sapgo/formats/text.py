@@ -127,15 +127,26 @@ class TextFormat:
         return np.dtype(fields)
 
 
+#: The image frame of a camera's measurements in columns 16-22 of the cameras file (as a
+#: line of ``--image-frames``): the unit, and where the origin is and which way y points.
+FRAME_UNIT_WORDS = {"none": -2, "mm": 0, "px": 1}   # (-1: an unknown word)
+FRAME_ORIGIN_WORDS = {"centre": 0, "topleft": 1, "bottomleft": 2}
+FRAME_AXIS_WORDS = {"up": 0, "down": 1}
+
 CAMERAS = TextFormat(
     "cameras",
     [("id", _ID), ("focal_length", _FLOAT), ("x0", _FLOAT), ("y0", _FLOAT),
      ("format_x", _FLOAT), ("format_y", _FLOAT), ("sigma_image", _FLOAT),
      ("k1", _FLOAT), ("k2", _FLOAT), ("k3", _FLOAT), ("p1", _FLOAT), ("p2", _FLOAT),
-     ("b1", _FLOAT), ("b2", _FLOAT), ("model", _KIND)],
+     ("b1", _FLOAT), ("b2", _FLOAT), ("model", _KIND),
+     ("frame", _KIND), ("pixel_x", _FLOAT), ("pixel_y", _FLOAT), ("frame_width", _FLOAT),
+     ("frame_height", _FLOAT), ("origin", _KIND), ("y_axis", _KIND)],
     7, "id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2 [b1 b2 "
-       "[forward|backward]]]",
-    defaults={"model": b"forward"}, words={"model": MODEL_WORDS},
+       "[forward|backward [mm|px pixel_x pixel_y width height centre|topleft|bottomleft "
+       "up|down]]]]",
+    defaults={"model": b"forward", "frame": b"none", "origin": b"centre", "y_axis": b"up"},
+    words={"model": MODEL_WORDS, "frame": FRAME_UNIT_WORDS, "origin": FRAME_ORIGIN_WORDS,
+           "y_axis": FRAME_AXIS_WORDS},
 )
 PHOTOS = TextFormat(
     "photos",
@@ -586,6 +597,12 @@ def _checks(fmt, arr, rec):
         c.append((rec["model"] < 0, lambda i: (
             f"unknown distortion model '{_tok(arr['model'][i])}' (column 15); expected "
             f"forward (added to the ideal point) or backward (correcting the measured one)")))
+        for n, col, what in (("frame", 16, "image unit; expected mm or px"),
+                             ("origin", 21, "image origin; expected centre, topleft or "
+                                            "bottomleft"),
+                             ("y_axis", 22, "image y axis; expected up or down")):
+            c.append((rec[n] == -1, lambda i, n=n, col=col, what=what: (
+                f"unknown {what}, found '{_tok(arr[n][i])}' (column {col})")))
         c.append((~(rec["focal_length"] > 0), lambda i: (
             f"focal_length must be positive, found {_num(rec['focal_length'][i])} "
             f"(column 2)")))
@@ -687,7 +704,8 @@ def _settle_control(rec):
 
 _HEADERS = {
     "cameras": "# cameras: id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2 "
-               "[b1 b2 [forward|backward]]]  (mm; k1..k3 mm^-2, mm^-4, mm^-6, p1 p2 mm^-1)",
+               "[b1 b2 [forward|backward [mm|px pixel_x pixel_y width height origin y_axis]]]]  "
+               "(mm; k1..k3 mm^-2, mm^-4, mm^-6, p1 p2 mm^-1)",
     "photos": "# photos: id camera strip omega phi kappa X Y Z  (angles in {angles}, "
               "X Y Z in m; strip -1 = unknown)",
     "measurements": "# measurements: photo point x y sigma  (mm; sigma 0 = the camera's "
