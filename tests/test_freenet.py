@@ -252,3 +252,18 @@ def test_datum_priors_without_priors_is_one_line(small_block, capsys):
     code, _, err = run_cli(capsys, "adjust", small_block, "--datum", "priors")
     assert_one_line_error(code, err, "--datum priors", "no station priors")
     assert digest(small_block) == before
+
+
+def test_free_network_stations_precision_alone(free_block, tmp_path):
+    """``--precision stations`` on a free network: the photos' inner-constraint standard
+    deviations of the full pass, the same solution."""
+    path, _ = free_block
+    out = {}
+    for mode in ("full", "stations"):
+        run = tmp_path / f"{mode}.h5"
+        shutil.copy(path, run)
+        sapgo.adjust(run, sapgo.Options(progress=False, precision=mode, tol_cost=1e-14))
+        with Project(run) as p:
+            out[mode] = (p.solution("station_sigma"), p.solution("point_corr"))
+    np.testing.assert_allclose(out["stations"][0], out["full"][0], rtol=1e-12)
+    np.testing.assert_array_equal(out["stations"][1], out["full"][1])

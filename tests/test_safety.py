@@ -143,3 +143,31 @@ def test_agreeing_duplicates_are_merged_with_a_warning(small_block, tmp_path, ca
     capsys.readouterr()
     code, out, err = run_cli(capsys, *args)
     assert code == 0 and "1 duplicate image measurement(s) merged" in err + out
+
+
+@pytest.mark.parametrize("solver", ["band", "tree"])
+def test_precision_stations_and_none(block_cache, tmp_path, solver):
+    """``--precision stations`` gives the photos' standard deviations of the full pass, bit
+    for bit, without the points' or the observations'; ``none`` gives none; the solution is
+    the same."""
+    import sapgo
+
+    src = block_cache("prec", strips=4, photos_per_strip=8, control_points=8)
+    out = {}
+    for mode in ("full", "stations", "none"):
+        run = tmp_path / f"{mode}.h5"
+        run.write_bytes(src.read_bytes())
+        s = sapgo.adjust(run, sapgo.Options(progress=False, solver=solver, precision=mode))
+        with Project(run) as p:
+            out[mode] = (s, p.solution("station_sigma"), p.solution("point_sigma"),
+                         p.solution("obs_quality"), p.solution("point_corr"))
+    full, st, no = out["full"], out["stations"], out["none"]
+    np.testing.assert_array_equal(st[1], full[1])
+    np.testing.assert_array_equal(st[4], full[4])
+    np.testing.assert_array_equal(no[4], full[4])
+    assert (full[2] > 0).any() and not st[2].any() and not st[3].any()
+    assert not no[1].any() and not no[2].any()
+    assert st[0].precision is not None and st[0].reliability is None
+    assert no[0].precision is None
+    assert "--precision stations" in st[0].full_report()
+    assert "--precision none" in no[0].full_report()

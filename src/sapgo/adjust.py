@@ -200,6 +200,10 @@ class Options:
     #: or "free" (neither: a free network by inner constraints, control points as check
     #: points; :mod:`sapgo.freenet`). ``fix`` adds held parameters to any but "free".
     datum: str | None = None
+    #: The precision pass after convergence (``--precision``): "full" (the stations' and
+    #: points' standard deviations, the observations' redundancy numbers and tests),
+    #: "stations" (the stations' alone, in a fraction of the time) or "none".
+    precision: str = "full"
     #: The linear solver: "band" (recursive partitioning of the band: long strips), "tree"
     #: (the partition tree of nested dissection: any block shape) or "auto" (the project's
     #: order as ``sapgo order`` chose it by predicted cost; an unordered project is ordered
@@ -287,6 +291,8 @@ class Options:
                              f"named twice (a parameter is shared by a camera's photos or "
                              f"adjusted per photo, not both)")
         self.fix = tuple(parse_fix(f) for f in self.fix)
+        if self.precision not in ("full", "stations", "none"):
+            raise ParameterError(f"precision {self.precision!r}: choose full, stations or none")
         if self.datum not in DATUMS:
             raise ParameterError(f"datum {self.datum!r}: choose control, priors or free (or "
                                  f"fix:IDS:PARAMS)")
@@ -1768,11 +1774,16 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
     return summary
 
 
-def _precision(p: Project, work, blk: _Block, opts: Options, sigma0, correlations=None):
+def _precision(p: Project, work, blk: _Block, opts: Options, sigma0, correlations=None,
+               mode="full"):
     """:func:`sapgo.quality.quality_sweep` from the undamped factor of the current state
-    (factored once more first when the last one was damped or rejected)."""
+    (factored once more first when the last one was damped or rejected). ``mode``: "full"
+    (stations, points and the observations' quality: what snooping and robust estimation
+    need) or "stations" (the stations' blocks alone, ``--precision stations``)."""
     if blk.refactor:
         _undamped_factor(p, work, blk, opts)
+    if opts.precision != mode:
+        opts = dataclasses.replace(opts, precision=mode)
     return quality_sweep(p, work, blk, opts, sigma0, correlations)
 
 
@@ -2003,27 +2014,31 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     xyz_ds, res_ds = work.xyz_current, work.res_current
     t_prec = time.perf_counter()
     correlations = HighCorrelations(opts.correlation_threshold)
-    # a free network: the solution and precision of the inner constraints (sapgo.freenet);
-    # with self-calibration as well, no precision
-    no_precision = blk.free and blk.n_border > 0
-    if no_precision:  # no datum, no precision: zeros, and no report of it
+    mode = opts.precision
+    if blk.free:   # a free network: the solution of the inner constraints (sapgo.freenet)
+        from .freenet import to_inner
+
+        to_inner(p_read, work, blk, opts)
+        correlations = None   # (those of the minimal constraints' datum mean nothing)
+    # with self-calibration as well, or --precision none: no precision
+    no_precision = (blk.free and blk.n_border > 0) or mode == "none"
+    if no_precision:  # no precision: zeros, and no report of it
         station_sigma = np.zeros((len(blk.station_ids), 6))
         psig = quality = None
         correlations = reliability = None
     else:
-        if blk.free:
-            from .freenet import to_inner
-
-            to_inner(p_read, work, blk, opts)
-            correlations = None   # (those of the minimal constraints' datum mean nothing)
         station_sigma, psig, quality = _precision(p_read, work, blk, opts,
-                                                      last["sigma0"], correlations)
+                                                      last["sigma0"], correlations, mode)
+        if mode != "full":   # (the stations' alone: no points, no observations' quality)
+            psig = quality = None
         if blk.free:
             from .freenet import inner_precision
 
             inner_precision(p_read, work, blk, opts, last["sigma0"], station_sigma, psig)
-        _note_planted(p_read, blk, quality, run)
-        reliability = reliability_statistics(opts.snooping_alpha)
+        reliability = None
+        if quality is not None:
+            _note_planted(p_read, blk, quality, run)
+            reliability = reliability_statistics(opts.snooping_alpha)
     # the report's sums over the points and their observations: each Dask part's points on
     # its worker, the rest here
     sums = ReportSums(p_read, blk, opts, reliability)
@@ -2089,7 +2104,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         precision=None if no_precision else precision_summary(
             station_sigma[blk.station_active], psig, p_read, opts.chunk_points),
         correlations=None if correlations is None else correlations.result(),
-        reliability=None if no_precision else reliability.result(),
+        reliability=None if reliability is None else reliability.result(),
+        precision_mode=mode,
         calibration=_calibration_report(p_read, blk, run, last["sigma0"]) if blk.border
         else None,
         method=run.get("method", "gn"),

@@ -285,6 +285,7 @@ def cmd_adjust(args):
         robust_threshold_um=args.robust_threshold,
         snooping=args.snooping,
         snooping_alpha=args.alpha, reset_rejections=args.reset_rejections,
+        precision=args.precision,
         method=args.method,
         tol_cost=args.tol_cost,
         calibrate=args.calibrate or (),
@@ -911,6 +912,11 @@ def build_parser():
                         "normalised residual above the critical value and adjust again, until "
                         "none is left (rejected observations are flagged, not deleted; "
                         "default: no snooping)")
+    a.add_argument("--precision", choices=("full", "stations", "none"), default="full",
+                   help="the precision pass after convergence: full (the default: photos' and "
+                        "points' standard deviations, redundancy numbers and tests of the "
+                        "observations), stations (the photos' alone, in a fraction of the "
+                        "time) or none")
     a.add_argument("--reset-rejections", action="store_true",
                    help="bring back the observations an earlier run's data snooping rejected "
                         "(default: they stay out, and the report says how many)")

@@ -225,7 +225,8 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
         s[on] = np.sqrt(np.maximum(s[on] ** 2 + sigma0 ** 2 * d[on], 0.0))
         psig[a:b] = s
 
-    _point_pass(p, work, blk, opts, centre, x_st, r_st, fix_points)
+    if psig is not None:   # (None: the stations' precision alone)
+        _point_pass(p, work, blk, opts, centre, x_st, r_st, fix_points)
     act = blk.station_active
     hs = station_rows(blk.eo[act], centre, k)
     d = in_angles(delta(hs, x_st[act]), blk.eo[act], np.zeros(int(act.sum()), np.int64))

@@ -377,6 +377,8 @@ class Summary:
     datum: str = "control"
     #: the datum was the user's choice (``--datum``), not the project's
     datum_chosen: bool = False
+    #: the precision pass (``--precision``): "full", "stations" or "none"
+    precision_mode: str = "full"
     #: Pass points set aside during the run, their rays (nearly) parallel at the values of
     #: the time: ``{"point": id, "set_aside": iteration, "back": iteration or None}``.
     set_aside: list = dataclasses.field(default_factory=list)
@@ -492,6 +494,11 @@ class Summary:
         if self.datum == "fixed":
             L.append("  datum: station parameters held fixed (--datum fix), with the control "
                      "and priors given; their standard deviations are 0")
+        if self.precision_mode != "full":
+            L.append("  precision: " + (
+                "not computed (--precision none)" if self.precision_mode == "none" else
+                "the photos' alone (--precision stations): no points' standard deviations, "
+                "redundancy numbers or tests of the observations"))
         if self.datum == "priors":
             L.append("  datum: the station priors alone (--datum priors); the control points "
                      "are used as check points")

@@ -586,7 +586,7 @@ def quality_visitor(p, work, blk, opts, tree, sigma0, psig, quality, cov, var, c
         cov[lo:hi] = blocks
         var[lo:hi] = np.diagonal(blocks, axis1=1, axis2=2)
         p0, p1 = int(tree.pt_start[i]), int(tree.pt_start[i + 1])
-        if p1 <= p0:
+        if p1 <= p0 or opts.precision != "full":   # (--precision stations: no points)
             return
         fronts = my_fronts()
         fr = fronts.enter(i)
