@@ -281,23 +281,6 @@ def factor_to_band(fac):
 
 
 @njit(cache=True, nogil=True)
-def _solve_skewed(a, ld1, n, u, b):
-    """``b <- (L L')^-1 b`` for one column ``b``, ``L`` in skewed storage without a ring."""
-    for h in range(n):
-        base = h * ld1
-        v = b[h] / a[base]
-        b[h] = v
-        for d in range(1, min(u + 1, n - h)):
-            b[h + d] -= a[base + d] * v
-    for h in range(n - 1, -1, -1):
-        base = h * ld1
-        s = b[h]
-        for d in range(1, min(u + 1, n - h)):
-            s -= a[base + d] * b[h + d]
-        b[h] = s / a[base]
-
-
-@njit(cache=True, nogil=True)
 def _border_rows(fac, win, y, i0, n, s_mat, t_vec, yy):
     """Forward substitution of the border columns, ``W = U'^-1 B``, for the scalar rows of
     the stations ``i0 ..`` of the diagonal-first factor rows ``fac``: ``win`` (scalar rows
