@@ -166,6 +166,11 @@ class Options:
     snooping_alpha: float = 0.001
     #: Data snooping rejects at most this many observations.
     max_rejections: int = 1000
+    #: Data snooping rejects, each round, every significant observation whose photos are
+    #: not those of one rejected already in the round (:func:`_snoop`; not yet confirmed
+    #: against one-at-a-time snooping); False (the default): the largest alone, one round a
+    #: rejection.
+    snooping_batch: bool = False
     #: Bring back the observations an earlier run rejected (data snooping flags them
     #: rejected in the project; without this they stay out, and the report says how many).
     reset_rejections: bool = False
@@ -1800,7 +1805,16 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
     """Baarda's data snooping: while the largest test statistic of an active image
     observation, ``t = sqrt(v' Q_vv^-1 v) / sigma0`` (its two coordinates together), exceeds
     the critical value of ``opts.snooping_alpha`` (chi-square with 2 degrees of freedom),
-    reject that observation (flagged, never deleted) and iterate again. Returns converged."""
+    reject (flagged, never deleted) and iterate again. Returns converged.
+
+    One at a time (the default) rejects the largest each round. In batches
+    (``opts.snooping_batch``) a round rejects, from the largest down, every significant
+    observation whose neighbourhood -- the photos that see its point -- shares no photo
+    with one taken already in the round: a blunder moves the tests of its own point's rays
+    and of the photos that see it most. Not yet confirmed against one-at-a-time snooping:
+    on SAPGO-P-3 with 20 planted blunders, seed 2 gave the same 20 rejections in 11
+    iterations instead of 60, seed 1 two more (22, one more planted blunder found), as
+    sigma0 and the photos' neighbours still couple the tests."""
     from .report import chi2_isf
 
     crit = float(np.sqrt(chi2_isf(opts.snooping_alpha, 2)))
@@ -1808,40 +1822,63 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
         t0 = time.perf_counter()
         _, _, quality = _precision(p, work, blk, opts, _accepted(log)[-1]["sigma0"])
         _note_planted(p, blk, quality, run)
-        best, worst = 0.0, -1
+        cand_t, cand_i = [], []
         for a, b in p.chunks("observations", opts.chunk_points):
             q = quality[a:b]
             act = p.read_field("observations", "status", a, b) == STATUS_ACTIVE
             if len(blk.rejected):
                 act &= ~np.isin(np.arange(a, b), blk.rejected)
             w = np.where(act, q[:, 5], 0.0)
-            i = int(np.argmax(w)) if len(w) else 0
-            if len(w) and w[i] > best:
-                best, worst = float(w[i]), a + i
+            if not opts.snooping_batch:   # (the largest of the chunk is enough)
+                i = int(np.argmax(w)) if len(w) else 0
+                if len(w) and w[i] > crit:
+                    cand_t.append(float(w[i]))
+                    cand_i.append(a + i)
+                continue
+            big = np.flatnonzero(w > crit)
+            cand_t.extend(w[big].tolist())
+            cand_i.extend((a + big).tolist())
         timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t0
-        if best <= crit or worst < 0:
+        if not cand_i:
             break
-        # a point left with fewer than two rays cannot be determined: all its rays go (the
-        # blunder cannot be told from the other ray of a two-ray point)
-        j = int(p.read("observations", worst, worst + 1)[0]["point"])
-        pt = p.read("points", j, j + 1)[0]
-        o0, o1 = int(pt["obs_start"]), int(pt["obs_start"] + pt["n_obs"])
-        live = np.arange(o0, o1)[p.read_field("observations", "status", o0, o1)
-                                 == STATUS_ACTIVE]
-        live = live[~np.isin(live, blk.rejected)]
-        blk.rejections.append({"observation": worst, "w": best, "by": "test"})
-        drop = [worst]
-        if len(live) - 1 < 2:
-            drop = live.tolist()
-            blk.rejections.extend({"observation": int(i), "w": best, "by": "point"}
-                                  for i in live.tolist() if i != worst)
-            blk.rejected_points = np.sort(np.append(blk.rejected_points, j))
-            blk.n_points -= 1
-        blk.rejected = np.sort(np.concatenate([blk.rejected, np.array(drop, np.int64)]))
-        blk.n_rays -= len(drop)
+        order = np.argsort(-np.array(cand_t), kind="stable")
+        if not opts.snooping_batch:
+            order = order[:1]
+        taken_photos = set()
+        batch = []
+        room = opts.max_rejections - len(blk.rejected)
+        for k in order.tolist():
+            if len(batch) >= room:
+                break
+            worst, best = cand_i[k], cand_t[k]
+            j = int(p.read("observations", worst, worst + 1)[0]["point"])
+            pt = p.read("points", j, j + 1)[0]
+            o0, o1 = int(pt["obs_start"]), int(pt["obs_start"] + pt["n_obs"])
+            ob = p.read("observations", o0, o1)
+            photos = set(ob["station"].tolist())
+            if photos & taken_photos:
+                continue   # (its tests move with a rejection of this round: next round)
+            taken_photos |= photos
+            batch.append((worst, best, j, o0, o1, ob))
+        for worst, best, j, o0, o1, ob in batch:
+            # a point left with fewer than two rays cannot be determined: all its rays go
+            # (the blunder cannot be told from the other ray of a two-ray point)
+            live = np.arange(o0, o1)[ob["status"] == STATUS_ACTIVE]
+            live = live[~np.isin(live, blk.rejected)]
+            blk.rejections.append({"observation": worst, "w": best, "by": "test"})
+            drop = [worst]
+            if len(live) - 1 < 2:
+                drop = live.tolist()
+                blk.rejections.extend({"observation": int(i), "w": best, "by": "point"}
+                                      for i in live.tolist() if i != worst)
+                blk.rejected_points = np.sort(np.append(blk.rejected_points, j))
+                blk.n_points -= 1
+            blk.rejected = np.sort(np.concatenate([blk.rejected, np.array(drop, np.int64)]))
+            blk.n_rays -= len(drop)
         run["rejections"] = blk.rejections
         run["rejected_points"] = blk.rejected_points.tolist()
-        run["cost"] = _cost(p, work, blk, opts)  # the cost function lost an observation
+        run["snooping_rounds"] = run.get("snooping_rounds", 0) + 1
+        run["cost"] = _cost(p, work, blk, opts)  # the cost function lost observations
         converged = _iterate(p, work, blk, opts, timings, log, run,
                              limit=len(log) + opts.max_iterations)
     return converged
