@@ -267,3 +267,29 @@ def test_free_network_stations_precision_alone(free_block, tmp_path):
             out[mode] = (p.solution("station_sigma"), p.solution("point_corr"))
     np.testing.assert_allclose(out["stations"][0], out["full"][0], rtol=1e-12)
     np.testing.assert_array_equal(out["stations"][1], out["full"][1])
+
+
+def test_datum_free_leaves_out_a_one_ray_control_point(block_cache, tmp_path):
+    """A control point that keeps one ray is determined by its control alone: with the
+    control not used (``--datum free``) it is left out of the run, exactly as if it were
+    not in the project (the same sigma0 and redundancy)."""
+    src = block_cache("free", strips=3, photos_per_strip=6, control_points=4)
+    rec = read_records(src)
+    pt, ob = rec["points"], rec["observations"]
+    j = int(np.flatnonzero(pt["kind"] == 1)[0])
+    mine = np.flatnonzero(ob["point"] == j)
+    one = tmp_path / "one.h5"
+    rewrite(one, dict(rec, observations=np.delete(ob, mine[1:])))
+    gone = read_records(one)
+    keep = np.ones(len(gone["points"]), bool)
+    keep[j] = False
+    ob2 = gone["observations"][gone["observations"]["point"] != j]
+    ob2["point"] -= (ob2["point"] > j)
+    without = tmp_path / "without.h5"
+    rewrite(without, dict(gone, points=gone["points"][keep], observations=ob2,
+                          truth=dict(gone["truth"], points=gone["truth"]["points"][keep])))
+    opts = dict(progress=False, datum="free", tol_cost=1e-14, max_iterations=60)
+    a = sapgo.adjust(one, sapgo.Options(**opts))
+    b = sapgo.adjust(without, sapgo.Options(**opts))
+    assert a.redundancy == b.redundancy and a.n_points == b.n_points
+    assert a.sigma0 == pytest.approx(b.sigma0, rel=1e-9)

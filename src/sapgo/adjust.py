@@ -729,20 +729,26 @@ def _set_datum(blk: _Block, p: Project, opts: Options):
     if opts.datum in ("priors", "free"):
         blk.ctrl_mask = np.zeros_like(CTRL_MASK)
         blk.n_weighted_control = blk.n_fixed = 0
-        one_ray = []
+        one_ray, rays = [], 0
         for a, b in p.chunks("points"):
             pts = p.read("points", a, b)
-            ctrl = (CONTROL_MASK[pts["kind"]].any(axis=1)) & (pts["status"] == STATUS_ACTIVE)
-            for j in np.flatnonzero(ctrl):
-                o0 = int(pts["obs_start"][j])
-                ob = p.read("observations", o0, o0 + int(pts["n_obs"][j]))
-                seen = np.unique(ob["station"][ob["status"] == STATUS_ACTIVE])
-                if len(seen) < 2:
-                    one_ray.append(a + int(j))
+            ctrl = CONTROL_MASK[pts["kind"]].any(axis=1) & (pts["status"] == STATUS_ACTIVE)
+            if not ctrl.any():
+                continue
+            o0 = int(pts["obs_start"][0])
+            o1 = int(pts["obs_start"][-1] + pts["n_obs"][-1])
+            ob = p.read("observations", o0, o1)
+            live = ob["status"] == STATUS_ACTIVE
+            owner = np.repeat(np.arange(b - a), pts["n_obs"])
+            pairs = np.unique(owner[live] * p.n_stations + ob["station"][live])
+            distinct = np.bincount(pairs // p.n_stations, minlength=b - a)
+            out = ctrl & (distinct < 2)
+            one_ray.extend((a + np.flatnonzero(out)).tolist())
+            rays += int((live & out[owner]).sum())
         if one_ray:
             blk.rejected_points = np.union1d(blk.rejected_points, one_ray).astype(np.int64)
             blk.n_points -= len(one_ray)
-            blk.n_rays -= sum(int(p.read("points", j, j + 1)["n_obs"][0]) for j in one_ray)
+            blk.n_rays -= rays
         blk.one_ray_control = len(one_ray)
     if opts.datum in ("control", "free"):
         blk.use_priors = False
@@ -1570,7 +1576,7 @@ def adjust(path, options: Options | None = None) -> Summary:
     timings = {"order": 0.0, "build": 0.0, "solve": 0.0, "update": 0.0, "commit": 0.0}
     wpath = work_path(path)
     with Project(path, "r") as p:
-        check_values(p)
+        n_rejected = check_values(p)["rejected"]
         check_datum(p, fixed=bool(opts.fix), datum=opts.datum)
         if opts.fix:   # (refused before the implicit ordering rewrites the project)
             import types
@@ -1578,7 +1584,6 @@ def adjust(path, options: Options | None = None) -> Summary:
             _set_fixed(types.SimpleNamespace(
                 station_ids=p.read_field("stations", "id"),
                 station_active=p.read_field("stations", "status") == STATUS_ACTIVE), p, opts)
-        n_rejected = _earlier_rejections(p)
         needs_order = _needs_order(p, opts) or bool(opts.reset_rejections and n_rejected)
         source_uuid = p.attr("uuid", "")
     order_info = None
@@ -1589,7 +1594,8 @@ def adjust(path, options: Options | None = None) -> Summary:
     src = path
     if needs_order:
         src = ordered
-        if checkpoint is None or not _ordered_copy_of(ordered, source_uuid):
+        if checkpoint is None or not _ordered_copy_of(ordered, source_uuid,
+                                                       opts.reset_rejections):
             checkpoint = None  # (a run on another ordered copy cannot be resumed)
             t0 = time.perf_counter()
             order_info = order_project(path, opts.ordering, memory=opts.memory,
@@ -1615,11 +1621,6 @@ def adjust(path, options: Options | None = None) -> Summary:
     return summary
 
 
-def _earlier_rejections(p: Project):
-    """Observations flagged rejected in the project (by an earlier run's data snooping)."""
-    return sum(int((p.read_field("observations", "status", a, b) == STATUS_REJECTED).sum())
-               for a, b in p.chunks("observations"))
-
 
 def ordered_path(path):
     """Where ``sapgo adjust`` orders an unordered project (``NAME.h5.ordered`` beside it):
@@ -1628,13 +1629,15 @@ def ordered_path(path):
     return path.with_name(path.name + ".ordered")
 
 
-def _ordered_copy_of(ordered, source_uuid):
-    """Is ``ordered`` a whole ordered copy of the project of uuid ``source_uuid``?"""
+def _ordered_copy_of(ordered, source_uuid, reset):
+    """Is ``ordered`` a whole ordered copy of the project of uuid ``source_uuid``, made with
+    the earlier rejections reset or kept as ``reset`` says?"""
     if not ordered.exists():
         return False
     try:
         with Project(ordered, "r") as q:
-            return bool(source_uuid) and q.attr("ordered_from", "") == source_uuid
+            return (bool(source_uuid) and q.attr("ordered_from", "") == source_uuid
+                    and bool(q.attr("rejections_reset", False)) == bool(reset))
     except (OSError, SapgoError):
         return False
 
@@ -2168,8 +2171,9 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         shutil.copyfile(p_read.file_path, tmp)   # (the project, or the run's ordered copy of it)
         _fault("commit-copy")
         with Project(tmp, "r+") as q:
-            if "ordered_from" in q.file.attrs:
-                del q.file.attrs["ordered_from"]
+            for key in ("ordered_from", "rejections_reset"):   # (the run's copy's own)
+                if key in q.file.attrs:
+                    del q.file.attrs[key]
             g = q.new_solution()
             for a, b in q.chunks("stations", opts.chunk_points):
                 g["station_corr"][a:b] = blk.eo[a:b] - q.read_field("stations", "eo", a, b)

@@ -1105,7 +1105,7 @@ def _os_message(exc):
 
 def main(argv=None):
     from .errors import DiskFullError
-    from .project import is_disk_full
+    from .project import disk_full_error, is_disk_full
 
     args = build_parser().parse_args(argv)
     sys.unraisablehook = _quiet_hdf5_teardown
@@ -1116,7 +1116,12 @@ def main(argv=None):
               f"{FIRST_RUN_SECONDS} s; kept in {kernelcache.CACHE_DIR})", file=sys.stderr)
         kernelcache.FIRST_RUN = False
     try:
-        return args.func(args)
+        try:
+            return args.func(args)
+        except (OSError, RuntimeError) as exc:   # (HDF5's words for a full disk: ours)
+            if not is_disk_full(exc):
+                raise
+            raise disk_full_error(getattr(args, "project", "") or "the output", exc) from None
     except DiskFullError as exc:
         print(f"sapgo: error: {exc}", file=sys.stderr)
         if argv is None:   # (the command line: no teardown of HDF5 on a full disk)
@@ -1127,18 +1132,7 @@ def main(argv=None):
     except SapgoError as exc:
         print(f"sapgo: error: {exc}", file=sys.stderr)
         return 2
-    except (OSError, RuntimeError) as exc:
-        if is_disk_full(exc):
-            print(f"sapgo: error: {getattr(args, 'project', '')} the disk is full (no space "
-                  f"left on its filesystem): free some space and run the command again",
-                  file=sys.stderr)
-            if argv is None:
-                sys.stdout.flush()
-                sys.stderr.flush()
-                os._exit(2)
-            return 2
-        if isinstance(exc, RuntimeError):
-            raise
+    except OSError as exc:
         print(f"sapgo: error: {_os_message(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -681,6 +681,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
                  solver="tree" if tree is not None else "band")
     if out is not None:
         attrs["ordered_from"] = p.attr("uuid", "")
+        attrs["rejections_reset"] = bool(reset)
     node_points = np.zeros(tree.n_nodes if tree is not None else 0, np.int64)
 
     with ExternalSorter(pt_dtype, ["kmin", "kmax", "id", "old"], memory // 2, work,

@@ -48,10 +48,13 @@ def _check_finite(name, start, ids, field, values):
 
 
 def check_values(project: Project, ordered_layout=True):
-    """Check every input value; raise :class:`DataError` at the first problem.
+    """Check every input value; raise :class:`DataError` at the first problem. Returns
+    ``{"rejected": n}``: the observations flagged rejected (by an earlier run), counted on
+    the way.
 
     ``ordered_layout``: also check what an ordered project promises (priors by station).
     """
+    n_rejected = 0
     path = project.path
     n_cam = project.n_cameras
     n_st = project.n_stations
@@ -208,6 +211,7 @@ def check_values(project: Project, ordered_layout=True):
                        & (obs["status"] != STATUS_REJECTED))
         if i >= 0:
             raise DataError(f"observations record {a + i}: unknown status {obs['status'][i]}")
+        n_rejected += int((obs["status"] == STATUS_REJECTED).sum())
     if project.has_truth:
         for a, b in project.chunks("truth/points"):
             _check_finite("truth/points", a, None, "xyz",
@@ -215,6 +219,7 @@ def check_values(project: Project, ordered_layout=True):
         for a, b in project.chunks("truth/stations"):
             _check_finite("truth/stations", a, None, "eo",
                           project.read_field("truth/stations", "eo", a, b))
+    return {"rejected": n_rejected}
 
 
 #: Plausibility: an image coordinate farther than this many format widths from the
