@@ -219,7 +219,11 @@ def test_covariance_blocks_equal_the_dense_inverse(step, n, bw):
     np.testing.assert_array_equal(var, np.diagonal(blocks, axis1=1, axis2=2))
 
 
-def test_covariance_window_holds_the_band_of_the_inverse_for_each_block():
+@pytest.mark.parametrize("step", [3, 7, 100])
+def test_covariance_window_holds_the_band_of_the_inverse_for_each_block(step):
+    """The window handed to ``on_block`` holds the band of the inverse over the block's
+    stations and the band after them, for blocks shorter and longer than the band (the
+    window shifted within a block and between blocks)."""
     from sapgo.solve.band import covariance_blocks
 
     n, bw = 40, 4
@@ -237,8 +241,9 @@ def test_covariance_window_holds_the_band_of_the_inverse_for_each_block():
                                                               abs=1e-12 * abs(inv).max())
         seen.append((start, stop))
 
-    covariance_blocks(fac, n, bw, step=100, on_block=check)
-    assert seen[0][1] == n and seen[-1][0] == 0 and all(b - a <= bw for a, b in seen)
+    covariance_blocks(fac, n, bw, step=step, on_block=check)
+    assert seen[0][1] == n and seen[-1][0] == 0
+    assert all(b - a == min(step, n) for a, b in seen[:-1])
 
 
 @pytest.mark.parametrize("n, bw, chunk_rows", [(17, 4, 3), (40, 9, 50), (1, 1, 1)])

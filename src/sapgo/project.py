@@ -36,6 +36,12 @@ SCHEMA_VERSION = 1
 #: Records per HDF5 chunk and per processing chunk.
 CHUNK_RECORDS = 65536
 
+#: HDF5's chunk cache of each dataset of an open project: room for a few of its chunks (at
+#: most about 1 MB each), so that the passes that read records a few at a time (a block of
+#: stations' points in the precision pass, a node's points on the tree) decode and checksum
+#: each chunk once instead of once per read (HDF5's default, 1 MB, holds none of them).
+CHUNK_CACHE = {"rdcc_nbytes": 4 << 20, "rdcc_nslots": 1021}
+
 # Point kinds (``/points`` field ``kind``).
 KIND_PASS = 0
 KIND_CONTROL = 1  # full control: X, Y, Z
@@ -451,8 +457,9 @@ class Project:
                 f"{self.path}: not a sapgo project (the file is not HDF5)"
             )
         self._held = {}
+        self._open = {}   # datasets kept open (read only): their chunk caches stay
         try:
-            self._f = h5py.File(self.file_path, mode)
+            self._f = h5py.File(self.file_path, mode, **CHUNK_CACHE)
         except OSError as exc:
             raise ProjectFormatError(f"{self.path}: cannot open as HDF5 ({exc})") from None
         try:
@@ -524,6 +531,7 @@ class Project:
 
     def close(self):
         self._held = {}
+        self._open = {}
         if self._f is not None:
             self._f.close()
             self._f = None
@@ -641,7 +649,7 @@ class Project:
         held = self._held.get(name)
         if held is not None:
             return held[start:stop].copy()
-        ds = self.file[name]
+        ds = self._dataset(name)
         stop = ds.shape[0] if stop is None else stop
         return self._checked(ds, start, stop, lambda: ds[start:stop])
 
@@ -649,11 +657,22 @@ class Project:
         held = self._held.get(name)
         if held is not None:
             return held[field][start:stop].copy()
-        ds = self.file[name]
+        ds = self._dataset(name)
         stop = ds.shape[0] if stop is None else stop
         if stop <= start:
             return np.zeros((0,) + ds.dtype.fields[field][0].shape, ds.dtype.fields[field][0].base)
         return self._checked(ds, start, stop, lambda: ds.fields(field)[start:stop])
+
+    def _dataset(self, name):
+        """Dataset ``name``, kept open when the project is read only, so that HDF5's chunk
+        cache (:data:`CHUNK_CACHE`) serves the next read of the same chunk (a dataset
+        opened afresh starts with an empty cache)."""
+        if self.file.mode != "r":
+            return self.file[name]
+        ds = self._open.get(name)
+        if ds is None:
+            ds = self._open[name] = self.file[name]
+        return ds
 
     def _checked(self, ds, start, stop, read):
         """``read()`` of records ``start:stop`` of ``ds``; a chunk that fails its checksum

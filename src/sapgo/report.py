@@ -147,6 +147,10 @@ class HighCorrelations:
         for m, name in enumerate(names):
             self.counts[what][name] += int(big[:, m].sum())
         rows, cols = np.nonzero(big)
+        if len(rows) > self.listed:   # (only this chunk's largest can be listed)
+            mag = np.abs(rho[rows, cols])
+            keep = np.argpartition(-mag, self.listed - 1)[:self.listed]
+            rows, cols = rows[keep], cols[keep]
         key = "photo_id" if what == "stations" else "point_id"
         self.largest.extend({key: int(ids[r]), "pair": names[c], "rho": float(rho[r, c])}
                             for r, c in zip(rows.tolist(), cols.tolist()))

@@ -56,7 +56,7 @@ import numpy as np
 import scipy.linalg
 from numba import njit, prange
 
-from ..blas import FNS, L, N, R, T, blas_limits, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
+from ..blas import FNS, L, N, R, T, U, blas_limits, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
 
 #: A pivot at or below this fraction of the original diagonal element counts as zero.
 PIVOT_TOLERANCE = 1e-12
@@ -733,85 +733,128 @@ def _back_substitute(band_ds, rhs_ds, n_st, step, block=6):
 
 
 @njit(cache=True, nogil=True)
-def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, v, y, margin):
-    """Takahashi's recurrence for the scalar rows of stations ``i0 ..`` (in reverse) of the
-    diagonal-first factor rows ``fac``: ``Z = M^-1 = U^-1 U'^-1`` inside the band,
+def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, margin, sb, uh, ut, w, s):
+    """Takahashi's recurrence for the stations ``i0 ..`` of the diagonal-first factor rows
+    ``fac`` (in reverse), ``sb`` stations (``nb = k sb`` scalar rows ``H``) at a time:
+    with ``T`` the ``u`` scalar rows after ``H`` (``u`` the scalar band width) and
+    ``Z = M^-1 = U^-1 U'^-1``,
 
-        Z[h, h+1:h+u+1] = -(1/U[h,h]) Z[h+1:h+u+1, h+1:h+u+1] U[h, h+1:h+u+1]'     (dgemv)
-        Z[h, h] = 1/U[h,h]^2 - (1/U[h,h]) U[h, h+1:] Z[h+1:, h]
+        W = U[H, T] Z[T, T]                               (dgemm)
+        Z[H, T] = -U[H, H]^-1 W                           (dtrsm)
+        Z[H, H] = U[H, H]^-1 (I + W U[H, T]') U[H, H]^-T   (dgemm, two dtrsm)
 
-    ``zb`` (B x B, B >= 2u + 2) holds ``Z`` of the scalar rows and columns ``base ..
-    base + B`` (``state[0] = base``), shifted down when the rows reach its start, so that
-    the block a row needs is contiguous; ``out_blocks[i - i0]`` receives the 6x6 diagonal
-    block of station ``i``."""
+    (from ``U Z = U'^-1``, lower triangular, and ``Z`` symmetric; the rows of ``H`` a
+    block of ``U``'s upper triangle). ``zb`` (B x B, ``B >= nb + u + margin``) holds ``Z``
+    of the scalar rows and columns ``base .. base + B`` (``state[0] = base``), shifted
+    when the rows reach its start (the band of ``Z`` only: nothing reads further), so that
+    the block the rows need is contiguous;
+    ``out_blocks[i - i0]`` receives the k x k diagonal block of station ``i``. Work space:
+    ``uh`` (nb x nb), ``ut``, ``w`` (nb x u) and ``s`` (nb x nb), F order, flat."""
     width = fac.shape[2]
     kb = fac.shape[1]
     u = width - 1
     bsz = zb.shape[0]
     flat = zb.reshape(-1)
-    for ii in range(fac.shape[0] - 1, -1, -1):
-        for r in range(kb - 1, -1, -1):
-            h = kb * (i0 + ii) + r
-            base = state[0]
-            if h < base:  # shift the window: rows h+1 .. h+u+margin to its top part
-                nb = max(0, h + u + margin + 1 - bsz)
-                top_old = min(u + margin, n - 1 - h, base + bsz - 1 - h)
-                for a in range(top_old - 1, -1, -1):  # moving down: last row first
-                    for b in range(top_old):
-                        y[b] = zb[h + 1 + a - base, h + 1 + b - base]
-                    for b in range(top_old):
-                        zb[h + 1 + a - nb, h + 1 + b - nb] = y[b]
-                state[0] = nb
-                base = nb
-            top = min(u, n - 1 - h)
-            u0 = fac[ii, r, 0]
-            p = h - base
-            if top > 0:
-                for d in range(top):
-                    v[d] = fac[ii, r, d + 1]
-                gemv(fns.dgemv, N, top, top, -1.0 / u0, flat[(p + 1) * bsz + p + 1:], bsz,
-                     v, 0.0, y)
-                s = 0.0
-                for d in range(top):
-                    zb[p, p + 1 + d] = y[d]
-                    zb[p + 1 + d, p] = y[d]
-                    s += v[d] * y[d]
-                zb[p, p] = 1.0 / (u0 * u0) - s / u0
-            else:
-                zb[p, p] = 1.0 / (u0 * u0)
-        i = i0 + ii
-        q = kb * i - state[0]
-        for a in range(kb):
-            for b in range(kb):
-                out_blocks[ii, a, b] = zb[q + a, q + b]
+    hi = fac.shape[0]
+    while hi > 0:
+        lo = max(0, hi - sb)
+        nb = kb * (hi - lo)
+        h0 = kb * (i0 + lo)
+        t = min(u, n - h0 - nb)
+        base = state[0]
+        if h0 < base:  # shift the window: rows h0+nb .. h0+nb+u+margin-1 to its top part
+            nbase = max(0, h0 + nb + u + margin - bsz)
+            kept = min(u + margin, n - h0 - nb, base + bsz - h0 - nb)
+            d0 = h0 + nb - base
+            d1 = h0 + nb - nbase
+            for a in range(kept - 1, -1, -1):  # moving down: last row first; the band only
+                for c in range(max(0, a - u), min(kept, a + u + 1)):
+                    zb[d1 + a, d1 + c] = zb[d0 + a, d0 + c]
+            state[0] = nbase
+            base = nbase
+        p = h0 - base
+        for c in range(nb * nb):
+            uh[c] = 0.0
+            s[c] = 0.0
+        for c in range(nb * t):
+            ut[c] = 0.0
+        for a in range(nb):   # U[H, H] and U[H, T] from the diagonal-first rows
+            ii = lo + a // kb
+            r = a % kb
+            for d in range(min(width, nb + t - a)):
+                col = a + d
+                if col < nb:
+                    uh[col * nb + a] = fac[ii, r, d]
+                else:
+                    ut[(col - nb) * nb + a] = fac[ii, r, d]
+        for a in range(nb):
+            s[a * nb + a] = 1.0
+        if t > 0:
+            q = (p + nb) * bsz + p + nb
+            gemm(fns.dgemm, N, N, nb, t, t, 1.0, ut, nb, flat[q:], bsz, 0.0, w, nb)
+            gemm(fns.dgemm, N, T, nb, nb, t, 1.0, w, nb, ut, nb, 1.0, s, nb)
+            trsm(fns.dtrsm, L, U, N, N, nb, t, -1.0, uh, nb, w, nb)
+            for c in range(t):
+                for a in range(nb):
+                    zb[p + a, p + nb + c] = w[c * nb + a]
+                    zb[p + nb + c, p + a] = w[c * nb + a]
+        trsm(fns.dtrsm, L, U, N, N, nb, nb, 1.0, uh, nb, s, nb)
+        trsm(fns.dtrsm, R, U, T, N, nb, nb, 1.0, uh, nb, s, nb)
+        for c in range(nb):
+            for a in range(c + 1):
+                zb[p + a, p + c] = s[c * nb + a]
+                zb[p + c, p + a] = s[c * nb + a]
+        for ii in range(lo, hi):
+            q = kb * (i0 + ii) - base
+            for a in range(kb):
+                for c in range(kb):
+                    out_blocks[ii, a, c] = zb[q + a, q + c]
+        hi = lo
+
+
+#: Stations a block of rows of the selected inversion (:func:`_inverse_rows`) at most.
+INVERSE_STATIONS = 8
+
+#: Bytes of the selected inversion's window of ``Z`` at most, when a larger block of stations
+#: (their points' precision at once, :func:`covariance_blocks`' ``on_block``) asks for more
+#: than the band needs.
+INVERSE_WINDOW_BYTES = 64 << 20
 
 
 def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=None):
     """The 6x6 diagonal blocks of ``M^-1`` (the stations' cofactor matrices) from the factor
     rows of :class:`BandSolver` (diagonal-first, ``factor_ds`` n x 6 x 6b), by Takahashi's
-    recurrence streamed backwards ``step`` stations at a time, a dgemv per scalar row: in core
-    ``Z`` of a window of ``4 (6b) + 6`` scalar rows and columns (``(24 b)^2`` doubles) and one
-    block of factor rows. Returns the
+    recurrence streamed backwards ``step`` stations at a time, by blocks of
+    ``INVERSE_STATIONS`` stations (BLAS-3, :func:`_inverse_rows`): in core ``Z`` of a window
+    of at least ``4 (6b) + 6`` scalar rows and columns (``(24 b)^2`` doubles) and one block of
+    factor rows. Returns the
     blocks (n x 6 x 6), or writes them to ``out`` (a direct-access file, dataset or array)
     block by block and returns the variances (n x 6) only.
 
     ``on_block(start, stop, zb, base)`` is called after each block of stations
-    ``start .. stop`` (then at most ``b`` stations): ``zb[k - base, j - base] = Z[k, j]`` for
+    ``start .. stop`` (then at most ``step`` stations, at least ``b`` unless ``step`` is
+    smaller, and no more than the window's ``INVERSE_WINDOW_BYTES`` allow beyond those ``b``):
+    ``zb[k - base, j - base] = Z[k, j]`` for
     the scalar rows and columns ``k, j`` of those stations and the ``6b - 1`` after them,
     inside the band (the covariances a point observed from those stations needs). Stations
     of ``k`` parameters (``factor_ds`` n x k x kb) give k x k blocks."""
     kb = factor_ds.shape[1]
     width = kb * band_width
+    u = width - 1
     n = kb * n_st
-    bsz = 4 * width + kb
+    sb = max(1, min(INVERSE_STATIONS, band_width))
+    nb = kb * sb
     margin = 0
-    if on_block is not None:
-        step = max(1, min(step, band_width))
+    if on_block is not None:   # blocks of at least b stations, larger while Z's window fits
+        most = int(np.sqrt(INVERSE_WINDOW_BYTES / 8)) - nb - kb - 2 * u
+        step = max(1, min(step, max(band_width, most // (2 * kb))))
         margin = kb * step
+    # (shifted every u + margin rows or so: the copies cost about u + margin a row)
+    bsz = max(4 * width + kb, 2 * (u + margin) + nb + kb)
     zb = np.zeros((bsz, bsz))
     state = np.array([max(0, n - bsz)], np.int64)
-    v = np.empty(bsz)
-    y = np.empty(bsz)
+    uh, s = np.empty(nb * nb), np.empty(nb * nb)
+    ut, w = np.empty(nb * max(u, 1)), np.empty(nb * max(u, 1))
     keep = out is None
     blocks_all = np.empty((n_st, kb, kb)) if keep else None
     var = np.empty((n_st, kb))
@@ -821,7 +864,7 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
         fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
         blocks = np.empty((stop - start, kb, kb))
         with blas_limits(1):
-            _inverse_rows(FNS, fac, start, n, zb, state, blocks, v, y, margin)
+            _inverse_rows(FNS, fac, start, n, zb, state, blocks, margin, sb, uh, ut, w, s)
         var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
         if on_block is not None:
             on_block(start, stop, zb, int(state[0]))
