@@ -853,6 +853,7 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     bsz = max(4 * width + kb, 2 * (u + margin) + nb + kb)
     zb = np.zeros((bsz, bsz))
     state = np.array([max(0, n - bsz)], np.int64)
+    threads = numba.get_num_threads()
     uh, s = np.empty(nb * nb), np.empty(nb * nb)
     ut, w = np.empty(nb * max(u, 1)), np.empty(nb * max(u, 1))
     keep = out is None
@@ -863,7 +864,7 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
         start = max(0, stop - step)
         fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
         blocks = np.empty((stop - start, kb, kb))
-        with blas_limits(1):
+        with blas_limits(threads):   # (its dgemm on every thread: nothing else runs)
             _inverse_rows(FNS, fac, start, n, zb, state, blocks, margin, sb, uh, ut, w, s)
         var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
         if on_block is not None:
