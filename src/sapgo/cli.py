@@ -83,7 +83,7 @@ def cmd_generate(args):
     info = generate_block(
         args.output, preset=args.preset, strips=args.strips,
         photos_per_strip=args.photos_per_strip, pattern=args.pattern,
-        control_points=args.control_points, forelap=args.forelap, sidelap=args.sidelap,
+        points_per_photo=args.points_per_photo, control_points=args.control_points, forelap=args.forelap, sidelap=args.sidelap,
         sigma_image=None if args.sigma_image is None else args.sigma_image / 1000.0,
         station_position_perturbation=args.station_position_perturbation,
         station_angle_perturbation=angle, control_perturbation=args.control_perturbation,
@@ -671,6 +671,10 @@ def build_parser():
                    help="photos in each strip (default 25, or the preset's)")
     g.add_argument("--pattern", type=int, choices=(9, 25),
                    help="points per photo, 3 x 3 or 5 x 5 (default 9, or the preset's)")
+    g.add_argument("--points-per-photo", type=int, metavar="N",
+                   help="tie points from a random texture instead of the pattern: about N "
+                        "on each photo, each measured on every photo that covers it, as "
+                        "image matching gives (4-5000; default: the pattern)")
     g.add_argument("--control-points", type=int, metavar="N",
                    help="number of full control points; the other known points are check "
                         "points (default 16, or the preset's)")

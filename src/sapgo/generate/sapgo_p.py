@@ -11,6 +11,12 @@ of S strips of G photos has ``(2S+1) G`` (9-point) or ``(4S+1)(2G-1)`` (25-point
 225, 833, 1100 and 1050 for the four presets of Table 2.
 
 Image points that tilt and relief push off the format (1 mm margin) are not measured.
+
+``points_per_photo`` (``sapgo generate --points-per-photo N``) replaces the pattern by the
+tie points of modern image matching: a random texture of points scattered uniformly over the
+pattern's extent, ``N`` on average in a photo's ground footprint, each measured on every photo
+whose format holds it (points seen on fewer than two photos left out): with 60 % forelap and
+20 % sidelap a point falls on about 3 photos, so a photo holds about ``N`` of them.
 Perturbations as Table 3: station positions 5 m, angles 20", image coordinates 6 um, ground
 control 1 mm. Approximate pass-point coordinates are intersected from the perturbed stations.
 """
@@ -46,6 +52,10 @@ class BlockSpec:
     strips: int = 4
     photos_per_strip: int = 25
     pattern: int = 9  # points per photo: 9 (3x3) or 25 (5x5)
+    #: tie points per photo from a random texture instead of the pattern: points scattered
+    #: at random over the block (about this many in a photo's ground footprint), each
+    #: measured on every photo whose format it falls in (None: the pattern)
+    points_per_photo: int | None = None
     control_points: int = 16  # full (XYZ) control points; all other points are check points
     forelap: float = 0.6
     sidelap: float = 0.2
@@ -75,6 +85,13 @@ class BlockSpec:
             raise ParameterError("a block needs at least 1 strip of 2 photos")
         if self.pattern not in (9, 25):
             raise ParameterError("pattern must be 9 or 25 points per photo")
+        if self.points_per_photo is not None:
+            if self.pattern != 9:
+                raise ParameterError("points per photo and the 25-point pattern exclude each "
+                                     "other: give one of them")
+            if not 4 <= self.points_per_photo <= MAX_POINTS_PER_PHOTO:
+                raise ParameterError(f"points per photo must be between 4 and "
+                                     f"{MAX_POINTS_PER_PHOTO}, not {self.points_per_photo}")
         if not 0.5 <= self.forelap < 0.9:
             raise ParameterError("forelap must be in [0.5, 0.9) so that points appear on 3 photos")
         if not 0.1 <= self.sidelap < 0.6:
@@ -107,7 +124,27 @@ class BlockSpec:
 
     @property
     def n_points(self):
+        """The points of the pattern; with ``points_per_photo``, the expected number
+        scattered over the block (the points seen on fewer than two photos then go)."""
+        if self.points_per_photo is not None:
+            return int(round(self.texture_density * self.texture_area))
         return self.n_rows * self.n_cols
+
+    @property
+    def footprint(self):
+        """A photo's ground footprint's side (m, at the mean terrain height)."""
+        return self.format * self.scale / 1000.0
+
+    @property
+    def texture_density(self):
+        """Points per square metre of the random texture (``points_per_photo``)."""
+        return self.points_per_photo / self.footprint ** 2
+
+    @property
+    def texture_area(self):
+        """The ground the random texture covers: the pattern's extent, from the first to
+        the last nadir along the strips and over the strips' width across."""
+        return (self.photos_per_strip - 1) * self.base * self.strips * self.strip_spacing
 
     @property
     def n_photos(self):
@@ -200,6 +237,56 @@ def control_layout(n_rows, n_cols, n, spacing_row, spacing_col, rows_per_strip=2
 #: seed and the block number, so the output does not depend on memory or chunking.
 COLUMN_BLOCK = 512
 
+#: The most tie points a photo of the random texture may ask for.
+MAX_POINTS_PER_PHOTO = 5000
+
+
+def texture_columns(spec):
+    """Photo bases along the strips generated at once with a random texture: about 9 x
+    :data:`COLUMN_BLOCK` points per strip and block (a fixed number: the output does not
+    depend on memory)."""
+    return max(1, COLUMN_BLOCK * 9 // spec.points_per_photo)
+
+
+def _texture_slab(spec, x0, x1, rng, terrain, true_eo, cams):
+    """The random texture's points with ``x0 <= X < x1`` (sorted by X) and their image
+    observations (every photo whose format, less a 1 mm margin, holds the point; the
+    points seen on fewer than two photos left out). Returns ``(true_xyz, o_st, o_pt, xy)``
+    with the observations by point, then photo, and their image coordinates without
+    noise."""
+    S, G = spec.strips, spec.photos_per_strip
+    B, A = spec.base, spec.strip_spacing
+    n = int(rng.poisson(spec.texture_density * (x1 - x0) * S * A))
+    px = np.sort(rng.uniform(x0, x1, n))
+    py = rng.uniform(0.0, S * A, n)
+    true_xyz = np.column_stack([px, py, terrain(px, py)])
+    half = spec.footprint / 2
+    # the photos that may see a point: the nearest ones along and across the strips
+    reach_g, reach_s = int(math.ceil(half / B)) + 1, int(math.ceil(half / A)) + 1
+    g0 = np.rint(px / B).astype(np.int64)
+    s0 = np.floor(py / A).astype(np.int64)
+    dg = np.arange(-reach_g, reach_g + 1)
+    ds = np.arange(-reach_s, reach_s + 1)
+    cand_g = (g0[:, None, None] + dg[None, :, None]) + 0 * ds[None, None, :]
+    cand_s = (s0[:, None, None] + ds[None, None, :]) + 0 * dg[None, :, None]
+    cand_p = np.broadcast_to(np.arange(n)[:, None, None], cand_g.shape)
+    cand_g, cand_s, cand_p = cand_g.ravel(), cand_s.ravel(), cand_p.ravel()
+    ok = (cand_g >= 0) & (cand_g < G) & (cand_s >= 0) & (cand_s < S)
+    ok &= np.abs(px[cand_p] - cand_g * B) < 1.2 * half
+    ok &= np.abs(py[cand_p] - (cand_s + 0.5) * A) < 1.2 * half
+    o_st, o_pt = cand_s[ok] * G + cand_g[ok], cand_p[ok]
+    order = np.lexsort((o_st, o_pt))
+    o_st, o_pt = o_st[order], o_pt[order]
+    xy = np.empty((len(o_pt), 2))
+    project_observations(o_st, o_pt, true_eo, true_xyz, np.zeros(S * G, np.int64), cams, xy)
+    inside = (np.abs(xy) < spec.format / 2 - 1.0).all(axis=1)
+    o_st, o_pt, xy = o_st[inside], o_pt[inside], xy[inside]
+    rays = np.bincount(o_pt, minlength=n)
+    tied = rays >= 2
+    new = np.cumsum(tied) - 1
+    keep = tied[o_pt]
+    return true_xyz[tied], o_st[keep], new[o_pt[keep]], xy[keep]
+
 
 def _station_arrays(spec, z_mean):
     """True and approximate orientation of every station (per-station vectors)."""
@@ -229,7 +316,9 @@ def write_block(spec: BlockSpec, writer, progress=None):
     Points are numbered column by column along the strips (``id = c * rows + r + 1``) and
     written a block of :data:`COLUMN_BLOCK` columns at a time with their observations, so
     memory holds the per-station vectors and one column block, whatever the block's size.
-    Returns the counts.
+    With ``spec.points_per_photo`` the random texture's points instead, by X, a slab of
+    :func:`texture_columns` photo bases at a time (:func:`_texture_slab`); the control
+    points are those nearest to the pattern's control places. Returns the counts.
     """
     spec.check()
     S, G, sub = spec.strips, spec.photos_per_strip, spec.sub
@@ -270,42 +359,63 @@ def write_block(spec: BlockSpec, writer, progress=None):
     dr, dc = dr.ravel(), dc.ravel()
 
     counts = {"points": 0, "observations": 0, "control": 0}
-    for blk, c0 in enumerate(range(0, n_cols, COLUMN_BLOCK)):
-        c1 = min(n_cols, c0 + COLUMN_BLOCK)
+    texture = spec.points_per_photo is not None
+    if texture:   # slabs of photo bases (columns) along the strips; the control nearest
+        cb = texture_columns(spec)   # to the pattern's control places
+        slabs = [(c0, min(n_cols - 1, c0 + cb)) for c0 in range(0, n_cols - 1, cb)]
+        tx, ty = cc * col_step, rr * row_step
+    else:
+        slabs = [(c0, min(n_cols, c0 + COLUMN_BLOCK)) for c0 in range(0, n_cols, COLUMN_BLOCK)]
+    for blk, (c0, c1) in enumerate(slabs):
         rng = np.random.default_rng([spec.seed, 2, blk])
-        # points of columns c0 .. c1-1, column by column
-        cols = np.repeat(np.arange(c0, c1), n_rows)
-        rows = np.tile(np.arange(n_rows), c1 - c0)
-        n_pts = len(cols)
-        first = c0 * n_rows
-        jit = spec.point_jitter
-        px = cols * col_step + rng.uniform(-jit, jit, n_pts) * col_step
-        py = rows * row_step + rng.uniform(-jit, jit, n_pts) * row_step
-        true_xyz = np.column_stack([px, py, terrain(px, py)])
+        first = counts["points"]
+        if texture:
+            x0, x1 = c0 * col_step, c1 * col_step
+            if c1 == n_cols - 1:   # (the last nadir's points too)
+                x1 = np.nextafter(x1, np.inf)
+            true_xyz, o_st, o_pt, xy = _texture_slab(spec, x0, x1, rng, terrain, true_eo,
+                                                     cams)
+            xy += rng.normal(0, spec.sigma_image, xy.shape)
+            n_pts = len(true_xyz)
+            is_control = np.zeros(n_pts, bool)
+            want = np.flatnonzero((tx >= x0) & (tx < x1))
+            if n_pts and len(want):
+                d2 = ((true_xyz[None, :, 0] - tx[want, None]) ** 2
+                      + (true_xyz[None, :, 1] - ty[want, None]) ** 2)
+                is_control[np.argmin(d2, axis=1)] = True
+        else:
+            # points of columns c0 .. c1-1, column by column
+            cols = np.repeat(np.arange(c0, c1), n_rows)
+            rows = np.tile(np.arange(n_rows), c1 - c0)
+            n_pts = len(cols)
+            jit = spec.point_jitter
+            px = cols * col_step + rng.uniform(-jit, jit, n_pts) * col_step
+            py = rows * row_step + rng.uniform(-jit, jit, n_pts) * row_step
+            true_xyz = np.column_stack([px, py, terrain(px, py)])
 
-        # observations: photos whose pattern reaches these columns
-        g_lo = max(0, -(-(c0 - sub) // sub))
-        g_hi = min(G - 1, (c1 - 1 + sub) // sub)
-        g = np.arange(g_lo, g_hi + 1)
-        st = (np.arange(S)[:, None] * G + g[None, :]).ravel()
-        o_st = np.repeat(st, len(dr))
-        o_row = np.repeat(2 * sub * (st // G), len(dr)) + np.tile(dr, len(st))
-        o_col = np.repeat(sub * (st % G), len(dc)) + np.tile(dc, len(st))
-        keep = (o_col >= c0) & (o_col < c1)
-        o_st, o_pt = o_st[keep], (o_col[keep] - c0) * n_rows + o_row[keep]
-        order = np.lexsort((o_st, o_pt))
-        o_st, o_pt = o_st[order], o_pt[order]
-        xy = np.empty((len(o_pt), 2))
-        project_observations(o_st, o_pt, true_eo, true_xyz, cam_of_station, cams, xy)
-        xy += rng.normal(0, spec.sigma_image, xy.shape)
-        # a pattern point displaced off the photo (tilt, relief) cannot be measured on it
-        inside = (np.abs(xy) < spec.format / 2 - 1.0).all(axis=1)
-        o_st, o_pt, xy = o_st[inside], o_pt[inside], xy[inside]
+            # observations: photos whose pattern reaches these columns
+            g_lo = max(0, -(-(c0 - sub) // sub))
+            g_hi = min(G - 1, (c1 - 1 + sub) // sub)
+            g = np.arange(g_lo, g_hi + 1)
+            st = (np.arange(S)[:, None] * G + g[None, :]).ravel()
+            o_st = np.repeat(st, len(dr))
+            o_row = np.repeat(2 * sub * (st // G), len(dr)) + np.tile(dr, len(st))
+            o_col = np.repeat(sub * (st % G), len(dc)) + np.tile(dc, len(st))
+            keep = (o_col >= c0) & (o_col < c1)
+            o_st, o_pt = o_st[keep], (o_col[keep] - c0) * n_rows + o_row[keep]
+            order = np.lexsort((o_st, o_pt))
+            o_st, o_pt = o_st[order], o_pt[order]
+            xy = np.empty((len(o_pt), 2))
+            project_observations(o_st, o_pt, true_eo, true_xyz, cam_of_station, cams, xy)
+            xy += rng.normal(0, spec.sigma_image, xy.shape)
+            # a pattern point displaced off the photo (tilt, relief) cannot be measured on it
+            inside = (np.abs(xy) < spec.format / 2 - 1.0).all(axis=1)
+            o_st, o_pt, xy = o_st[inside], o_pt[inside], xy[inside]
 
-        # control and check points
-        lo, hi = np.searchsorted(control_index, [first, first + n_pts])
-        is_control = np.zeros(n_pts, bool)
-        is_control[control_index[lo:hi] - first] = True
+            # control and check points
+            lo, hi = np.searchsorted(control_index, [first, first + n_pts])
+            is_control = np.zeros(n_pts, bool)
+            is_control[control_index[lo:hi] - first] = True
         control = true_xyz + np.where(
             is_control[:, None], rng.normal(0, spec.control_perturbation, (n_pts, 3)), 0.0)
 
@@ -346,6 +456,6 @@ def write_block(spec: BlockSpec, writer, progress=None):
         counts["observations"] += len(obs)
         counts["control"] += int(is_control.sum())
         if progress is not None:
-            progress(c1 - c0)
+            progress(c1 - c0 + (texture and c1 == n_cols - 1))
     counts["photos"] = n_st
     return counts
