@@ -99,3 +99,45 @@ def test_streamed_reduced_normals_equal_dense(small_block, tmp_path, chunks, mon
         for j in range(i + bw, n):
             assert not m_ref[6 * i:6 * i + 6, 6 * j:6 * j + 6].any() or \
                 np.abs(m_ref[6 * i:6 * i + 6, 6 * j:6 * j + 6]).max() < 1e-9 * scale.max()
+
+
+@pytest.mark.parametrize("threads", [2, 3, 50])
+def test_parallel_update_equals_the_one_thread_kernel(p1_block, threads):
+    """update_points_parallel cuts the points into runs on threads of their own: the same
+    coordinates and residuals bit for bit as update_points on one thread, the statistics
+    to rounding (summed by run), and a bad point named by its index in the chunk."""
+    from sapgo.adjust import next_orientations
+    from sapgo.normals import PointChunk, update_points, update_points_parallel
+
+    order_project(p1_block)
+    with Project(p1_block) as p:
+        blk = _load_block(p)
+        c = PointChunk(p, 0, p.n_points, p.read_field("points", "xyz"), blk.camera,
+                       blk.cam_sigma, blk.frame, blk.rejected, blk.rejected_points)
+    rng = np.random.default_rng(3)
+    delta = rng.normal(0, 1e-5, (len(blk.eo), 6))
+    delta[:, 3:] *= 1e5
+    eo_next = next_orientations(blk.eo, delta)
+
+    def run(fn, *first):
+        xyz = np.empty_like(c.xyz)
+        res = np.zeros((c.o1 - c.o0, 2))
+        stats = np.zeros(11)
+        fn(*first, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
+           c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
+           blk.cams, blk.ctrl_mask, c.max_rays, xyz, res, stats, 0.0, blk.behind_ok, None,
+           None, blk.fixed, eo_next)
+        return xyz, res, stats
+
+    xyz1, res1, st1 = run(update_points)
+    xyz2, res2, st2 = run(update_points_parallel, threads)
+    np.testing.assert_array_equal(xyz2, xyz1)
+    np.testing.assert_array_equal(res2, res1)
+    np.testing.assert_allclose(st2, st1, rtol=1e-12)
+    assert st1[4] == c.obs_active.sum() and st1[7] == 0
+    # a point behind its photos: the first one is named, by its index in the chunk
+    bad = len(c.xyz) * 2 // 3
+    c.xyz[bad, 2] = blk.eo[c.obs_station[c.pt_start[bad]], 5] + 5000.0
+    _, _, st1 = run(update_points)
+    _, _, st2 = run(update_points_parallel, threads)
+    assert st1[7] == st2[7] == bad + 1 and st1[8] == st2[8] != 0

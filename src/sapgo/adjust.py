@@ -72,7 +72,7 @@ from .normals import (
     control_rotations,
     point_costs,
     station_diagonal,
-    update_points,
+    update_points_parallel,
 )
 from .ordering import order_project
 from .extsort import parse_memory
@@ -1100,7 +1100,8 @@ def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, st
             stats_robust[1] += int((w < 0.1).sum())
         xyz_out = np.empty_like(c.xyz)
         res_out = np.zeros((c.o1 - c.o0, 2))
-        update_points(
+        update_points_parallel(
+            numba.get_num_threads(),
             c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
             c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
             blk.cams, blk.ctrl_mask, c.max_rays, xyz_out, res_out,

@@ -466,7 +466,40 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
     return j_end, OK, -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True, parallel=True)
+def update_points_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start,
+                           pt_nobs, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
+                           delta, cam_of_station, cams, ctrl_mask, max_rays, xyz_out,
+                           resid_out, stats, lam=0.0, behind_ok=False, cams_new=None,
+                           dtheta=None, st_fixed=None, eo_next=None):
+    """:func:`update_points` on ``nthreads`` threads: the points cut into that many runs of
+    about equal observations, each with its own statistics, added in run order afterwards
+    (the maximum for ``stats[5]``, the first run's bad point for ``stats[7:9]``). A point
+    writes only its own coordinates and its own observations' residuals."""
+    n = pt_xyz.shape[0]
+    nt = max(1, min(nthreads, n))
+    cut = _runs(pt_start, pt_nobs, nt)
+    part = np.zeros((nt, stats.shape[0]))
+    for t in prange(nt):
+        a, b = cut[t], cut[t + 1]
+        if b > a:
+            update_points(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b], pt_rot[a:b],
+                          pt_start[a:b], pt_nobs[a:b], pt_active[a:b], obs_station, obs_xy,
+                          obs_sigma, obs_active, eo, delta, cam_of_station, cams, ctrl_mask,
+                          max_rays, xyz_out[a:b], resid_out, part[t], lam, behind_ok,
+                          cams_new, dtheta, st_fixed, eo_next)
+    for t in range(nt):
+        if part[t, 7] != 0.0 and stats[7] == 0.0:
+            stats[7] = part[t, 7] + cut[t]
+            stats[8] = part[t, 8]
+        for c in range(stats.shape[0]):
+            if c == 5:
+                stats[5] = max(stats[5], part[t, 5])
+            elif c != 7 and c != 8:
+                stats[c] += part[t, c]
+
+
+@njit(cache=True, nogil=True)
 def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cams,
                   ctrl_mask, max_rays, xyz_out, resid_out, stats, lam=0.0,
@@ -577,6 +610,24 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             stats[2] += vx * vx
             stats[3] += vy * vy
             stats[4] += 1
+
+
+@njit(cache=True, nogil=True)
+def _runs(pt_start, pt_nobs, nt):
+    """Cut points ``0 .. n`` into ``nt`` runs of about equal observations: the runs'
+    bounds (nt + 1)."""
+    n = pt_start.shape[0]
+    cut = np.empty(nt + 1, np.int64)
+    cut[0] = 0
+    cut[nt] = n
+    total = pt_start[n - 1] + pt_nobs[n - 1] - pt_start[0] if n > 0 else 0
+    j = 0
+    for t in range(1, nt):
+        want = pt_start[0] + total * t // nt
+        while j < n and pt_start[j] < want:
+            j += 1
+        cut[t] = j
+    return cut
 
 
 @njit(cache=True, nogil=True)
