@@ -219,12 +219,20 @@ def test_covariance_blocks_equal_the_dense_inverse(step, n, bw):
     np.testing.assert_array_equal(var, np.diagonal(blocks, axis1=1, axis2=2))
 
 
+@pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("step", [3, 7, 100])
-def test_covariance_window_holds_the_band_of_the_inverse_for_each_block(step):
+def test_covariance_window_holds_the_band_of_the_inverse_for_each_block(step, threads):
     """The window handed to ``on_block`` holds the band of the inverse over the block's
     stations and the band after them, for blocks shorter and longer than the band (the
-    window shifted within a block and between blocks)."""
+    window shifted within a block and between blocks; on two threads, ``on_block`` on a
+    thread of its own with two windows in turn)."""
+    import numba
+
     from sapgo.solve.band import covariance_blocks
+
+    if threads > numba.config.NUMBA_NUM_THREADS:
+        pytest.skip("one thread")
+    numba.set_num_threads(threads)
 
     n, bw = 40, 4
     a = random_block_banded(n, bw, seed=12)
@@ -241,7 +249,12 @@ def test_covariance_window_holds_the_band_of_the_inverse_for_each_block(step):
                                                               abs=1e-12 * abs(inv).max())
         seen.append((start, stop))
 
-    covariance_blocks(fac, n, bw, step=step, on_block=check)
+    try:
+        blocks = covariance_blocks(fac, n, bw, step=step, on_block=check)
+    finally:
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    np.testing.assert_allclose(np.diagonal(blocks, axis1=1, axis2=2),
+                               np.diagonal(inv).reshape(n, 6), rtol=1e-9)
     assert seen[0][1] == n and seen[-1][0] == 0
     assert all(b - a == min(step, n) for a, b in seen[:-1])
 

@@ -844,6 +844,9 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     n = kb * n_st
     sb = max(1, min(INVERSE_STATIONS, band_width))
     nb = kb * sb
+    threads = numba.get_num_threads()
+    if on_block is not None and threads > 1:
+        return _covariance_overlapped(factor_ds, n_st, band_width, step, out, on_block, sb)
     margin = 0
     if on_block is not None:   # blocks of at least b stations, larger while Z's window fits
         most = int(np.sqrt(INVERSE_WINDOW_BYTES / 8)) - nb - kb - 2 * u
@@ -853,7 +856,6 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     bsz = max(4 * width + kb, 2 * (u + margin) + nb + kb)
     zb = np.zeros((bsz, bsz))
     state = np.array([max(0, n - bsz)], np.int64)
-    threads = numba.get_num_threads()
     uh, s = np.empty(nb * nb), np.empty(nb * nb)
     ut, w = np.empty(nb * max(u, 1)), np.empty(nb * max(u, 1))
     keep = out is None
@@ -875,6 +877,73 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
             out[start:stop] = blocks
         stop = start
     return blocks_all if keep else var
+
+
+def _covariance_overlapped(factor_ds, n_st, band_width, step, out, on_block, sb):
+    """:func:`covariance_blocks` with ``on_block`` on a thread of its own: two windows of
+    ``Z``, each holding one block of stations and the band after it, used in turn; while
+    ``on_block`` reads the block just inverted in one, the next block is inverted in the
+    other (its first rows, the band after it, copied over first), BLAS on one thread."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    kb = factor_ds.shape[1]
+    u = kb * band_width - 1
+    n = kb * n_st
+    nb = kb * sb
+    most = int(np.sqrt(INVERSE_WINDOW_BYTES / 8)) - u - kb
+    step = max(1, min(step, max(band_width, most // kb)))
+    bsz = min(n, kb * step + u + kb)
+    wins = [np.zeros((bsz, bsz)), np.zeros((bsz, bsz))]
+    bases = [0, 0]
+    uh, s = np.empty(nb * nb), np.empty(nb * nb)
+    ut, w = np.empty(nb * max(u, 1)), np.empty(nb * max(u, 1))
+    keep = out is None
+    blocks_all = np.empty((n_st, kb, kb)) if keep else None
+    var = np.empty((n_st, kb))
+    busy = [None, None]   # the on_block still reading each window
+    cur = 0
+    stop = n_st
+    with ThreadPoolExecutor(1) as pool:
+        try:
+            while stop > 0:
+                start = max(0, stop - step)
+                if busy[cur] is not None:
+                    busy[cur].result()
+                    busy[cur] = None
+                base = max(0, min(kb * stop + u, n) - bsz)
+                if stop < n_st:   # the band after the block, from the other window
+                    t = min(u, n - kb * stop)
+                    _copy_rows(wins[1 - cur], bases[1 - cur], wins[cur], base, kb * stop, t)
+                bases[cur] = base
+                fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
+                blocks = np.empty((stop - start, kb, kb))
+                state = np.array([base], np.int64)
+                with blas_limits(1):   # (two threads beside on_block: slower, measured)
+                    _inverse_rows(FNS, fac, start, n, wins[cur], state, blocks, 0, sb, uh, ut,
+                                  w, s)
+                assert state[0] == base   # (the window held the block: no shift)
+                var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
+                busy[cur] = pool.submit(on_block, start, stop, wins[cur], base)
+                if keep:
+                    blocks_all[start:stop] = blocks
+                else:
+                    out[start:stop] = blocks
+                stop = start
+                cur = 1 - cur
+        finally:
+            for f in busy:
+                if f is not None:
+                    f.result()
+    return blocks_all if keep else var
+
+
+@njit(cache=True, nogil=True)
+def _copy_rows(src, sbase, dst, dbase, r0, t):
+    """``dst[r - dbase, c - dbase] = src[r - sbase, c - sbase]`` for ``r, c`` in
+    ``r0 .. r0 + t``."""
+    for a in range(t):
+        for c in range(t):
+            dst[r0 + a - dbase, r0 + c - dbase] = src[r0 + a - sbase, r0 + c - sbase]
 
 
 def solve_in_core(band, rhs, pivot_tol=PIVOT_TOLERANCE, panel=None, threads=None):
