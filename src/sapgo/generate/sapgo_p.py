@@ -86,6 +86,9 @@ class BlockSpec:
         if self.pattern not in (9, 25):
             raise ParameterError("pattern must be 9 or 25 points per photo")
         if self.points_per_photo is not None:
+            if not isinstance(self.points_per_photo, (int, np.integer)):
+                raise ParameterError(f"points per photo must be a whole number, not "
+                                     f"{self.points_per_photo!r}")
             if self.pattern != 9:
                 raise ParameterError("points per photo and the 25-point pattern exclude each "
                                      "other: give one of them")

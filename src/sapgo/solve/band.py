@@ -838,6 +838,8 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     the scalar rows and columns ``k, j`` of those stations and the ``6b - 1`` after them,
     inside the band (the covariances a point observed from those stations needs). Stations
     of ``k`` parameters (``factor_ds`` n x k x kb) give k x k blocks."""
+    from concurrent.futures import ThreadPoolExecutor
+
     kb = factor_ds.shape[1]
     width = kb * band_width
     u = width - 1
@@ -845,68 +847,38 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     sb = max(1, min(INVERSE_STATIONS, band_width))
     nb = kb * sb
     threads = numba.get_num_threads()
-    if on_block is not None and threads > 1:
-        return _covariance_overlapped(factor_ds, n_st, band_width, step, out, on_block, sb)
+    # with two threads or more, on_block on a thread of its own: two windows of Z in turn,
+    # each one block of stations and the band after it (the next block's first rows, the
+    # band after it, copied over first), the inversion's BLAS on one thread beside it (on
+    # two it was slower, measured); else one window, shifted when the rows reach its start
+    overlap = on_block is not None and threads > 1
     margin = 0
-    if on_block is not None:   # blocks of at least b stations, larger while Z's window fits
-        most = int(np.sqrt(INVERSE_WINDOW_BYTES / 8)) - nb - kb - 2 * u
-        step = max(1, min(step, max(band_width, most // (2 * kb))))
-        margin = kb * step
-    # (shifted every u + margin rows or so: the copies cost about u + margin a row)
-    bsz = max(4 * width + kb, 2 * (u + margin) + nb + kb)
-    zb = np.zeros((bsz, bsz))
-    state = np.array([max(0, n - bsz)], np.int64)
+    if overlap:
+        most = int(np.sqrt(INVERSE_WINDOW_BYTES / 8)) - u - kb
+        step = max(1, min(step, max(band_width, most // kb)))
+        bsz = min(n, kb * step + u + kb)
+    else:
+        if on_block is not None:   # blocks of at least b stations, more while the window fits
+            most = int(np.sqrt(INVERSE_WINDOW_BYTES / 8)) - nb - kb - 2 * u
+            step = max(1, min(step, max(band_width, most // (2 * kb))))
+            margin = kb * step
+        # (shifted every u + margin rows or so: the copies cost about u + margin a row)
+        bsz = max(4 * width + kb, 2 * (u + margin) + nb + kb)
+    wins = [np.zeros((bsz, bsz)) for _ in range(2 if overlap else 1)]
+    bases = [max(0, n - bsz)] * len(wins)
+    busy = [None] * len(wins)   # the on_block still reading each window
     uh, s = np.empty(nb * nb), np.empty(nb * nb)
     ut, w = np.empty(nb * max(u, 1)), np.empty(nb * max(u, 1))
     keep = out is None
     blocks_all = np.empty((n_st, kb, kb)) if keep else None
     var = np.empty((n_st, kb))
-    stop = n_st
-    while stop > 0:
-        start = max(0, stop - step)
-        fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
-        blocks = np.empty((stop - start, kb, kb))
-        with blas_limits(threads):   # (its dgemm on every thread: nothing else runs)
-            _inverse_rows(FNS, fac, start, n, zb, state, blocks, margin, sb, uh, ut, w, s)
-        var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
-        if on_block is not None:
-            on_block(start, stop, zb, int(state[0]))
-        if keep:
-            blocks_all[start:stop] = blocks
-        else:
-            out[start:stop] = blocks
-        stop = start
-    return blocks_all if keep else var
-
-
-def _covariance_overlapped(factor_ds, n_st, band_width, step, out, on_block, sb):
-    """:func:`covariance_blocks` with ``on_block`` on a thread of its own: two windows of
-    ``Z``, each holding one block of stations and the band after it, used in turn; while
-    ``on_block`` reads the block just inverted in one, the next block is inverted in the
-    other (its first rows, the band after it, copied over first), BLAS on one thread."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    kb = factor_ds.shape[1]
-    u = kb * band_width - 1
-    n = kb * n_st
-    nb = kb * sb
-    most = int(np.sqrt(INVERSE_WINDOW_BYTES / 8)) - u - kb
-    step = max(1, min(step, max(band_width, most // kb)))
-    bsz = min(n, kb * step + u + kb)
-    wins = [np.zeros((bsz, bsz)), np.zeros((bsz, bsz))]
-    bases = [0, 0]
-    uh, s = np.empty(nb * nb), np.empty(nb * nb)
-    ut, w = np.empty(nb * max(u, 1)), np.empty(nb * max(u, 1))
-    keep = out is None
-    blocks_all = np.empty((n_st, kb, kb)) if keep else None
-    var = np.empty((n_st, kb))
-    busy = [None, None]   # the on_block still reading each window
     cur = 0
     stop = n_st
-    with ThreadPoolExecutor(1) as pool:
-        try:
-            while stop > 0:
-                start = max(0, stop - step)
+    pool = ThreadPoolExecutor(1) if overlap else None
+    try:
+        while stop > 0:
+            start = max(0, stop - step)
+            if overlap:
                 if busy[cur] is not None:
                     busy[cur].result()
                     busy[cur] = None
@@ -915,25 +887,30 @@ def _covariance_overlapped(factor_ds, n_st, band_width, step, out, on_block, sb)
                     t = min(u, n - kb * stop)
                     _copy_rows(wins[1 - cur], bases[1 - cur], wins[cur], base, kb * stop, t)
                 bases[cur] = base
-                fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
-                blocks = np.empty((stop - start, kb, kb))
-                state = np.array([base], np.int64)
-                with blas_limits(1):   # (two threads beside on_block: slower, measured)
-                    _inverse_rows(FNS, fac, start, n, wins[cur], state, blocks, 0, sb, uh, ut,
-                                  w, s)
-                assert state[0] == base   # (the window held the block: no shift)
-                var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
-                busy[cur] = pool.submit(on_block, start, stop, wins[cur], base)
-                if keep:
-                    blocks_all[start:stop] = blocks
-                else:
-                    out[start:stop] = blocks
-                stop = start
+            fac = np.ascontiguousarray(factor_ds[start:stop], dtype=np.float64)
+            blocks = np.empty((stop - start, kb, kb))
+            state = np.array([bases[cur]], np.int64)
+            with blas_limits(1 if overlap else threads):
+                _inverse_rows(FNS, fac, start, n, wins[cur], state, blocks, margin, sb, uh, ut,
+                              w, s)
+            bases[cur] = int(state[0])   # (shifted, on one window; never on two)
+            var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
+            if overlap:
+                busy[cur] = pool.submit(on_block, start, stop, wins[cur], bases[cur])
                 cur = 1 - cur
-        finally:
-            for f in busy:
-                if f is not None:
-                    f.result()
+            elif on_block is not None:
+                on_block(start, stop, wins[cur], bases[cur])
+            if keep:
+                blocks_all[start:stop] = blocks
+            else:
+                out[start:stop] = blocks
+            stop = start
+    finally:
+        for f in busy:
+            if f is not None:
+                f.result()
+        if pool is not None:
+            pool.shutdown()
     return blocks_all if keep else var
 
 
