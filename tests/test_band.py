@@ -250,7 +250,8 @@ def test_covariance_window_holds_the_band_of_the_inverse_for_each_block(step, th
         seen.append((start, stop))
 
     try:
-        blocks = covariance_blocks(fac, n, bw, step=step, on_block=check)
+        blocks = covariance_blocks(fac, n, bw, step=step, on_block=check,
+                                   observations=10 ** 9)   # (beside: on two threads)
     finally:
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     np.testing.assert_allclose(np.diagonal(blocks, axis1=1, axis2=2),

@@ -112,7 +112,8 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
     try:
         var = covariance_blocks(work.factor, n_st, blk.band_width, opts.chunk_rows, out=cov,
-                                on_block=points_of if opts.precision == "full" else None)
+                                on_block=points_of if opts.precision == "full" else None,
+                                observations=p_read.n_observations)
         for a in range(0, n_st, opts.chunk_points) if ng else ():  # + X S^-1 X'
             b = min(n_st, a + opts.chunk_points)
             x = np.asarray(xb_ds[a:b], dtype=np.float64)

@@ -821,7 +821,18 @@ INVERSE_STATIONS = 8
 INVERSE_WINDOW_BYTES = 64 << 20
 
 
-def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=None):
+#: Flops of the selected inversion (``2 n u^2``) per observation of the points below which
+#: the points go beside the inversion (:func:`covariance_blocks`): there the inversion on one
+#: BLAS thread still takes longer than the points, and the points' time is saved; above it
+#: the inversion's second thread saves more. From the two blocks measured: 100 000 photos in
+#: strips (band width 42, 84 000 flops an observation), precision pass 4.4 s one after the
+#: other, 3.4 s side by side; the 200 x 200 block (band width 203, 2 million flops an
+#: observation), 10.8 s against 16.3 s.
+OVERLAP_FLOPS_PER_OBSERVATION = 300_000
+
+
+def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=None,
+                      observations=0):
     """The 6x6 diagonal blocks of ``M^-1`` (the stations' cofactor matrices) from the factor
     rows of :class:`BandSolver` (diagonal-first, ``factor_ds`` n x 6 x 6b), by Takahashi's
     recurrence streamed backwards ``step`` stations at a time, by blocks of
@@ -837,7 +848,9 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     ``zb[k - base, j - base] = Z[k, j]`` for
     the scalar rows and columns ``k, j`` of those stations and the ``6b - 1`` after them,
     inside the band (the covariances a point observed from those stations needs). Stations
-    of ``k`` parameters (``factor_ds`` n x k x kb) give k x k blocks."""
+    of ``k`` parameters (``factor_ds`` n x k x kb) give k x k blocks. ``observations``: how
+    many image observations ``on_block`` will visit, for the choice of
+    :data:`OVERLAP_FLOPS_PER_OBSERVATION`."""
     from concurrent.futures import ThreadPoolExecutor
 
     kb = factor_ds.shape[1]
@@ -847,11 +860,13 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     sb = max(1, min(INVERSE_STATIONS, band_width))
     nb = kb * sb
     threads = numba.get_num_threads()
-    # with two threads or more, on_block on a thread of its own: two windows of Z in turn,
+    # with two threads or more and enough observations for on_block (above), on_block on a
+    # thread of its own: two windows of Z in turn,
     # each one block of stations and the band after it (the next block's first rows, the
     # band after it, copied over first), the inversion's BLAS on one thread beside it (on
     # two it was slower, measured); else one window, shifted when the rows reach its start
-    overlap = on_block is not None and threads > 1
+    overlap = (on_block is not None and threads > 1
+               and 2.0 * n * u * u < OVERLAP_FLOPS_PER_OBSERVATION * observations)
     margin = 0
     if overlap:
         most = int(np.sqrt(INVERSE_WINDOW_BYTES / 8)) - u - kb
