@@ -21,15 +21,33 @@ def rotation(omega, phi, kappa):
     return np.einsum("ij...,jk...,kl...->il...", r3, r2, r1)
 
 
+class Terms(tuple):
+    """A ``dist`` tuple (k1, k2, k3, p1, p2, b1, b2, t1, ..., tm) whose last m values are
+    the coefficients of the displacement fields ``terms(u, v)`` (m x 2, works for complex
+    arguments): additional parameters."""
+
+    def __new__(cls, values, terms):
+        out = super().__new__(cls, values)
+        out.terms = terms
+        return out
+
+
 def _polynomial(u, v, dist):
     """Brown's radial and decentring distortion and the affinity and shear of the x axis at
-    ``(u, v)``: ``dist`` = (k1, k2, k3, p1, p2[, b1, b2])."""
+    ``(u, v)``: ``dist`` = (k1, k2, k3, p1, p2[, b1, b2]), or :class:`Terms` with
+    additional parameters after them."""
     k1, k2, k3, p1, p2 = dist[:5]
     b1, b2 = dist[5:7] if len(dist) > 5 else (0.0, 0.0)
     r2 = u ** 2 + v ** 2
     rad = k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
-    return (u * rad + p1 * (r2 + 2 * u ** 2) + 2 * p2 * u * v + b1 * u + b2 * v,
-            v * rad + p2 * (r2 + 2 * v ** 2) + 2 * p1 * u * v)
+    dx = u * rad + p1 * (r2 + 2 * u ** 2) + 2 * p2 * u * v + b1 * u + b2 * v
+    dy = v * rad + p2 * (r2 + 2 * v ** 2) + 2 * p1 * u * v
+    terms = getattr(dist, "terms", None)
+    if terms is not None:
+        for a, (tx, ty) in zip(dist[7:], terms(u, v)):
+            dx = dx + a * tx
+            dy = dy + a * ty
+    return dx, dy
 
 
 def project(eo, xyz, f, x0=0.0, y0=0.0, dist=None):
@@ -141,7 +159,8 @@ CAMERA_FIELDS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2")
 def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigma, ctrl_mask,
                             ctrl, ctrl_sigma, iterations=30, tol=1e-11, dist=None,
                             calibrate=(), x0=0.0, y0=0.0, model="forward",
-                            calibrate_per_photo=(), fixed_station=None):
+                            calibrate_per_photo=(), fixed_station=None, terms=None,
+                            n_terms=0):
     """Gauss-Newton on the full dense normal equations (no reduction, no band).
 
     Control components with sigma 0 are held at their control values. ``calibrate``: names
@@ -153,15 +172,24 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
     cofactors of the adjusted fields as a sixth (the shared ones, then per photo, photo by
     photo). ``model`` "backward": the residual is the ideal projection minus the
     measurement corrected by ``dist`` at it (:func:`corrected`). ``fixed_station`` (n x 6
-    bools): station parameters held at their values (no unknowns).
+    bools): station parameters held at their values (no unknowns). ``terms``: additional
+    parameters, ``n_terms`` displacement fields ``terms(u, v)`` (:class:`Terms`) whose
+    coefficients ``a1 .. a<n_terms>`` follow the ten fields in the camera row (``dist``
+    may give their values after b1, b2) and can be calibrated by those names.
     """
     eo = eo.astype(float).copy()
     xyz = xyz.astype(float).copy()
-    d7 = tuple(dist if dist is not None else (0.0,) * 5) + (0.0, 0.0)
+    given = list(dist if dist is not None else ())
+    d7 = (given[:7] + [0.0] * 7)[:7]
+    ext = (given[7:] + [0.0] * n_terms)[:n_terms]
     ns, npnt = len(eo), len(xyz)
-    cs = np.tile(np.array([f, x0, y0, *d7[:7]], dtype=float), (ns, 1))   # a row per photo
-    cal = [CAMERA_FIELDS.index(n) for n in calibrate]
-    per = [CAMERA_FIELDS.index(n) for n in calibrate_per_photo]
+    cs = np.tile(np.array([f, x0, y0, *d7, *ext], dtype=float), (ns, 1))   # a row per photo
+    names = CAMERA_FIELDS + tuple(f"a{i + 1}" for i in range(n_terms))
+    cal = [names.index(n) for n in calibrate]
+    per = [names.index(n) for n in calibrate_per_photo]
+
+    def dist_of(c):
+        return Terms(tuple(c[3:]), terms) if terms is not None else tuple(c[3:])
     ncal, nper = len(cal), len(per)
     ncam = ncal + ns * nper
     fixed = ctrl_mask & (ctrl_sigma == 0)
@@ -176,11 +204,17 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
 
     def resid(e, x, c, o):   # computed minus observed (the backward model's: corrected)
         if model == "backward":
-            return project(e, x, c[0], c[1], c[2]) - corrected(o, c[1], c[2], tuple(c[3:]))
-        return project(e, x, c[0], c[1], c[2], dist=tuple(c[3:])) - o
+            return project(e, x, c[0], c[1], c[2]) - corrected(o, c[1], c[2], dist_of(c))
+        return project(e, x, c[0], c[1], c[2], dist=dist_of(c)) - o
 
-    def step(c, k):
-        return 1e-30 * max(abs(c[k]), 1e-30)
+    def resid_rows(e, x, c, o):   # resid of many rays, a camera row each (n x 2)
+        dist = tuple(c[:, 3:].T)
+        if terms is not None:
+            dist = Terms(dist, terms)
+        if model == "backward":
+            return (project(e, x, c[:, 0], c[:, 1], c[:, 2])
+                    - corrected(o, c[:, 1], c[:, 2], dist))
+        return project(e, x, c[:, 0], c[:, 1], c[:, 2], dist=dist) - o
 
     for it in range(1, iterations + 1):
         jac = np.zeros((2 * nobs + weighted.sum(), base + ncam))
@@ -189,18 +223,24 @@ def dense_bundle_adjustment(eo, xyz, f, obs_station, obs_point, obs_xy, obs_sigm
             s, j = obs_station[i], obs_point[i]
             cam = cs[s]
             a, b = jacobian_complex_step(eo[s], xyz[j], cam[0], cam[1], cam[2],
-                                         dist=None if model == "backward" else tuple(cam[3:]))
+                                         dist=None if model == "backward" else dist_of(cam))
             sw = 1.0 / obs_sigma[i]
             jac[2 * i:2 * i + 2, 6 * s:6 * s + 6] = a * sw
             jac[2 * i:2 * i + 2, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = b * sw
-            cols = [(base + q, k) for q, k in enumerate(cal)]
-            cols += [(base + ncal + s * nper + q, k) for q, k in enumerate(per)]
-            for col, k in cols:
-                c = cam.astype(complex)
-                h = step(cam, k)
-                c[k] += 1j * h
-                jac[2 * i:2 * i + 2, col] = resid(eo[s], xyz[j], c, obs_xy[i]).imag / h * sw
             res[2 * i:2 * i + 2] = resid(eo[s], xyz[j], cam, obs_xy[i]) * sw
+        # the camera columns by complex step, all observations at once
+        rows = np.arange(nobs)
+        e_all, x_all, c_all = eo[obs_station], xyz[obs_point], cs[obs_station]
+        sw_all = 1.0 / obs_sigma
+        cols = [(np.full(nobs, base + q), k) for q, k in enumerate(cal)]
+        cols += [(base + ncal + obs_station * nper + q, k) for q, k in enumerate(per)]
+        for col, k in cols:
+            c = c_all.astype(complex)
+            h = 1e-30 * np.maximum(np.abs(c_all[:, k]), 1e-30)
+            c[:, k] += 1j * h
+            d = (resid_rows(e_all, x_all, c, obs_xy).imag / h[:, None]) * sw_all[:, None]
+            jac[2 * rows, col] = d[:, 0]
+            jac[2 * rows + 1, col] = d[:, 1]
         r = 2 * nobs
         for j, k in zip(*np.nonzero(weighted)):
             jac[r, 6 * ns + 3 * j + k] = 1.0 / ctrl_sigma[j, k]

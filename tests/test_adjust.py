@@ -411,17 +411,20 @@ def test_robust_estimation_downweights_blunders_and_nears_the_clean_solution(tmp
     assert np.sqrt(np.mean(dev_rob ** 2)) < 0.7 * np.sqrt(np.mean(dev_ls ** 2))
 
 
-def test_a_project_of_an_older_version_adjusts_alike(small_block, tmp_path):
+@pytest.mark.parametrize("fields, width", [(12, 8), (15, 11)])
+def test_a_project_of_an_older_version_adjusts_alike(small_block, tmp_path, fields, width):
     """A file written before cameras had affinity, shear and a distortion model (its
-    /cameras records 12 fields, /solution/camera_corr 8 columns) reads as the forward model
-    without affinity: it adjusts to the same result, and an old solution reads back."""
+    /cameras records 12 fields, /solution/camera_corr 8 columns), or before the
+    additional-parameter sets (15 fields, 11 columns), reads as the forward model without
+    affinity or additional parameters: it adjusts to the same result, and an old solution
+    reads back."""
     import h5py
 
     old = tmp_path / "old.h5"
     shutil.copy(small_block, old)
     with h5py.File(old, "r+") as f:
         cams = f["cameras"][()]
-        names = [n for n in cams.dtype.names if n not in ("b1", "b2", "distortion_model")]
+        names = list(cams.dtype.names[:fields])
         narrow = np.zeros(len(cams), [(n, cams.dtype.fields[n][0]) for n in names])
         for n in names:
             narrow[n] = cams[n]
@@ -436,12 +439,12 @@ def test_a_project_of_an_older_version_adjusts_alike(small_block, tmp_path):
     with h5py.File(old, "r+") as f:
         corr = f["solution/camera_corr"][()]
         del f["solution/camera_corr"]
-        f["solution"].create_dataset("camera_corr", data=corr[:, :8] + 1.0)
+        f["solution"].create_dataset("camera_corr", data=corr[:, :width] + 1.0)
     with Project(old) as p:
         got = p.solution("camera_corr")
     assert got.shape == corr.shape
-    np.testing.assert_array_equal(got[:, :8], corr[:, :8] + 1.0)
-    assert (got[:, 8:] == 0).all()
+    np.testing.assert_array_equal(got[:, :width], corr[:, :width] + 1.0)
+    assert (got[:, width:] == 0).all()
 
 
 @pytest.mark.parametrize("control", [True, False])

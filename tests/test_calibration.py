@@ -19,7 +19,11 @@ from sapgo.solve.band import (
     border_solve,
     dense_to_band,
 )
+from sapgo.apsets import EBNER, GRUEN, N_TERMS
 from sapgo.geometry import (
+    AP0,
+    AP_BASE,
+    AP_SET,
     BACKWARD,
     CALIBRATION_FIELDS,
     FORWARD,
@@ -38,14 +42,20 @@ TIGHT = dict(tol_position=1e-9, tol_angle=1e-11, max_iterations=40, progress=Fal
 
 
 @pytest.mark.parametrize("model", [FORWARD, BACKWARD])
-def test_camera_partials_equal_central_differences(model):
+@pytest.mark.parametrize("ap_set", [0, EBNER, GRUEN])
+def test_camera_partials_equal_central_differences(model, ap_set):
     """Every border parameter's partial of an observation's residual (computed minus
     observed, the backward model's observation corrected at the measurement) against
-    central differences of the residual, affinity and shear included."""
+    central differences of the residual, affinity and shear included, and the coefficients
+    of Ebner's and Gruen's additional-parameter sets (with coefficients of a few um)."""
     eo = np.array([0.02, -0.03, 0.5, 100.0, 200.0, 3000.0])
     c = np.zeros(N_CAMERA)
     c[:10] = 152.0, 0.01, -0.02, 1e-5, -2e-9, 3e-13, 1e-5, -2e-5, 2e-4, -3e-4
     c[10] = model
+    if ap_set:
+        c[AP_SET], c[AP_BASE] = ap_set, 60.0
+        n = int(N_TERMS[ap_set])
+        c[AP0:AP0 + n] = np.random.default_rng(ap_set).normal(0.0, 3e-3, n)
     e = np.zeros((2, N_CALIBRATION))
 
     def resid(cam, xyz, o):
@@ -172,7 +182,7 @@ def adjusted(path):
         st, pt = p.read("stations"), p.read("points")
         eo = st["eo"] + p.solution("station_corr")
         xyz = pt["xyz"] + p.solution("point_corr")
-        cam = (camera_array(p.cameras()) + p.solution("camera_corr"))[0][:N_CALIBRATION]
+        cam = (camera_array(p.cameras()) + p.solution("camera_corr"))[0][:10]
     return eo[np.argsort(st["id"])], xyz[np.argsort(pt["id"])], cam
 
 
@@ -291,7 +301,7 @@ def test_precision_with_self_calibration_equals_the_dense_inverse(miscalibrated)
     with Project(miscalibrated) as p:
         eo = st["eo"] + p.solution("station_corr")
         xyz = pt["xyz"] + p.solution("point_corr")
-        cam = (camera_array(p.cameras()) + p.solution("camera_corr"))[0][:N_CALIBRATION]
+        cam = (camera_array(p.cameras()) + p.solution("camera_corr"))[0][:10]
         ssig, psig = p.solution("station_sigma"), p.solution("point_sigma")
     quality = RawArray(work_path(miscalibrated) / "quality.bin", (len(ob), 7), mode="r")[:]
     ns, npnt = len(st), len(pt)
@@ -509,7 +519,7 @@ def test_principal_points_per_photo_with_shared_focal_length_and_distortion(misc
         rows = camera_array(p.cameras())[p.read_field("stations", "camera")] \
             + p.solution("photo_camera_corr")
         ids = p.read_field("stations", "id")
-    rows = rows[np.argsort(ids)][:, :N_CALIBRATION]
+    rows = rows[np.argsort(ids)][:, :10]
     np.testing.assert_allclose(rows, cams_r[order_s], rtol=1e-7, atol=1e-12)
     # the shared fields are the camera's (camera_corr), alike in every photo's row
     for k in shared:

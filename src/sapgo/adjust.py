@@ -51,13 +51,17 @@ from .errors import (
     SingularNormalsError,
     UndeterminedPointError,
 )
+from .apsets import AP_SETS, N_TERMS
 from .geometry import (
+    AP_NAMES,
+    AP_SET,
+    CALIBRATION_COLUMNS,
     CALIBRATION_FIELDS,
     CALIBRATION_POWERS,
-    FORWARD,
     INTRINSICS,
     N_CALIBRATION,
     N_CAMERA,
+    beyond_brown,
     camera_array,
     project_observations,
     turned,
@@ -81,6 +85,7 @@ from .project import (
     EO_NAMES,
     KIND_CHECK,
     KIND_CONTROL,
+    PHOTO_CAMERA_NARROW,
     STATUS_ACTIVE,
     STATUS_REJECTED,
     Project,
@@ -275,22 +280,23 @@ class Options:
         if isinstance(self.calibrate, str):
             self.calibrate = tuple(x for x in self.calibrate.replace(",", " ").split() if x)
         self.calibrate = tuple(self.calibrate)
-        bad = [x for x in self.calibrate if x not in CALIBRATION_FIELDS]
+        bad = [x for x in self.calibrate if x not in CALIBRATION_NAMES]
         if bad:
             raise SapgoError(f"self-calibration of {bad[0]!r}: the camera parameters that can "
-                             f"be adjusted are {', '.join(CALIBRATION_FIELDS)}")
+                             f"be adjusted are {CALIBRATION_HELP}")
         if len(set(self.calibrate)) != len(self.calibrate):
             raise SapgoError("self-calibration: a camera parameter is named twice")
         if isinstance(self.calibrate_per_photo, str):
             self.calibrate_per_photo = tuple(
                 x for x in self.calibrate_per_photo.replace(",", " ").split() if x)
         self.calibrate_per_photo = tuple(self.calibrate_per_photo)
-        bad = [x for x in self.calibrate_per_photo if x not in CALIBRATION_FIELDS]
+        bad = [x for x in self.calibrate_per_photo if x not in CALIBRATION_NAMES]
         if bad:
             raise SapgoError(f"self-calibration per photo of {bad[0]!r}: the camera "
-                             f"parameters that can be adjusted are "
-                             f"{', '.join(CALIBRATION_FIELDS)}")
-        both = [x for x in self.calibrate_per_photo if x in self.calibrate]
+                             f"parameters that can be adjusted are {CALIBRATION_HELP}")
+        both = [x for x in self.calibrate_per_photo if x in self.calibrate
+                or (x == "ap" and any(y in AP_NAMES for y in self.calibrate))
+                or (x in AP_NAMES and "ap" in self.calibrate)]
         if both or len(set(self.calibrate_per_photo)) != len(self.calibrate_per_photo):
             raise SapgoError(f"self-calibration: {(both or self.calibrate_per_photo)[0]} is "
                              f"named twice (a parameter is shared by a camera's photos or "
@@ -553,6 +559,36 @@ def _load_block(p: Project) -> _Block:
     return blk
 
 
+#: The names ``--calibrate`` takes: the camera fields, and ``ap`` for all the coefficients
+#: of each calibrated camera's additional-parameter set (``a1 .. a12`` of Ebner's, ``a1 ..
+#: a44`` of Gruen's).
+CALIBRATION_NAMES = CALIBRATION_FIELDS + ("ap",)
+CALIBRATION_HELP = (", ".join(CALIBRATION_FIELDS[:10]) + ", ap (a camera's whole "
+                    "additional-parameter set) or a1 .. a44 (its coefficients)")
+
+
+def _camera_fields(names, row, cid, p):
+    """The calibration fields (indices into :data:`CALIBRATION_FIELDS`) that ``names``
+    stand for on the camera row ``row`` (camera id ``cid``): ``ap`` expands to the
+    coefficients of its additional-parameter set (none without one); a coefficient beyond
+    its set is an error."""
+    n_ap = int(N_TERMS[int(row[AP_SET])])
+    out = []
+    for name in names:
+        if name == "ap":
+            out.extend(10 + t for t in range(n_ap))
+            continue
+        f = CALIBRATION_FIELDS.index(name)
+        if f >= 10 + n_ap:
+            have = (f"its {AP_SETS[int(row[AP_SET])]} set has a1 .. a{n_ap}" if n_ap else
+                    "it has no additional-parameter set (import one with "
+                    "--additional-parameters)")
+            raise SapgoError(f"{p.path}: self-calibration of {name} of camera id {cid}: "
+                             f"{have}")
+        out.append(f)
+    return out
+
+
 #: Self-calibration: at most this many border unknowns (cameras x parameters). The border's
 #: block is dense (g x g in core, g^3 to factor, g^2 work per observation in the precision
 #: sweep, g doubles per station parameter on disk).
@@ -570,13 +606,12 @@ def _set_calibration(blk: _Block, p: Project, opts: Options):
     blk.cal = np.full((n_cam, N_CALIBRATION), -1, np.int64)
     blk.border = []
     if blk.npar == 9:
-        odd = np.flatnonzero((blk.cams[:, 8:10] != 0.0).any(axis=1)
-                             | (blk.cams[:, 10] != FORWARD))
+        odd = np.flatnonzero(beyond_brown(blk.cams))
         if len(odd):
             raise SapgoError(f"{p.path}: the photos' own intrinsics (station_intrinsics) "
                              f"are adjusted with the forward distortion model without "
-                             f"affinity; camera id {int(p.cameras()['id'][odd[0]])} has "
-                             f"another")
+                             f"affinity or additional parameters; camera id "
+                             f"{int(p.cameras()['id'][odd[0]])} has another")
     if not opts.calibrate and not opts.calibrate_per_photo:
         return
     if blk.npar != 6:
@@ -600,19 +635,29 @@ def _set_calibration(blk: _Block, p: Project, opts: Options):
                                  f"its photos can be adjusted")
             chosen.append(int(hit[0]))
     chosen = np.asarray(chosen, np.int64)
+    shared = {int(c): _camera_fields(opts.calibrate, blk.cams[c], int(ids[c]), p)
+              for c in chosen}
+    own = {int(c): _camera_fields(opts.calibrate_per_photo, blk.cams[c], int(ids[c]), p)
+           for c in chosen}
+    for names in (opts.calibrate, opts.calibrate_per_photo):
+        if "ap" in names and not any(blk.cams[c, AP_SET] for c in chosen):
+            raise SapgoError(f"{p.path}: self-calibration of ap: none of the calibrated "
+                             f"cameras has an additional-parameter set (import one with "
+                             f"--additional-parameters)")
     photos = (np.flatnonzero(blk.station_active & np.isin(blk.camera, chosen))
               if opts.calibrate_per_photo else np.zeros(0, np.int64))
-    total = len(chosen) * len(opts.calibrate) + len(photos) * len(opts.calibrate_per_photo)
+    n_shared = sum(len(x) for x in shared.values())
+    n_own = sum(len(own[int(blk.camera[s])]) for s in photos)
+    total = n_shared + n_own
     if total > MAX_BORDER:
         raise SapgoError(
-            f"{p.path}: self-calibration of {len(chosen)} cameras x {len(opts.calibrate)} "
-            f"parameters and {len(photos)} photos x {len(opts.calibrate_per_photo)} = "
+            f"{p.path}: self-calibration of {len(chosen)} cameras ({n_shared} shared "
+            f"parameters) and {len(photos)} photos ({n_own} parameters) = "
             f"{total} global unknowns (at most {MAX_BORDER}: the border is dense); choose "
             f"the cameras with --calibrate-cameras, or, with a camera per photo, adjust the "
             f"photos' own intrinsics (import a BAL problem without --fixed-intrinsics)")
     for c in chosen:
-        for name in opts.calibrate:
-            f = CALIBRATION_FIELDS.index(name)
+        for f in shared[int(c)]:
             blk.cal[c, f] = len(blk.border)
             blk.border.append((int(c), f))
     if len(photos):   # a camera row per photo: the camera's shared columns, its own ones
@@ -625,9 +670,8 @@ def _set_calibration(blk: _Block, p: Project, opts: Options):
         blk.row_camera = np.concatenate([blk.row_camera, cams])
         blk.camera = blk.camera.copy()
         blk.camera[photos] = rows
-        for r in rows:
-            for name in opts.calibrate_per_photo:
-                f = CALIBRATION_FIELDS.index(name)
+        for r, c in zip(rows, cams):
+            for f in own[int(c)]:
                 blk.cal[r, f] = len(blk.border)
                 blk.border.append((int(r), f))
 
@@ -792,7 +836,7 @@ def _border_settled(blk: _Block, dtheta):
     scaled border parameter moves it by about its own size: df, dx0, d(k1 f^2) f, ...)."""
     f = blk.cams[:, 0]
     move = np.abs(dtheta).copy()
-    move[:, 3:] *= np.abs(f)[:, None]
+    move[:, 3:10] *= np.abs(f)[:, None]   # (the additional parameters are in mm)
     return bool((move.max(axis=1) <= 1e-3 * blk.cam_sigma).all())
 
 
@@ -810,9 +854,10 @@ def _calibration_report(p: Project, blk: _Block, run, sigma0):
         sig = (sigma0 * math.sqrt(max(cov[col][col], 0.0)) / scale if cov is not None
                else None)
         c0 = int(blk.row_camera[c]) if len(blk.row_camera) else c
+        k = int(CALIBRATION_COLUMNS[f])
         row = {"camera": int(ids[c0]), "parameter": CALIBRATION_FIELDS[f],
-               "initial": float(cams0[c0, f]), "adjusted": float(blk.cams[c, f]),
-               "correction": float(blk.cams[c, f] - cams0[c0, f]), "sigma": sig}
+               "initial": float(cams0[c0, k]), "adjusted": float(blk.cams[c, k]),
+               "correction": float(blk.cams[c, k] - cams0[c0, k]), "sigma": sig}
         if c != c0:   # a parameter calibrated per photo
             row["photo"] = int(blk.station_ids[np.flatnonzero(blk.camera == c)[0]])
         rows.append(row)
@@ -1054,7 +1099,7 @@ def _moved_cameras(blk: _Block, delta, dtheta=None):
     :func:`sapgo.geometry.camera_partials`' scaled parameters)."""
     cams = blk.cams.copy()
     if dtheta is not None:
-        cams[:, :N_CALIBRATION] += dtheta / cams[:, :1] ** CALIBRATION_POWERS[None, :]
+        cams[:, CALIBRATION_COLUMNS] += dtheta / cams[:, :1] ** CALIBRATION_POWERS[None, :]
     if blk.npar == 9:
         act = np.flatnonzero(blk.station_active)
         c = blk.camera[act]
@@ -2161,7 +2206,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     )
     its = max(1, len(log))
     summary.timings_per_iteration_s = {k: timings[k] / its for k in ("build", "solve", "update")}
-    solution_bytes = 8 * (p_read.n_stations * (18 + 2 * N_CAMERA) + p_read.n_points * 6
+    width = N_CAMERA if blk.cams[:, AP_SET].any() else PHOTO_CAMERA_NARROW
+    solution_bytes = 8 * (p_read.n_stations * (18 + 2 * width) + p_read.n_points * 6
                           + p_read.n_observations * 6)
     p_read.close()
 
@@ -2183,9 +2229,10 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
             g["camera_corr"][:] = blk.cams[:n_cam] - cams0
             # each photo's camera row as adjusted (its own with per-photo calibration)
             rc = blk.row_camera if len(blk.row_camera) else np.arange(n_cam)
+            pcc = g["photo_camera_corr"]   # (narrower without additional parameters)
             for a, b in q.chunks("stations", opts.chunk_points):
                 rows = blk.camera[a:b].astype(np.int64)
-                g["photo_camera_corr"][a:b] = blk.cams[rows] - cams0[rc[rows]]
+                pcc[a:b] = (blk.cams[rows] - cams0[rc[rows]])[:, :pcc.shape[1]]
             for a, b in q.chunks("points", opts.chunk_points):
                 g["point_corr"][a:b] = xyz_ds[a:b] - q.read_field("points", "xyz", a, b)
             for a, b in q.chunks("observations", opts.chunk_points):

@@ -214,6 +214,7 @@ def cmd_import(args):
         photos_matrix=args.photos_matrix, rotation=args.rotation,
         image_frames=args.image_frames, axis_order=args.axis_order,
         merge_duplicates=args.merge_duplicates,
+        additional_parameters=args.additional_parameters,
     )
     for w in summary["warnings"]:
         _warn(w)
@@ -834,6 +835,11 @@ def build_parser():
                         "(mm|px) pixel_x pixel_y (um, '-' for mm) width height (in the unit) "
                         "origin (centre|topleft|bottomleft) y_axis (up|down) (default, and "
                         "cameras not listed: mm from the centre, y up)")
+    m.add_argument("--additional-parameters", action="append", default=[], metavar="FILE",
+                   help="per camera, an additional-parameter set of aerial triangulation: "
+                        "camera set (ebner: Ebner's 12, gruen: Gruen's 44, none) base (mm, "
+                        "or auto: 0.4 x the format's larger side) [a1 ... aN] (mm; default "
+                        "0); adjusted with adjust --calibrate ap (see docs/formats.md)")
     m.add_argument("--rotation", choices=("opk", "pok", "kpo"), default="opk",
                    help="the order of the three angles in the photos' and priors' columns "
                         "and how they compose: opk omega-phi-kappa M = R3(k) R2(p) R1(o) "
@@ -941,8 +947,9 @@ def build_parser():
     a.add_argument("--calibrate", default=None, metavar="PARAMS",
                    help="self-calibration: adjust these parameters of every camera (shared "
                         "by its photos) with the block, e.g. f,x0,y0,k1,k2 (any of f, x0, y0, "
-                        "k1, k2, k3, p1, p2, b1, b2; of either distortion model; default: "
-                        "none, the cameras held)")
+                        "k1, k2, k3, p1, p2, b1, b2; of either distortion model; ap: the "
+                        "coefficients of the camera's additional-parameter set, Ebner's or "
+                        "Gruen's, or some of them a1 .. a44; default: none, the cameras held)")
     a.add_argument("--calibrate-cameras", default=None, metavar="IDS",
                    help="with --calibrate: only these camera ids, e.g. 1,3 (default: every "
                         "camera)")

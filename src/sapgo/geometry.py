@@ -30,12 +30,21 @@ coordinates in millimetres (k1 mm^-2, k2 mm^-4, k3 mm^-6, p1 and p2 mm^-1).
 import numpy as np
 from numba import njit
 
+from .apsets import MAX_TERMS, ap_displacement, ap_partials
+
+#: The names of the additional parameters' coefficients (:mod:`sapgo.apsets`).
+AP_NAMES = tuple(f"a{i + 1}" for i in range(MAX_TERMS))
 #: The camera row of the kernels: ``cams[c] = (f, x0, y0, k1, k2, k3, p1, p2, b1, b2,
-#: model)``, ``model`` :data:`FORWARD` or :data:`BACKWARD` (the ``/cameras`` field
-#: ``distortion_model``).
+#: model, ap_set, ap_base, a1, ..., a44)``, ``model`` :data:`FORWARD` or :data:`BACKWARD`
+#: (the ``/cameras`` field ``distortion_model``), ``ap_set`` the camera's
+#: additional-parameter set (:data:`sapgo.apsets.AP_SETS` by number, 0 none), ``ap_base``
+#: its base (mm) and ``a1 .. a44`` its coefficients (mm).
 CAMERA_FIELDS = ("focal_length", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2",
-                 "distortion_model")
+                 "distortion_model", "ap_set", "ap_base") + AP_NAMES
 N_CAMERA = len(CAMERA_FIELDS)
+#: Places in the camera row: the distortion model, the additional-parameter set, its base
+#: and its first coefficient.
+MODEL, AP_SET, AP_BASE, AP0 = 10, 11, 12, 13
 #: The distortion models (the camera row's last field): added to the ideal image point, or
 #: correcting the measured one (module docstring).
 FORWARD, BACKWARD = 0, 1
@@ -55,10 +64,12 @@ def camera_array(cameras):
 
 
 def beyond_brown(rows):
-    """Which camera rows have affinity or shear (b1, b2) or the backward distortion model:
-    what the camera models of COLMAP, OpenSfM, Bundler and BAL cannot hold."""
+    """Which camera rows have affinity or shear (b1, b2), the backward distortion model or
+    an additional-parameter set: what the camera models of COLMAP, OpenSfM, Bundler and BAL
+    cannot hold."""
     rows = np.asarray(rows, np.float64).reshape(-1, N_CAMERA)
-    return (rows[:, 8:10] != 0.0).any(axis=1) | (rows[:, 10] != FORWARD)
+    return ((rows[:, 8:10] != 0.0).any(axis=1) | (rows[:, MODEL] != FORWARD)
+            | (rows[:, AP_SET] != 0.0))
 
 
 def plain_camera(f, x0=0.0, y0=0.0):
@@ -71,7 +82,8 @@ def plain_camera(f, x0=0.0, y0=0.0):
 @njit(cache=True)
 def brown(u, v, c):
     """The distortion polynomial of camera row ``c`` at ``(u, v)`` (mm from the principal
-    point): ``(dx, dy, j00, j01, j10, j11)``, where ``J = [[j00, j01], [j10, j11]]`` is the
+    point), its additional-parameter set's displacement included (:mod:`sapgo.apsets`):
+    ``(dx, dy, j00, j01, j10, j11)``, where ``J = [[j00, j01], [j10, j11]]`` is the
     Jacobian of ``(u + dx, v + dy)`` by ``(u, v)``."""
     k1, k2, k3, p1, p2, b1, b2 = c[3], c[4], c[5], c[6], c[7], c[8], c[9]
     r2 = u * u + v * v
@@ -83,6 +95,15 @@ def brown(u, v, c):
     j10 = 2.0 * u * v * drad + 2.0 * p1 * v + 2.0 * p2 * u
     j01 = j10 + b2
     j11 = 1.0 + rad + 2.0 * v * v * drad + 6.0 * p2 * v + 2.0 * p1 * u
+    if c[AP_SET] != 0.0:
+        ax, ay, a00, a01, a10, a11 = ap_displacement(u, v, int(c[AP_SET]), c[AP_BASE],
+                                                     c[AP0:AP0 + MAX_TERMS])
+        dx += ax
+        dy += ay
+        j00 += a00
+        j01 += a01
+        j10 += a10
+        j11 += a11
     return dx, dy, j00, j01, j10, j11
 
 
@@ -92,7 +113,7 @@ def distortion(xi, yi, c):
     point) by camera row ``c``: :func:`brown` for the forward model, none (``0, 0`` and the
     identity) for the backward one, whose distortion corrects the measurements
     (:func:`observed`)."""
-    if c[10] != 0.0:
+    if c[MODEL] != 0.0:
         return 0.0, 0.0, 1.0, 0.0, 0.0, 1.0
     return brown(xi, yi, c)
 
@@ -102,7 +123,7 @@ def observed(x, y, c):
     """The image point the ideal projection of camera row ``c`` is fitted to, for a
     measurement ``(x, y)``: the measurement itself (forward model), or the measurement
     corrected by the backward model's distortion at it."""
-    if c[10] == 0.0:
+    if c[MODEL] == 0.0:
         return x, y
     dx, dy, _, _, _, _ = brown(x - c[1], y - c[2], c)
     return x + dx, y + dy
@@ -113,13 +134,13 @@ def undistort(x, y, c):
     """The ideal image point ``(xi, yi)`` (from the principal point) that camera row ``c``
     images at ``(x, y)``: Newton's method on ``xi + dx(xi, yi) = x - x0`` (forward model),
     the corrected measurement (backward). Returns ``(xi, yi, converged)``."""
-    if c[10] != 0.0:
+    if c[MODEL] != 0.0:
         xo, yo = observed(x, y, c)
         return xo - c[1], yo - c[2], True
     xd, yd = x - c[1], y - c[2]
     xi, yi = xd, yd
     if (c[3] == 0.0 and c[4] == 0.0 and c[5] == 0.0 and c[6] == 0.0 and c[7] == 0.0
-            and c[8] == 0.0 and c[9] == 0.0):
+            and c[8] == 0.0 and c[9] == 0.0 and c[AP_SET] == 0.0):
         return xi, yi, True
     for _ in range(50):
         dx, dy, j00, j01, j10, j11 = distortion(xi, yi, c)
@@ -414,13 +435,18 @@ def apply_intrinsics(c, d):
 
 
 #: Self-calibration of shared cameras (a bordered band, docs/theory.md section 1c): the
-#: camera fields that can be adjusted, in :data:`CAMERA_FIELDS` order, by their short names.
-CALIBRATION_FIELDS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2")
+#: camera fields that can be adjusted, in :data:`CAMERA_FIELDS` order, by their short names
+#: (the additional parameters' coefficients of the camera's set last).
+CALIBRATION_FIELDS = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "b1", "b2") + AP_NAMES
 N_CALIBRATION = len(CALIBRATION_FIELDS)
+#: The camera row's column of each calibration field.
+CALIBRATION_COLUMNS = np.concatenate([np.arange(10), AP0 + np.arange(MAX_TERMS)])
 #: The border parameter of field ``i`` is the field times ``f ** CALIBRATION_POWERS[i]`` (f
 #: at the linearisation point): all of them in image units or dimensionless, so that the
-#: border is well scaled whatever the units (k1 f^2, k2 f^4, k3 f^6, p1 f, p2 f, b1, b2).
-CALIBRATION_POWERS = np.array([0, 0, 0, 2, 4, 6, 1, 1, 0, 0], np.int64)
+#: border is well scaled whatever the units (k1 f^2, k2 f^4, k3 f^6, p1 f, p2 f, b1, b2;
+#: the additional parameters' coefficients are in mm already).
+CALIBRATION_POWERS = np.concatenate([np.array([0, 0, 0, 2, 4, 6, 1, 1, 0, 0], np.int64),
+                                     np.zeros(MAX_TERMS, np.int64)])
 
 
 @njit(cache=True)
@@ -428,7 +454,7 @@ def camera_partials(eo, xyz, c, e, ox, oy):
     """Partial derivatives of an observation's residual by the camera's border parameters.
 
     Fills ``e`` (2 x :data:`N_CALIBRATION`) with d(x, y) / d(f, x0, y0, k1 f^2, k2 f^4,
-    k3 f^6, p1 f, p2 f, b1, b2) at station ``eo``, object point ``xyz``, camera row ``c``
+    k3 f^6, p1 f, p2 f, b1, b2, a1, ..., a44) at station ``eo``, object point ``xyz``, camera row ``c``
     and measurement ``(ox, oy)`` (each scaled border parameter :data:`CALIBRATION_POWERS`,
     f held at its current value in the scaling), of the residual ``computed - observed`` of
     the module docstring. Forward model: ``d xi / d f = xi / f`` through the distortion's
@@ -447,7 +473,7 @@ def camera_partials(eo, xyz, c, e, ox, oy):
         return False
     xi, yi = -f * u / w, -f * v / w
     f2 = f * f
-    if c[10] != 0.0:   # backward: -d(correction)/d(parameter) at the measurement
+    if c[MODEL] != 0.0:   # backward: -d(correction)/d(parameter) at the measurement
         xm, ym = ox - c[1], oy - c[2]
         _, _, j00, j01, j10, j11 = brown(xm, ym, c)
         e[0, 0] = xi / f
@@ -483,16 +509,18 @@ def camera_partials(eo, xyz, c, e, ox, oy):
     e[1, 8] = 0.0
     e[0, 9] = sign * ym
     e[1, 9] = 0.0
+    ap_partials(xm, ym, int(c[AP_SET]), c[AP_BASE], sign, e, 10)
     return True
 
 
 def apply_calibration(c, dtheta):
     """The camera row ``c`` moved by the border step ``dtheta`` (:data:`N_CALIBRATION`:
-    df, dx0, dy0, d(k1 f^2), d(k2 f^4), d(k3 f^6), d(p1 f), d(p2 f), db1, db2, scaled by the
-    current f as in :func:`camera_partials`)."""
+    df, dx0, dy0, d(k1 f^2), d(k2 f^4), d(k3 f^6), d(p1 f), d(p2 f), db1, db2, da1, ...,
+    da44, scaled by the current f as in :func:`camera_partials`)."""
     out = np.array(c, dtype=np.float64)
     f0 = out[0]
-    out[:N_CALIBRATION] += np.asarray(dtheta, dtype=np.float64) / f0 ** CALIBRATION_POWERS
+    out[CALIBRATION_COLUMNS] += (np.asarray(dtheta, dtype=np.float64)
+                                 / f0 ** CALIBRATION_POWERS)
     return out
 
 

@@ -66,7 +66,7 @@ from .frames import (
     parse_crs,
     prior_of_order,
 )
-from .geometry import camera_array, intersect_points, undistort_points
+from .geometry import AP_NAMES, camera_array, intersect_points, undistort_points
 from .project import (
     CAMERA_DTYPE,
     CONTROL_MASK,
@@ -279,7 +279,7 @@ class _Import:
         for path in self.files["cameras"]:
             for rec, loc in self._read(CAMERAS, path):
                 cam = np.zeros(len(rec), CAMERA_DTYPE)   # (the first 15 columns, by place)
-                for name, col in zip(CAMERA_DTYPE.names, rec.dtype.names):
+                for name, col in zip(CAMERA_DTYPE.names[:15], rec.dtype.names[:15]):
                     cam[name] = rec[col]
                 recs.append(cam)
                 locs.append(loc)
@@ -291,7 +291,10 @@ class _Import:
         locs = np.concatenate(locs)
         if not len(cams):
             raise DataError("no camera in the cameras file(s)")
-        names = CAMERA_DTYPE.names[1:]
+        # the additional-parameter sets: onto every record of their cameras, the project's
+        # too (a camera given again without them keeps the project's: not compared)
+        read_additional_parameters(self.files.get("additional_parameters", ()), cams)
+        names = tuple(n for n in CAMERA_DTYPE.names[1:] if n not in AP_FIELDS)
         values = _bits(np.stack([cams[n] for n in names], axis=1))
         keep, twice, examples = self._dedupe("camera", cams["id"], values, locs, names)
         if twice:
@@ -1077,6 +1080,80 @@ def set_frame(frames, j, unit, px, py, w, h, origin, axis, where, zero_ok=False)
     frames.given[j] = where
 
 
+#: The /cameras fields of the additional-parameter sets (``--additional-parameters``).
+AP_FIELDS = ("ap_set", "ap_base") + AP_NAMES
+
+
+def read_additional_parameters(paths, cams):
+    """The ``--additional-parameters`` files onto the camera records ``cams`` (in place,
+    every record of a camera's id): one line per camera ``camera set base [a1 ... aN]``,
+    ``set`` one of :data:`sapgo.apsets.AP_SETS` (``none`` takes a camera's set away),
+    ``base`` the grid's half-width in mm or ``auto`` (0.4 times the larger side of the
+    camera's format, the photo base at 60 % overlap), then up to N coefficients in mm (12
+    for ``ebner``, 44 for ``gruen``; the rest 0). Errors name the file and line."""
+    from .apsets import AP_SETS, DEFAULT_BASE_FRACTION, N_TERMS
+
+    seen = {}
+    for path in paths:
+        try:
+            lines = Path(path).read_text().splitlines()
+        except UnicodeDecodeError as exc:
+            raise DataError(f"{path}: not a text file ({exc.reason})") from None
+        for k, line in enumerate(lines, start=1):
+            t = line.split("#", 1)[0].split()
+            if not t:
+                continue
+            where = f"{path}:{k}"
+            if len(t) < 3:
+                raise DataError(f"{where}: expected camera set base [a1 ... aN] (set one of "
+                                f"{', '.join(AP_SETS)}), got {len(t)} column(s)")
+            try:
+                cid = int(t[0])
+            except ValueError:
+                raise DataError(f"{where}: camera {t[0]!r} is not an id") from None
+            rows = np.flatnonzero(cams["id"] == cid)
+            if not len(rows):
+                raise DataError(f"{where}: camera {cid} is not in the cameras file(s)")
+            if cid in seen:
+                raise DataError(f"{where}: camera {cid} has a line already ({seen[cid]})")
+            seen[cid] = where
+            if t[1].lower() not in AP_SETS:
+                raise DataError(f"{where}: additional-parameter set {t[1]!r}: one of "
+                                f"{', '.join(AP_SETS)}")
+            s = AP_SETS.index(t[1].lower())
+            n = int(N_TERMS[s])
+            if len(t) > 3 + n:
+                raise DataError(f"{where}: the {AP_SETS[s]} set has {n} coefficient(s), "
+                                f"got {len(t) - 3}")
+            if t[2].lower() == "auto":
+                side = float(max(cams["format_x"][rows[0]], cams["format_y"][rows[0]]))
+                base = DEFAULT_BASE_FRACTION * side
+                if s and not base > 0:
+                    raise DataError(f"{where}: base auto needs camera {cid}'s format "
+                                    f"(format_x, format_y in the cameras file); give the "
+                                    f"base in mm")
+            else:
+                try:
+                    base = float(t[2])
+                except ValueError:
+                    base = float("nan")
+                if s and not (np.isfinite(base) and base > 0):
+                    raise DataError(f"{where}: base {t[2]!r} must be a positive number (mm) "
+                                    f"or auto")
+            coef = np.zeros(len(AP_NAMES))
+            for j, tok in enumerate(t[3:]):
+                try:
+                    coef[j] = float(tok)
+                except ValueError:
+                    coef[j] = float("nan")
+                if not np.isfinite(coef[j]):
+                    raise DataError(f"{where}: a{j + 1} {tok!r} is not a finite number")
+            cams["ap_set"][rows] = s
+            cams["ap_base"][rows] = base if s else 0.0
+            for j, name in enumerate(AP_NAMES):
+                cams[name][rows] = coef[j]
+
+
 def read_image_frames(paths, cam_ids):
     """The ``--image-frames`` files: one line per camera ``camera unit pixel_x pixel_y width
     height origin y_axis`` (unit ``mm`` or ``px``; pixel sizes in micrometres, ``-`` for mm;
@@ -1126,7 +1203,8 @@ def read_image_frames(paths, cam_ids):
 def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles="deg",
                 memory=None, append=False, force=False, priors=(), prior_covariances=(),
                 crs=None, orientation="tangent", photos_matrix=(), rotation="opk",
-                image_frames=(), axis_order="en", merge_duplicates=False):
+                image_frames=(), axis_order="en", merge_duplicates=False,
+                additional_parameters=()):
     """Import a block from text files into the project ``out``; returns a summary dict.
 
     The same point measured more than once on one photo is merged (averaged, with a
@@ -1149,7 +1227,9 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
     orientation is a rotation matrix (object to image, row by row; relative to the same axes)
     instead of three angles. ``image_frames``: files giving, per camera, the unit, origin
     and y axis of its photos' image measurements (:func:`read_image_frames`; cameras not
-    listed: mm from the image centre, y up). ``axis_order``: ``"en"`` (X, the easting or
+    listed: mm from the image centre, y up). ``additional_parameters``: files giving
+    cameras an additional-parameter set, Ebner's 12 or Gruen's 44, with its base and
+    coefficients (:func:`read_additional_parameters`). ``axis_order``: ``"en"`` (X, the easting or
     longitude, first; the default) or ``"ne"`` (the northing or latitude first) in the
     photos, control and priors files (:data:`sapgo.formats.text.AXIS_ORDERS`); with a
     geographic ``crs`` their X and Y may be written in degrees, minutes and seconds, as may
@@ -1179,7 +1259,8 @@ def import_text(out, cameras=(), photos=(), measurements=(), control=(), angles=
              "photos_matrix": _as_list(photos_matrix),
              "measurements": _as_list(measurements), "control": _as_list(control),
              "priors": _as_list(priors), "prior_covariances": _as_list(prior_covariances),
-             "image_frames": _as_list(image_frames)}
+             "image_frames": _as_list(image_frames),
+             "additional_parameters": _as_list(additional_parameters)}
     if append and force:
         raise ParameterError("--append and --force exclude each other: --append adds the files "
                              "to the project, --force replaces it")

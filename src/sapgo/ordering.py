@@ -50,6 +50,7 @@ from .project import (
     TRUTH_POINT_DTYPE,
     Project,
     ProjectWriter,
+    PHOTO_CAMERA_NARROW,
     append_history,
     solution_dataset,
 )
@@ -717,13 +718,17 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
             sol = w.file.create_group("solution.new")
             for k, v in p.file["solution"].attrs.items():
                 sol.attrs[k] = v
+            narrow = not p.cameras()["ap_set"].any()
             for dname, (parent, _) in SOLUTION_LAYOUT.items():
                 solution_dataset(sol, dname, {"stations": n_st, "points": n_pt,
                                               "cameras": p.n_cameras}.get(parent,
-                                                                          p.n_observations))
+                                                                          p.n_observations),
+                                 PHOTO_CAMERA_NARROW if narrow and dname == "photo_camera_corr"
+                                 else None)
             sol["station_corr"][...] = p.solution("station_corr")[perm]
             sol["station_sigma"][...] = p.solution("station_sigma")[perm]
-            sol["photo_camera_corr"][...] = p.solution("photo_camera_corr")[perm]
+            pcc = sol["photo_camera_corr"]
+            pcc[...] = p.solution("photo_camera_corr")[perm][:, :pcc.shape[1]]
             sol["camera_corr"][...] = p.solution("camera_corr")  # cameras keep their order
             if "report" in p.file["solution"]:
                 sol.create_dataset("report", data=p.file["solution/report"][()])

@@ -28,7 +28,7 @@ import numpy as np
 
 from . import __version__
 from .errors import ClosedProjectError, DataError, ProjectFormatError
-from .geometry import N_CAMERA
+from .geometry import AP_NAMES, N_CAMERA
 
 FORMAT_NAME = "sapgo project"
 SCHEMA_VERSION = 1
@@ -89,8 +89,24 @@ CAMERA_DTYPE = np.dtype(
         # the distortion model: 0 forward (added to the ideal point), 1 backward
         # (correcting the measured one; sapgo.geometry)
         ("distortion_model", "<i8"),
+        # the additional-parameter set (0 none, 1 Ebner's 12, 2 Gruen's 44; sapgo.apsets),
+        # its base (mm) and its coefficients (mm; a set of 12 uses a1 .. a12)
+        ("ap_set", "<i8"),
+        ("ap_base", "<f8"),
     ]
+    + [(name, "<f8") for name in AP_NAMES]
 )
+
+
+
+def camera_record(*values):
+    """A /cameras record of its first fields' values in :data:`CAMERA_DTYPE` order (id,
+    focal_length, x0, y0, ...); the fields after them 0."""
+    rec = np.zeros((), CAMERA_DTYPE)
+    for name, v in zip(CAMERA_DTYPE.names, values):
+        rec[name] = v
+    return rec
+
 
 STATION_DTYPE = np.dtype(
     [
@@ -150,8 +166,10 @@ RECORD_DTYPES = {
 #: stable across ordering) moved by (dx, dy) mm.
 #: Earlier layouts of record datasets that are still read (the fields they lack read as
 #: zeros): /cameras before affinity, shear and the distortion model (b1, b2,
-#: distortion_model; :meth:`Project.cameras`).
-OLDER_DTYPES = {"cameras": (np.dtype(CAMERA_DTYPE.descr[:12]),)}
+#: distortion_model), and before the additional-parameter sets (ap_set, ap_base, a1 ..
+#: a44; :meth:`Project.cameras`).
+OLDER_DTYPES = {"cameras": (np.dtype(CAMERA_DTYPE.descr[:12]),
+                            np.dtype(CAMERA_DTYPE.descr[:15]))}
 TRUTH_BLUNDER_DTYPE = np.dtype([("station_id", "<i8"), ("point_id", "<i8"), ("dx", "<f8"),
                                 ("dy", "<f8")])
 TRUTH_DTYPES = {"truth/stations": TRUTH_STATION_DTYPE, "truth/points": TRUTH_POINT_DTYPE,
@@ -169,12 +187,15 @@ SOLUTION_LAYOUT = {
     # per observation r_x, r_y, r_xy, w_x, w_y, t, robust weight (quality.QUALITY_COLUMNS)
     "obs_quality": ("observations", (7,)),
     # corrections to the camera rows (geometry.CAMERA_FIELDS: f, x0, y0, k1, k2, k3, p1, p2,
-    # b1, b2, model) by self-calibration or the photos' own intrinsics; zeros otherwise (a
-    # file of an older version has the first 8: the rest read as zeros)
+    # b1, b2, model, ap_set, ap_base, a1 .. a44) by self-calibration or the photos' own
+    # intrinsics; zeros otherwise (a file of an older version has the first 8 or 11: the
+    # rest read as zeros)
     "camera_corr": ("cameras", (N_CAMERA,)),
     # per photo: the camera row it was adjusted with, as a correction to its camera's
     # /cameras record (its camera's camera_corr, plus its own parameters when calibrated
-    # per photo); files of older versions lack it (read as zeros)
+    # per photo); files of older versions lack it (read as zeros). Its first 11 columns
+    # only (f .. model) when no camera has an additional-parameter set (46 doubles a photo
+    # fewer; the rest read as zeros)
     "photo_camera_corr": ("stations", (N_CAMERA,)),
 }
 #: Optional groups of data that sapgo itself does not use, keyed by ids (not by record
@@ -186,9 +207,12 @@ KEYED_GROUPS = ("colmap", "bundler", "opensfm")
 #: Solution datasets that files of older versions may lack (read as zeros).
 SOLUTION_OPTIONAL = {"station_sigma", "point_sigma", "obs_quality", "camera_corr",
                      "photo_camera_corr"}
-#: Solution datasets that files of older versions have narrower (their columns then: the
-#: rest read as zeros, :meth:`Project.solution`).
-SOLUTION_NARROWER = {"camera_corr": 8}
+#: Solution datasets that can be narrower (their widths then: the rest read as zeros,
+#: :meth:`Project.solution`): files of older versions, and ``photo_camera_corr`` without
+#: additional parameters (:data:`PHOTO_CAMERA_NARROW`).
+SOLUTION_NARROWER = {"camera_corr": (8, 11), "photo_camera_corr": (11,)}
+#: The width of ``photo_camera_corr`` when no camera has an additional-parameter set.
+PHOTO_CAMERA_NARROW = 11
 #: Solution datasets stored in single precision (the rest in double).
 SOLUTION_SINGLE = {"obs_quality"}
 
@@ -198,9 +222,10 @@ SOLUTION_SINGLE = {"obs_quality"}
 CHECKSUM = {"fletcher32": True}
 
 
-def solution_dataset(group, name, n):
-    """Create the /solution dataset ``name`` for ``n`` records in ``group`` (zeros)."""
-    shape = SOLUTION_LAYOUT[name][1]
+def solution_dataset(group, name, n, width=None):
+    """Create the /solution dataset ``name`` for ``n`` records in ``group`` (zeros),
+    ``width`` columns instead of its layout's (:data:`SOLUTION_NARROWER`)."""
+    shape = SOLUTION_LAYOUT[name][1] if width is None else (width,)
     return group.create_dataset(
         name, shape=(n,) + shape, dtype="<f4" if name in SOLUTION_SINGLE else "<f8",
         chunks=(max(1, min(n, CHUNK_RECORDS)),) + shape, fillvalue=0.0, **CHECKSUM)
@@ -515,8 +540,9 @@ class Project:
                 ds = f["solution"].get(name)
                 if ds is None and name in SOLUTION_OPTIONAL:
                     continue
-                narrower = (ds is not None and name in SOLUTION_NARROWER
-                            and ds.shape == (len(f[parent]), SOLUTION_NARROWER[name]))
+                narrower = (ds is not None and name in SOLUTION_NARROWER and ds.ndim == 2
+                            and ds.shape[0] == len(f[parent])
+                            and ds.shape[1] in SOLUTION_NARROWER[name])
                 if ds is None or (ds.shape != (len(f[parent]),) + shape and not narrower):
                     raise ProjectFormatError(
                         f"{self.path}: /solution/{name} is missing or does not match /{parent}"
@@ -741,8 +767,11 @@ class Project:
         if "solution.new" in f:
             del f["solution.new"]
         g = f.create_group("solution.new")
+        narrow = not self.cameras()["ap_set"].any()
         for name, (parent, _) in SOLUTION_LAYOUT.items():
-            solution_dataset(g, name, len(f[parent]))
+            solution_dataset(g, name, len(f[parent]),
+                             PHOTO_CAMERA_NARROW if narrow and name == "photo_camera_corr"
+                             else None)
         g.attrs["state"] = "initial"
         g.attrs["iterations"] = 0
         g.attrs["converged"] = False

@@ -457,8 +457,8 @@ def snavely_block(project_path, adjusted, fmt, any_camera=False):
     odd = beyond_brown(rows)
     if odd.any():
         raise DataError(f"{project_path}: photo id {int(st['id'][np.argmax(odd)])}: its "
-                        f"camera has affinity or shear (b1, b2) or the backward distortion "
-                        f"model, which {fmt} cannot hold")
+                        f"camera has affinity or shear (b1, b2), the backward distortion "
+                        f"model or an additional-parameter set, which {fmt} cannot hold")
     extra = np.abs(rows[:, [1, 2, 5, 6, 7]]).max(axis=1) > 0
     if extra.any() and not any_camera:
         raise DataError(f"{project_path}: photo id {int(st['id'][np.argmax(extra)])}: its "

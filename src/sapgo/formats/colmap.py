@@ -821,7 +821,8 @@ def export_colmap(project_path, out_dir, adjusted=False, pixel_size=None):
     odd = np.flatnonzero(beyond_brown(rows))
     if len(odd):
         raise DataError(f"{project_path}: camera {int(cams['id'][odd[0]])} has affinity or "
-                        f"shear (b1, b2) or the backward distortion model, which COLMAP's "
+                        f"shear (b1, b2), the backward distortion model or an "
+                        f"additional-parameter set, which COLMAP's "
                         f"camera models cannot hold")
     bad = np.flatnonzero(rows[:, 5] != 0.0)
     if len(bad):

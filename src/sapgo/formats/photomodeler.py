@@ -41,7 +41,7 @@ import numpy as np
 
 from ..lock import writes_project
 from ..errors import DataError, ParameterError
-from ..geometry import BACKWARD
+from ..geometry import AP_SET, BACKWARD
 
 __all__ = ["export_photomodeler", "import_photomodeler", "pm_correct", "read_photomodeler"]
 
@@ -310,7 +310,8 @@ def export_photomodeler(project_path, out_path, adjusted=False, pixel_size=None)
     xy = np.column_stack([ob["x"][o], ob["y"][o]]).astype(np.float64)
     # a camera of PhotoModeler's own (backward) model goes as it is, with the measurements;
     # for the others the measurements are freed of the distortion
-    own = (cams[:, 10] == BACKWARD) & (cams[:, 8:10] == 0.0).all(axis=1)
+    own = ((cams[:, 10] == BACKWARD) & (cams[:, 8:10] == 0.0).all(axis=1)
+           & (cams[:, AP_SET] == 0.0))
     ideal = np.empty_like(xy)
     undistort_points(xy, cam_of[ob["station"][o]], cams, ideal)
     c = cam_of[ob["station"][o]]

@@ -40,7 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError, ParameterError
-from ..geometry import BACKWARD, FORWARD
+from ..apsets import AP_SETS, N_TERMS
+from ..geometry import AP_NAMES, BACKWARD, FORWARD
 from ..project import (
     CHUNK_RECORDS,
     CONTROL_MASK,
@@ -706,6 +707,9 @@ _HEADERS = {
     "cameras": "# cameras: id focal_length x0 y0 format_x format_y sigma_image [k1 k2 k3 p1 p2 "
                "[b1 b2 [forward|backward [mm|px pixel_x pixel_y width height origin y_axis]]]]  "
                "(mm; k1..k3 mm^-2, mm^-4, mm^-6, p1 p2 mm^-1)",
+    "additional_parameters": "# additional parameters: camera set base a1 ... aN  (set "
+                             "ebner: 12, gruen: 44 coefficients; base and coefficients "
+                             "in mm)",
     "photos": "# photos: id camera strip omega phi kappa X Y Z  (angles in {angles}, "
               "X Y Z in m; strip -1 = unknown)",
     "measurements": "# measurements: photo point x y sigma  (mm; sigma 0 = the camera's "
@@ -721,7 +725,8 @@ def _nonzero_bits(a):
 
 def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS, rotation="opk"):
     """Write a project's input records as ``cameras.txt``, ``photos.txt``,
-    ``measurements.txt`` and ``control.txt`` in ``out_dir``.
+    ``measurements.txt`` and ``control.txt`` in ``out_dir``, and
+    ``additional_parameters.txt`` when a camera has an additional-parameter set.
 
     Floats are written as the shortest decimal that reads back to the same float64 (angles in
     ``angles`` units, see :func:`angle_strings`), so :func:`sapgo.ingest.import_text` of the
@@ -759,6 +764,17 @@ def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS, rotati
                 words = [repr(float(v)) for v in vals] + (["backward"] if backward else [])
                 f.write(" ".join([str(int(c["id"]))] + words) + "\n")
                 counts["cameras"] += 1
+        if cams["ap_set"].any():   # (import --additional-parameters)
+            paths["additional_parameters"] = out_dir / "additional_parameters.txt"
+            counts["additional_parameters"] = 0
+            with open(paths["additional_parameters"], "w") as f:
+                f.write(_HEADERS["additional_parameters"] + "\n")
+                for c in cams[cams["ap_set"] != 0]:
+                    s_ = int(c["ap_set"])
+                    coef = [repr(float(c[n])) for n in AP_NAMES[:int(N_TERMS[s_])]]
+                    f.write(" ".join([str(int(c["id"])), AP_SETS[s_],
+                                      repr(float(c["ap_base"]))] + coef) + "\n")
+                    counts["additional_parameters"] += 1
         cam_ids = cams["id"]
         station_ids = p.read_field("stations", "id")
         with open(paths["photos"], "w") as f:

@@ -19,7 +19,7 @@ import math
 import numpy as np
 
 from ..frames import MOON_RADIUS, SELENOCENTRIC, Frame, _MOON_CRS, enu_rotation, parse_crs
-from ..project import CAMERA_DTYPE, PRIOR_DTYPE
+from ..project import CAMERA_DTYPE, PRIOR_DTYPE, camera_record
 from .scene import Scene
 from .terrain import Terrain
 
@@ -56,7 +56,7 @@ def apollo15(data_set, seed=1):
     per_orbit, n_points, sigma_h_centre = APOLLO15[data_set]
     rng = np.random.default_rng([seed, 150 + data_set])
     cams = np.zeros(1, CAMERA_DTYPE)
-    cams[0] = (1, FOCAL, 0.0, 0.0, FORMAT, FORMAT, 0.020, 0, 0, 0, 0, 0, 0, 0, 0)
+    cams[0] = camera_record(1, FOCAL, 0.0, 0.0, FORMAT, FORMAT, 0.020)
     n_orb = len(per_orbit)
     step = math.radians(NODE_STEP)
     pos, vel, strip = [], [], []

@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from ..errors import ParameterError
-from ..project import CAMERA_DTYPE, KIND_CONTROL
+from ..project import CAMERA_DTYPE, KIND_CONTROL, camera_record
 from .scene import ControlClass, Scene
 from .terrain import Terrain
 
@@ -43,7 +43,7 @@ def flight_scene(strips, photos_per_strip, forelap=0.6, sidelap=0.2, shift=0.0, 
     ground = 300.0
     c = foot[:, 1] - foot[:, 0]             # the photos' relative scales
     cams = np.zeros(1, CAMERA_DTYPE)
-    cams[0] = (1, focal_length, 0.0, 0.0, format, format, sigma_image, 0, 0, 0, 0, 0, 0, 0, 0)
+    cams[0] = camera_record(1, focal_length, 0.0, 0.0, format, format, sigma_image)
     heading = np.where(strip % 2 == 0, 0.0, math.pi)
     t = math.radians(tilt)
     eo = np.column_stack([

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from ..project import CAMERA_DTYPE, KIND_HORIZONTAL, KIND_VERTICAL
+from ..project import CAMERA_DTYPE, KIND_HORIZONTAL, KIND_VERTICAL, camera_record
 from .scene import ControlClass, Scene
 from .terrain import Terrain
 
@@ -33,8 +33,8 @@ MFL1_STRIP_CAMERA = [0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 5, 5]
 def _cameras(spec, sigma_image):
     cams = np.zeros(len(spec), CAMERA_DTYPE)
     for i, (f, x0, y0, k1, p1) in enumerate(spec):
-        cams[i] = (i + 1, f, x0, y0, 230.0, 230.0, sigma_image, k1, 0.0, 0.0, p1, 0.0, 0.0,
-                   0.0, 0)
+        cams[i] = camera_record(i + 1, f, x0, y0, 230.0, 230.0, sigma_image, k1, 0.0, 0.0,
+                                p1)
     return cams
 
 

@@ -39,6 +39,7 @@ from ..project import (
     STATION_DTYPE,
     TRUTH_POINT_DTYPE,
     TRUTH_STATION_DTYPE,
+    camera_record,
 )
 from .terrain import Terrain
 
@@ -335,8 +336,8 @@ def write_block(spec: BlockSpec, writer, progress=None):
     sigma = max(spec.sigma_image, 1e-6)
 
     cameras = np.zeros(1, CAMERA_DTYPE)
-    cameras[0] = (1, spec.focal_length, 0.0, 0.0, spec.format, spec.format, sigma,
-                  *spec.distortion, 0.0, 0.0, 0)
+    cameras[0] = camera_record(1, spec.focal_length, 0.0, 0.0, spec.format, spec.format, sigma,
+                               *spec.distortion)
     cams = camera_array(cameras)
     writer.append("cameras", cameras)
     st_strip, true_eo, approx_eo = _station_arrays(spec, z_mean)
