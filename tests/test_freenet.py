@@ -47,7 +47,23 @@ def free_block(tmp_path_factory, block_cache):
 @pytest.fixture(scope="module")
 def reference(free_block):
     """The dense reference: the solution and the points' and photos' sigmas."""
-    _, rec = free_block
+    return dense_reference(free_block[1])
+
+
+#: Self-calibration of a free network: radial and decentring distortion.
+FREE_CALIB = ("k1", "p1", "p2")
+
+
+@pytest.fixture(scope="module")
+def reference_calibrated(free_block):
+    """The dense reference with the camera's FREE_CALIB adjusted too."""
+    return dense_reference(free_block[1], FREE_CALIB)
+
+
+def dense_reference(rec, calibrate=()):
+    """A dense Gauss-Newton under 7 fixed station parameters (``calibrate``: camera fields
+    adjusted too), moved onto the approximations by a similarity, and the inverse of the
+    bordered normal matrix of all unknowns (photos, points, camera) at the solution."""
     st, pt, ob = rec["stations"], rec["points"], rec["observations"]
     cam = rec["cameras"][0]
     f = cam["focal_length"]
@@ -55,10 +71,13 @@ def reference(free_block):
     fixed[0] = True
     fixed[-1, 3] = True
     xy = np.column_stack([ob["x"], ob["y"]])
-    eo, xyz, s0, _ = naive.dense_bundle_adjustment(
+    out = naive.dense_bundle_adjustment(
         st["eo"], pt["xyz"], f, ob["station"], ob["point"], xy, ob["sigma"],
         CONTROL_MASK[pt["kind"]].astype(bool), pt["control"], pt["control_sigma"],
-        iterations=50, fixed_station=fixed)
+        iterations=50, fixed_station=fixed, calibrate=calibrate)
+    eo, xyz, s0 = out[:3]
+    row = out[4] if calibrate else np.array([f] + [0.0] * 9)
+    cols = [naive.CAMERA_FIELDS.index(n) for n in calibrate]
     # the similarity onto the approximations, applied to the points and the photos
     s, r, t = procrustes(xyz, pt["xyz"])
     xyz = s * xyz @ r.T + t
@@ -68,11 +87,20 @@ def reference(free_block):
     eo = np.column_stack([opk, s * eo[:, 3:6] @ r.T + t])
     # the dense normals at the solution: photos (rotation vector, centre), points
     ns, npt = len(st), len(pt)
-    jac = np.zeros((2 * len(ob), 6 * ns + 3 * npt))
+    base = 6 * ns + 3 * npt
+    jac = np.zeros((2 * len(ob), base + len(cols)))
+    dist = tuple(row[3:])
     for i, (a, j) in enumerate(zip(ob["station"], ob["point"])):
-        ja, jb = naive.jacobian_rotvec_complex_step(eo[a], xyz[j], f)
+        ja, jb = naive.jacobian_rotvec_complex_step(eo[a], xyz[j], row[0], row[1], row[2],
+                                                    dist=dist)
         jac[2 * i:2 * i + 2, 6 * a:6 * a + 6] = ja / ob["sigma"][i]
         jac[2 * i:2 * i + 2, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = jb / ob["sigma"][i]
+        for q, k in enumerate(cols):   # the camera's columns by complex step
+            c = row.astype(complex)
+            c[k] += 1e-30j * max(abs(row[k]), 1e-30)
+            d = naive.project(eo[a].astype(complex), xyz[j].astype(complex), c[0], c[1], c[2],
+                              dist=tuple(c[3:])).imag / (1e-30 * max(abs(row[k]), 1e-30))
+            jac[2 * i:2 * i + 2, base + q] = d / ob["sigma"][i]
     n = jac.T @ jac
     centre = xyz.mean(axis=0)
     g = np.zeros((7, n.shape[0]))   # inner constraints on the points: G = H_p'
@@ -82,7 +110,7 @@ def reference(free_block):
         h[:, 3:6] = -skew(xyz[j] - centre)
         h[:, 6] = xyz[j] - centre
         g[:, 6 * ns + 3 * j:6 * ns + 3 * j + 3] = h.T
-    hfull = g.T.copy()   # the null space: the points' rows and the photos'
+    hfull = g.T.copy()   # the null space: the points' rows and the photos' (not the camera's)
     for a in range(ns):
         hfull[6 * a:6 * a + 3, 3:6] = np.eye(3)
         hfull[6 * a + 3:6 * a + 6, :3] = np.eye(3)
@@ -96,9 +124,10 @@ def reference(free_block):
     tj[:, 3:, 3:] = np.eye(3)
     qs = tj @ qs @ tj.transpose(0, 2, 1)
     st_sig = s0 * np.sqrt(np.diagonal(qs, axis1=1, axis2=2))
-    pt_sig = s0 * np.sqrt(np.diag(q)[6 * ns:].reshape(npt, 3))
+    pt_sig = s0 * np.sqrt(np.diag(q)[6 * ns:base].reshape(npt, 3))
     return {"eo": eo, "xyz": xyz, "sigma0": s0, "station_sigma": st_sig,
-            "point_sigma": pt_sig,
+            "point_sigma": pt_sig, "camera": row,
+            "camera_sigma": s0 * np.sqrt(np.diag(q)[base:]),
             "null": np.abs(n @ hfull).max() / (np.abs(n).max() * np.abs(hfull).max())}
 
 
@@ -136,6 +165,43 @@ def test_free_network_equals_the_dense_inner_constraints(free_block, reference, 
     assert np.abs(d.sum(axis=0)).max() < 1e-8 * size * len(d)
     assert np.abs(np.cross(v, d).sum(axis=0)).max() < 1e-8 * size ** 2 * len(d)
     assert abs((v * d).sum()) < 1e-8 * size ** 2 * len(d)
+
+
+@pytest.mark.parametrize("solver", ["band", "tree"])
+def test_self_calibrating_free_network_equals_the_dense_inner_constraints(
+        free_block, reference_calibrated, tmp_path, solver):
+    """A free network with its camera's radial and decentring distortion adjusted too: its
+    solution, sigma0, the photos', points' and camera's precision equal the inverse of the
+    bordered normal matrix of all unknowns, camera included, on the band and on the tree."""
+    ref = reference_calibrated
+    assert ref["null"] < 1e-9
+    path, rec = free_block
+    run = tmp_path / f"cal-{solver}.h5"
+    shutil.copy(path, run)
+    s = sapgo.adjust(run, sapgo.Options(progress=False, solver=solver, tol_position=1e-10,
+                                        tol_angle=1e-12, tol_cost=1e-14, max_iterations=60,
+                                        calibrate=FREE_CALIB))
+    assert s.converged and s.datum == "free" and s.precision is not None
+    assert s.sigma0 == pytest.approx(ref["sigma0"], rel=1e-7)
+    with Project(run) as p:
+        sid = p.read_field("stations", "id")
+        eo = p.read_field("stations", "eo") + p.solution("station_corr")
+        ssig = p.solution("station_sigma")
+        pid = p.read_field("points", "id")
+        xyz = p.read_field("points", "xyz") + p.solution("point_corr")
+        psig = p.solution("point_sigma")
+    so, ro = np.argsort(sid), np.argsort(rec["stations"]["id"])
+    po, rpo = np.argsort(pid), np.argsort(rec["points"]["id"])
+    np.testing.assert_allclose(xyz[po], ref["xyz"][rpo], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(eo[so, 3:], ref["eo"][ro, 3:], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(psig[po], ref["point_sigma"][rpo], rtol=1e-6)
+    np.testing.assert_allclose(ssig[so], ref["station_sigma"][ro], rtol=1e-6)
+    rows = {r["parameter"]: r for r in s.calibration}
+    for name, sig in zip(FREE_CALIB, ref["camera_sigma"]):
+        k = naive.CAMERA_FIELDS.index(name)
+        assert rows[name]["adjusted"] == pytest.approx(ref["camera"][k], rel=1e-6,
+                                                       abs=1e-6 * sig)
+        assert rows[name]["sigma"] == pytest.approx(sig, rel=1e-6)
 
 
 def test_free_network_of_the_minimal_constraints_has_the_same_shape(free_block, tmp_path):

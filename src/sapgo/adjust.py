@@ -846,8 +846,9 @@ def _calibration_report(p: Project, blk: _Block, run, sigma0):
     the field's own unit)."""
     cams0 = camera_array(p.cameras())
     ids = p.cameras()["id"]
-    # (a free network has no precision: its damped cofactors mean nothing)
-    cov = None if blk.free else blk.border_cov
+    # (a free network's: the S-transformation to the inner constraints leaves the cameras'
+    # cofactors as they are, the similarity not moving a camera; sapgo.freenet)
+    cov = blk.border_cov
     rows = []
     for col, (c, f) in enumerate(blk.border):
         scale = float(blk.cams[c, 0]) ** int(CALIBRATION_POWERS[f])
@@ -2106,8 +2107,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
 
         to_inner(p_read, work, blk, opts)
         correlations = None   # (those of the minimal constraints' datum mean nothing)
-    # with self-calibration as well, or --precision none: no precision
-    no_precision = (blk.free and blk.n_border > 0) or mode == "none"
+    # --precision none: no precision
+    no_precision = mode == "none"
     if no_precision:  # no precision: zeros, and no report of it
         station_sigma = np.zeros((len(blk.station_ids), 6))
         psig = quality = None

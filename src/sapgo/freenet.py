@@ -31,7 +31,9 @@ vector of sapgo's unknowns, :func:`sapgo.geometry.turn`)::
    (:func:`sapgo.normals.datum_columns`), the stations' solved with the factor (band or
    tree), the points' back-substituted. Three streaming passes over the points.
 
-Self-calibration (a border) with a free network: adjusted, its precision not given.
+With self-calibration (a border) the solve goes through the bordered system (the points
+reduced into the border as well, the border solved with its Schur complement); the cameras'
+cofactors are the same in both datums (a similarity moves no camera).
 """
 
 from __future__ import annotations
@@ -157,18 +159,48 @@ def _solve_stations(work, blk, opts, r):
 
     file = getattr(work, "tree_factor", None)
     if file is None:
-        file = FactorFile(work.dir / FACTOR_FILE, factor_layout(blk.tree, k), "r", n_rhs=1)
+        file = FactorFile(work.dir / FACTOR_FILE, factor_layout(blk.tree, k), "r",
+                          n_rhs=1 + blk.n_border)
     _, _, _, tile = work_plan(blk.tree, k, opts, held=blk.held, n_stations=n)
-    solver = TreeSolver(blk.tree, k, None, file=file, n_border=0, tile=tile,
+    solver = TreeSolver(blk.tree, k, None, file=file, n_border=blk.n_border, tile=tile,
                         scratch=work.dir)
     return solver.solve_columns(r.reshape(k * n, -1)).reshape(n, k, -1)
 
 
-def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk):
-    """One pass of :func:`sapgo.normals.datum_columns` over the points; ``on_chunk(a, b,
-    c, h, b_pt)`` after each chunk (``b_pt``: the points' columns, with ``x_st``)."""
+def _border_x(work, blk, opts):
+    """``X = M^-1 B`` (stations x npar x border) of a self-calibration, as the precision
+    pass had it: the band's from its file (``quality_sweep``), the tree's substituted
+    back again."""
+    n, k, ng = len(blk.station_ids), blk.npar, blk.n_border
+    if blk.tree is None:
+        from .rawfile import RawArray
+
+        xb = RawArray(work.dir / "xborder.bin", (n, k, ng), mode="r")
+        try:
+            return np.asarray(xb[0:n], dtype=np.float64).reshape(n, k, ng)
+        finally:
+            xb.close()
+    from .solve.fronts import FactorFile, TreeSolver, factor_layout
+    from .solve.tree import FACTOR_FILE, work_plan
+
+    file = getattr(work, "tree_factor", None)
+    if file is None:
+        file = FactorFile(work.dir / FACTOR_FILE, factor_layout(blk.tree, k), "r",
+                          n_rhs=1 + ng)
+    _, _, _, tile = work_plan(blk.tree, k, opts, held=blk.held, n_stations=n)
+    return TreeSolver(blk.tree, k, None, file=file, n_border=ng, tile=tile,
+                      scratch=work.dir).border_x(n)
+
+
+def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g):
+    """One pass of :func:`sapgo.normals.datum_columns` over the points (``r_g``, ``x_g``:
+    the border's reduced right-hand sides and solution, border x 7); ``on_chunk(a, b, c,
+    h, b_pt)`` after each chunk (``b_pt``: the points' columns, with ``x_st``)."""
     from .adjust import _point_error
+    from .geometry import N_CALIBRATION
     from .normals import BEHIND_CAMERA
+
+    cal = blk.cal if blk.n_border else np.zeros((0, N_CALIBRATION), np.int64)
 
     for a, b, c in _chunks(p, work, blk, opts):
         h = point_rows(c.xyz, centre)
@@ -177,7 +209,7 @@ def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk):
         bad = datum_columns(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
                             c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active,
                             blk.eo, blk.camera, blk.cams, blk.ctrl_mask, c.max_rays, h, x_st,
-                            r_st, b_pt, blk.behind_ok, blk.fixed)
+                            r_st, b_pt, blk.behind_ok, blk.fixed, cal, r_g, x_g)
         if bad:
             raise _point_error(p, c, bad - 1, BEHIND_CAMERA, blk)
         on_chunk(a, b, c, h, b_pt)
@@ -203,16 +235,25 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
         h = point_rows(c.xyz[c.active == 0], centre)
         gh += np.einsum("irc,ird->cd", h, h)
     kk = np.linalg.inv(gh)
-    # B = Q G': the stations' part through the factor, the points' by back-substitution
+    # B = Q G': the stations' part through the factor, the points' by back-substitution;
+    # with self-calibration the border's through its Schur complement S (S^-1 the
+    # border's cofactors): x_g = S^-1 (r_g - X' r_s), x_s = M^-1 r_s - X x_g
+    ng = blk.n_border
     r_st = np.zeros((n, k, 7))
-    _point_pass(p, work, blk, opts, centre, None, r_st, lambda *x: None)
-    x_st = np.ascontiguousarray(_solve_stations(work, blk, opts, r_st))
+    r_g = np.zeros((ng, 7))
+    _point_pass(p, work, blk, opts, centre, None, r_st, lambda *x: None, r_g, r_g)
+    x_st = np.ascontiguousarray(_solve_stations(work, blk, opts, r_st.copy()))   # (in place)
+    x_g = np.zeros((ng, 7))
+    if ng:
+        xb = _border_x(work, blk, opts)
+        x_g = np.asarray(blk.border_cov) @ (r_g - np.einsum("nkg,nkc->gc", xb, r_st))
+        x_st = np.ascontiguousarray(x_st - np.einsum("nkg,gc->nkc", xb, x_g))
     gb = np.zeros((7, 7))
 
     def add_gb(a, b, c, h, b_pt):
         gb[:] += np.einsum("irc,ird->cd", h, b_pt)
 
-    _point_pass(p, work, blk, opts, centre, x_st, r_st, add_gb)
+    _point_pass(p, work, blk, opts, centre, x_st, r_st, add_gb, r_g, x_g)
     def delta(h, bq):   # -H K B' - B K H' + H K (G B) K H'
         hk = h @ kk
         return (np.einsum("irc,cd,isd->irs", hk, gb, hk)
@@ -226,7 +267,7 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
         psig[a:b] = s
 
     if psig is not None:   # (None: the stations' precision alone)
-        _point_pass(p, work, blk, opts, centre, x_st, r_st, fix_points)
+        _point_pass(p, work, blk, opts, centre, x_st, r_st, fix_points, r_g, x_g)
     act = blk.station_active
     hs = station_rows(blk.eo[act], centre, k)
     d = in_angles(delta(hs, x_st[act]), blk.eo[act], np.zeros(int(act.sum()), np.int64))

@@ -992,23 +992,32 @@ def point_costs(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt
 @njit(cache=True, nogil=True)
 def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
-                  ctrl_mask, max_rays, h_pt, x_st, r_st, b_pt, behind_ok=False,
-                  st_fixed=None):
-    """The points' share of a solve of the full normal equations ``N [x_s; x_p] = [0; h]``
-    for several right-hand sides at once (columns), ``h`` on the points only (``h_pt``,
-    chunk points x 3 x c; a free network's inner constraints, :mod:`sapgo.freenet`).
+                  ctrl_mask, max_rays, h_pt, x_st, r_st, b_pt, behind_ok, st_fixed, cal,
+                  r_g, x_g):
+    """The points' share of a solve of the full normal equations ``N [x_s; x_g; x_p] =
+    [0; 0; h]`` for several right-hand sides at once (columns), ``h`` on the points only
+    (``h_pt``, chunk points x 3 x c; a free network's inner constraints,
+    :mod:`sapgo.freenet`); ``x_g`` the border's unknowns of a self-calibration (``cal``:
+    the border column of each camera row's field, as in :func:`build_points`; ``r_g`` with
+    no rows: no border).
 
-    Without ``x_st`` (None): the reduced right-hand side of the stations,
-    ``r_s -= sum Nbar Ndd^-1 h`` into ``r_st`` (stations x npar x c). With ``x_st`` (the
-    stations' solution, stations x npar x c): the points', ``x_p = Ndd^-1 (h - sum Nbar'
-    x_s)``, into ``b_pt`` (chunk points x 3 x c). The normals as the build forms them
-    (undamped; fixed station parameters' columns zero). Returns the first point that
-    cannot be linearised (index + 1), else 0."""
+    Without ``x_st`` (None): the reduced right-hand sides of the stations,
+    ``r_s -= sum Nbar Ndd^-1 h`` into ``r_st`` (stations x npar x c), and of the border,
+    ``r_g -= Nbar_g Ndd^-1 h`` into ``r_g`` (border x c). With ``x_st`` (the stations'
+    solution, stations x npar x c, and ``x_g`` the border's, border x c): the points',
+    ``x_p = Ndd^-1 (h - sum Nbar' x_s - Nbar_g' x_g)``, into ``b_pt`` (chunk points x 3 x
+    c). The normals as the build forms them (undamped; fixed station parameters' columns
+    zero). Returns the first point that cannot be linearised (index + 1), else 0."""
     npar = r_st.shape[1]
     nc = h_pt.shape[2]
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all, o_all = _workspace(max_rays, npar)
     col = np.empty(3)
     sol = np.empty(3)
+    ng = r_g.shape[0]
+    ngp = np.zeros((ng, 3))              # Nbar_g of the point (its border columns' rows)
+    touched = np.empty(ng, np.int64)
+    seen = np.zeros(ng, np.bool_)
+    e = np.empty((2, N_CALIBRATION))
     for j in range(pt_xyz.shape[0]):
         if pt_active[j] != 0:
             continue
@@ -1018,6 +1027,28 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                           st_all, nn, cc, b_all, o_all, 0.0, behind_ok, st_fixed)
         if k < 0 or not _chol3(nn, lo):
             return j + 1
+        nt = 0
+        for q in range(k if ng > 0 else 0):   # Nbar_g = sum p E' B over the point's rays
+            s = st_all[q]
+            cam = cam_of_station[s]
+            if not _ray_border(eo[s], xyz, cams[cam], cal[cam], e, o_all[q, 0], o_all[q, 1]):
+                continue
+            p = w_all[q]
+            for f in range(N_CALIBRATION):
+                c1 = cal[cam, f]
+                if c1 < 0:
+                    continue
+                if not seen[c1]:
+                    seen[c1] = True
+                    touched[nt] = c1
+                    nt += 1
+                for r in range(3):
+                    ngp[c1, r] += p * (e[0, f] * b_all[q, 0, r] + e[1, f] * b_all[q, 1, r])
+        kind = pt_kind[j]
+        for r in range(3):  # a fixed control component is no unknown (as in _point_system)
+            if ctrl_mask[kind, r] and pt_csig[j, r] == 0.0:
+                for t in range(nt):
+                    ngp[touched[t], r] = 0.0
         for c in range(nc):
             for r in range(3):
                 col[r] = h_pt[j, r, c]
@@ -1030,6 +1061,10 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                         for r in range(3):
                             x += nbar[q, u, r] * sol[r]
                         r_st[s, u, c] -= x
+                for t in range(nt):
+                    c1 = touched[t]
+                    r_g[c1, c] -= (ngp[c1, 0] * sol[0] + ngp[c1, 1] * sol[1]
+                                   + ngp[c1, 2] * sol[2])
             else:
                 for q in range(k):
                     s = st_all[q]
@@ -1038,7 +1073,16 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                         for u in range(npar):
                             x += nbar[q, u, r] * x_st[s, u, c]
                         col[r] -= x
+                for t in range(nt):
+                    c1 = touched[t]
+                    for r in range(3):
+                        col[r] -= ngp[c1, r] * x_g[c1, c]
                 _solve3(lo, col, sol)
                 for r in range(3):
                     b_pt[j, r, c] = sol[r]
+        for t in range(nt):
+            c1 = touched[t]
+            seen[c1] = False
+            for r in range(3):
+                ngp[c1, r] = 0.0
     return 0
