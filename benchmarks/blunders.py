@@ -1,6 +1,8 @@
 """Blunder detection on SAPGO-P-3 (seeds/002 Table 2) with planted blunders.
 
 Run:  python benchmarks/blunders.py [--seeds 1 2 3]   (writes results/blunders.json)
+      python benchmarks/blunders.py --scale 100000 --blunders 200 --rounds 3
+            (writes results/blunders_scale.json)
 
 For each seed: the block is generated clean and with 20 blunders of 30-100 um (random
 observations, one per point, random direction), both with the same seed, so the clean
@@ -12,6 +14,15 @@ block), and how far the result lies from the clean solution in units of the clea
 solution's standard deviations (stations: X, Y, Z; points: X, Y, Z): the fraction within
 1 sigma, the mean and the maximum. The same is run on the block with the 25-point pattern
 (more redundancy) to show what the geometry allows.
+
+``--scale N``: snooping at scale. A block of 20 strips of N / 20 photos with ``--blunders``
+planted blunders (seed 1) is adjusted plainly and with batch snooping (its rejections
+confirmed), each run a process of its own on a fresh copy of the unordered file, the two
+taking turns in each of ``--rounds`` rounds (one-at-a-time snooping, a round per rejection,
+is not run at this size). Reported: time to solution (ordering, iterations, the precision
+passes, commit), its ratio to the plain adjustment's, iterations, snooping rounds, the
+rejections and the planted blunders found, medians and (min-max) over the rounds, with the
+machine's load before each run.
 """
 
 import argparse
@@ -93,10 +104,109 @@ def run(seeds):
     return rows
 
 
+SCALE_MODES = {"plain": {}, "batch snooping": dict(snooping=True, snooping_batch=True)}
+
+
+def scale_child(path, mode):
+    """One run of :func:`run_scale` (in its own process): prints ``RESULT {json}``."""
+    t0 = time.perf_counter()
+    s = sapgo.adjust(path, sapgo.Options(progress=False, **SCALE_MODES[mode]))
+    dt = time.perf_counter() - t0
+    b = s.blunder_check or {}
+    print("RESULT " + json.dumps({
+        "seconds": dt, "iterations": s.iterations, "converged": s.converged,
+        "sigma0": s.sigma0, "rejected": len(s.rejected),
+        "reinstated": len(getattr(s, "reinstated", []) or []),
+        "found": b.get("found"), "planted": b.get("planted"),
+        "false_rejections": b.get("false_rejections"),
+        "timings_s": s.timings_s}))
+
+
+def run_scale(n_photos, n_blunders, rounds):
+    import statistics
+    import subprocess
+    import sys
+
+    from colmap import git_state
+    from shape import load
+
+    strips = 20
+    rows = {m: [] for m in SCALE_MODES}
+    with tempfile.TemporaryDirectory(dir=Path(__file__).parent) as tmp:
+        gen = Path(tmp) / "block.h5"
+        info = sapgo.generate_block(gen, strips=strips, photos_per_strip=n_photos // strips,
+                                    control_points=max(4, n_photos // 25), seed=1,
+                                    blunders=n_blunders, progress=False)
+        print(f"{info['photos']} photos, {info['points']} points, {info['observations']} "
+              f"observations, {n_blunders} blunders", flush=True)
+        for r in range(rounds):
+            for mode in SCALE_MODES:
+                run = Path(tmp) / "run.h5"
+                shutil.copy(gen, run)
+                before = load()
+                proc = subprocess.run([sys.executable, __file__, "--child", str(run), mode],
+                                      capture_output=True, text=True)
+                line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")]
+                if proc.returncode or not line:
+                    raise SystemExit(f"{mode}: {proc.stderr[-2000:]}")
+                res = json.loads(line[-1][7:])
+                res["load_before"] = before
+                rows[mode].append(res)
+                print(f"  round {r} {mode}: {res['seconds']:.1f} s, {res['iterations']} it, "
+                      f"{res['rejected']} rejected, found {res['found']}/{res['planted']}, "
+                      f"load {before}", flush=True)
+                run.unlink()
+
+    def spread(v):
+        return {"median": statistics.median(v), "min": min(v), "max": max(v)}
+
+    plain = [x["seconds"] for x in rows["plain"]]
+    ratios = [b / a for a, b in zip(plain, [x["seconds"] for x in rows["batch snooping"]])]
+    summary = {m: {"seconds": spread([x["seconds"] for x in v]),
+                   "iterations": spread([x["iterations"] for x in v]),
+                   "rejected": v[-1]["rejected"], "reinstated": v[-1]["reinstated"],
+                   "found": v[-1]["found"], "planted": v[-1]["planted"],
+                   "false_rejections": v[-1]["false_rejections"]}
+               for m, v in rows.items()}
+    summary["ratio_batch_to_plain"] = spread(ratios)
+    print("\n| mode | to solution s | iterations | rejected | planted blunders found | "
+          "false rejections | brought back |")
+    print("|---|---|---|---|---|---|---|")
+    for m in SCALE_MODES:
+        x = summary[m]
+        sec, it = x["seconds"], x["iterations"]
+        print(f"| {m} | {sec['median']:.1f} ({sec['min']:.1f}-{sec['max']:.1f}) | "
+              f"{it['median']:g} ({it['min']}-{it['max']}) | {x['rejected']} | "
+              f"{x['found']} of {x['planted']} | {x['false_rejections']} | "
+              f"{x['reinstated']} |")
+    rt = summary["ratio_batch_to_plain"]
+    print(f"\nbatch snooping / plain, time to solution, same round: {rt['median']:.2f} "
+          f"({rt['min']:.2f}-{rt['max']:.2f})")
+    return {"benchmark": "blunders --scale", "photos": info["photos"],
+            "observations": info["observations"], "blunders": n_blunders, "rounds": rounds,
+            "sapgo_version": sapgo.__version__, "sapgo_source": git_state(),
+            "load_at_end": load(), "runs": rows, "summary": summary}
+
+
 def main():
+    import sys
+
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        scale_child(sys.argv[2], sys.argv[3])
+        return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--scale", type=int, default=None, metavar="PHOTOS",
+                    help="snooping at scale on a block of this many photos in 20 strips")
+    ap.add_argument("--blunders", type=int, default=200)
+    ap.add_argument("--rounds", type=int, default=3)
     args = ap.parse_args()
+    if args.scale:
+        res = run_scale(args.scale, args.blunders, args.rounds)
+        out = Path(__file__).parent / "results" / "blunders_scale.json"
+        out.write_text(json.dumps(res, indent=1))
+        print(f"wrote {out}")
+        return
     rows = run(args.seeds)
     out = Path(__file__).parent / "results" / "blunders.json"
     out.write_text(json.dumps({"machine": platform.processor() or platform.machine(),

@@ -423,6 +423,8 @@ class _Block:
     #: with, "test" or "point" (the other rays of a point left with fewer than two)
     rejected: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
     rejections: list = dataclasses.field(default_factory=list)
+    #: observations batch snooping rejected and brought back when confirmed (record numbers)
+    reinstated: list = dataclasses.field(default_factory=list)
     #: planted blunders (generated blocks): their observations and non-centrality parameters
     #: in the adjustment with every observation (None: not computed yet)
     planted: dict | None = None
@@ -1772,8 +1774,10 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                 blk.n_rays -= sum(a[1] for a in blk.aside.values())
                 run["rejections"] = blk.rejections
                 run["planted"] = blk.planted
+                blk.reinstated = list(checkpoint.get("reinstated", []))
                 for key in ("robust_tol", "method", "mu", "nu", "cost", "initial_cost",
-                            "border_cov"):
+                            "border_cov", "reinstated", "snooping_confirmed",
+                            "snooping_group"):
                     if checkpoint.get(key) is not None:
                         run[key] = checkpoint[key]
                 run["rejected_points"] = blk.rejected_points.tolist()
@@ -1861,13 +1865,106 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
     (``opts.snooping_batch``) a round rejects, from the largest down, every significant
     observation whose neighbourhood -- the photos that see its point -- shares no photo
     with one taken already in the round: a blunder moves the tests of its own point's rays
-    and of the photos that see it most. Not yet confirmed against one-at-a-time snooping:
-    on SAPGO-P-3 with 20 planted blunders, seed 2 gave the same 20 rejections in 11
-    iterations instead of 60, seed 1 two more (22, one more planted blunder found), as
-    sigma0 and the photos' neighbours still couple the tests."""
+    and of the photos that see it most. When no test is significant any more, the batch
+    rejections are confirmed (:func:`_confirm`): a group of them with disjoint
+    neighbourhoods is brought back, the block adjusted, and each tested again among the
+    active observations; one whose test is no longer significant (it had taken the blame
+    of a blunder beside it) stays in, the others go again; then the rounds go on."""
+    while True:
+        if run.get("snooping_group"):   # a group brought back, the block adjusted with it
+            _confirm_finish(p, work, blk, opts, timings, log, run)
+            converged = _iterate(p, work, blk, opts, timings, log, run,
+                                 limit=len(log) + opts.max_iterations)
+        converged = _snoop_rounds(p, work, blk, opts, timings, log, run, converged)
+        if not opts.snooping_batch or not _confirm_start(p, work, blk, opts, run):
+            return converged
+        converged = _iterate(p, work, blk, opts, timings, log, run,
+                             limit=len(log) + opts.max_iterations)
+
+
+def _snooping_critical(opts):
     from .report import chi2_isf
 
-    crit = float(np.sqrt(chi2_isf(opts.snooping_alpha, 2)))
+    return float(np.sqrt(chi2_isf(opts.snooping_alpha, 2)))
+
+
+def _neighbourhood(p, i):
+    """Observation ``i``'s point, the point's observation range and records, and the photos
+    that see the point (the tests a rejection of ``i`` moves most)."""
+    j = int(p.read("observations", i, i + 1)[0]["point"])
+    pt = p.read("points", j, j + 1)[0]
+    o0, o1 = int(pt["obs_start"]), int(pt["obs_start"] + pt["n_obs"])
+    ob = p.read("observations", o0, o1)
+    return j, o0, o1, ob, set(ob["station"].tolist())
+
+
+def _confirm_start(p, work, blk, opts, run):
+    """One confirmation pass of batch snooping: of the rejections by test not yet confirmed
+    (``run["snooping_confirmed"]``) whose point keeps two rays without them, the largest
+    first, a group whose neighbourhoods (the photos that see the point) share no photo is
+    brought back, the block
+    adjusted, and each tested again: significant, it is rejected again; not, it stays in
+    (``blk.reinstated``; :func:`_confirm_finish`, once the block is adjusted with the group,
+    ``run["snooping_group"]`` meanwhile, so that a resumed run finishes it). Either way it
+    is confirmed (never brought back twice). Returns whether a group was brought back."""
+    confirmed = set(run.get("snooping_confirmed", []))
+    rejected = set(blk.rejected.tolist())
+    group, taken = [], set()
+    for r in sorted(blk.rejections, key=lambda r: -r["w"]):
+        i = int(r["observation"])
+        if r["by"] != "test" or i in confirmed:
+            continue
+        j, o0, o1, ob, photos = _neighbourhood(p, i)
+        live = [k for k in range(o0, o1) if ob["status"][k - o0] == STATUS_ACTIVE
+                and k not in rejected]
+        if len(live) < 2 or j in set(blk.rejected_points.tolist()):
+            confirmed.add(i)   # (its point went with it: it stays out)
+            continue
+        if photos & taken:
+            continue
+        taken |= photos
+        group.append(i)
+    run["snooping_confirmed"] = sorted(confirmed)
+    if not group:
+        return False
+    back = np.array(group, np.int64)
+    blk.rejected = blk.rejected[~np.isin(blk.rejected, back)]
+    blk.n_rays += len(back)
+    blk.rejections = [r for r in blk.rejections if int(r["observation"]) not in group]
+    run["rejections"] = blk.rejections
+    run["snooping_group"] = group
+    run["cost"] = _cost(p, work, blk, opts)
+    return True
+
+
+def _confirm_finish(p, work, blk, opts, timings, log, run):
+    """The tests of the group :func:`_confirm_start` brought back, the block adjusted with
+    it: each significant one is rejected again, the others stay in."""
+    group = [int(i) for i in run["snooping_group"]]
+    confirmed = set(run.get("snooping_confirmed", []))
+    t0 = time.perf_counter()
+    _, _, quality = _precision(p, work, blk, opts, _accepted(log)[-1]["sigma0"])
+    timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t0
+    crit = _snooping_critical(opts)
+    again = [i for i in group if quality[i][5] > crit]
+    for i in again:
+        blk.rejections.append({"observation": i, "w": float(quality[i][5]), "by": "test"})
+    if again:
+        blk.rejected = np.sort(np.concatenate([blk.rejected, np.array(again, np.int64)]))
+        blk.n_rays -= len(again)
+    blk.reinstated.extend(int(i) for i in group if i not in again)
+    run["reinstated"] = blk.reinstated
+    run["snooping_confirmed"] = sorted(confirmed | set(group))
+    run["snooping_group"] = []
+    run["rejections"] = blk.rejections
+    run["snooping_rounds"] = run.get("snooping_rounds", 0) + 1
+    run["cost"] = _cost(p, work, blk, opts)
+
+
+def _snoop_rounds(p, work, blk, opts, timings, log, run, converged):
+    """The rounds of :func:`_snoop` until no test is significant."""
+    crit = _snooping_critical(opts)
+    confirmed = set(run.get("snooping_confirmed", []))
     while len(blk.rejected) < opts.max_rejections:
         t0 = time.perf_counter()
         _, _, quality = _precision(p, work, blk, opts, _accepted(log)[-1]["sigma0"])
@@ -1901,11 +1998,12 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
             if len(batch) >= room:
                 break
             worst, best = cand_i[k], cand_t[k]
-            j = int(p.read("observations", worst, worst + 1)[0]["point"])
-            pt = p.read("points", j, j + 1)[0]
-            o0, o1 = int(pt["obs_start"]), int(pt["obs_start"] + pt["n_obs"])
-            ob = p.read("observations", o0, o1)
-            photos = set(ob["station"].tolist())
+            if worst in confirmed and len(batch):   # (brought back once: alone, as the largest)
+                continue
+            if worst in blk.reinstated:
+                blk.reinstated.remove(worst)
+                run["reinstated"] = blk.reinstated
+            j, o0, o1, ob, photos = _neighbourhood(p, worst)
             if photos & taken_photos:
                 continue   # (its tests move with a rejection of this round: next round)
             taken_photos |= photos
@@ -1973,18 +2071,22 @@ def _note_planted(p, blk, quality, run):
     run["planted"] = blk.planted
 
 
+def _observation_ids(p, blk, obs):
+    """``{"observation", "photo_id", "point_id"}`` of the observations ``obs``."""
+    out = []
+    for i in obs:
+        o = p.read("observations", int(i), int(i) + 1)[0]
+        out.append({"observation": int(i), "photo_id": int(blk.station_ids[o["station"]]),
+                    "point_id": int(p.read("points", int(o["point"]), int(o["point"]) + 1)[0]
+                                    ["id"])})
+    return out
+
+
 def _rejected_list(p, blk):
     """The observations data snooping rejected, in the order of rejection: photo and point
     ids, the test statistic and whether the test chose it or it went with its point."""
-    out = []
-    for r in blk.rejections:
-        i = int(r["observation"])
-        o = p.read("observations", i, i + 1)[0]
-        out.append({"observation": i, "photo_id": int(blk.station_ids[o["station"]]),
-                    "point_id": int(p.read("points", int(o["point"]), int(o["point"]) + 1)[0]
-                                    ["id"]),
-                    "w": float(r["w"]), "by": r["by"]})
-    return out
+    ids = _observation_ids(p, blk, [r["observation"] for r in blk.rejections])
+    return [dict(o, w=float(r["w"]), by=r["by"]) for o, r in zip(ids, blk.rejections)]
 
 
 def _blunder_check(p, blk, alpha):
@@ -2203,6 +2305,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         set_aside=list(blk.aside_log),
         image_unit=str(p_read.attr("image_unit", "mm") or "mm"),
         rejected=_rejected_list(p_read, blk),
+        reinstated=_observation_ids(p_read, blk, blk.reinstated),
         blunder_check=_blunder_check(p_read, blk, opts.snooping_alpha),
     )
     its = max(1, len(log))

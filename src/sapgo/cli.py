@@ -932,9 +932,10 @@ def build_parser():
                         "(default: they stay out, and the report says how many)")
     a.add_argument("--snooping-batch", action="store_true",
                    help="data snooping rejects in one round every significant test whose "
-                        "photos no other rejection of the round shares (far fewer rounds on "
-                        "large blocks; not yet confirmed against the default, the largest "
-                        "test alone each round)")
+                        "photos no other rejection of the round shares, then confirms the "
+                        "rejections (each brought back once and tested again; far fewer "
+                        "rounds on large blocks than the default, the largest test alone "
+                        "each round)")
     a.add_argument("--alpha", type=float, default=0.001,
                    help="significance level of data snooping (default 0.001: |w| > 3.29)")
     a.add_argument("--method", choices=("auto", "gauss-newton", "levenberg-marquardt"),

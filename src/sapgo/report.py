@@ -391,6 +391,9 @@ class Summary:
     image_unit: str = "mm"
     #: Observations rejected by data snooping (photo and point ids, normalised residual).
     rejected: list = dataclasses.field(default_factory=list)
+    #: Batch snooping: the observations it rejected and brought back when it confirmed its
+    #: rejections (their tests no longer significant), as ``rejected``'s entries without w.
+    reinstated: list = dataclasses.field(default_factory=list)
     #: Observations an earlier run rejected, kept out of this one (0 with
     #: ``--reset-rejections``, which brought ``rejections_reset`` of them back).
     rejections_kept: int = 0
@@ -584,6 +587,9 @@ class Summary:
             extra = len(self.rejected) - len(tested)
             L.append(f"  data snooping rejected {len(tested)} observation(s): {shown}{more}"
                      + (f"; {extra} more with their point" if extra else ""))
+        if self.reinstated:
+            L.append(f"  batch snooping brought back {len(self.reinstated)} observation(s) "
+                     f"when it confirmed its rejections (their tests no longer significant)")
         if self.blunder_check:
             b = self.blunder_check
             det = (f" ({b['found_detectable']} of the {b['detectable']} detectable at alpha "
