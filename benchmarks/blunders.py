@@ -122,8 +122,8 @@ def scale_child(path, mode, alpha):
         "sigma0": s.sigma0, "rejected": len(s.rejected),
         "reinstated": len(getattr(s, "reinstated", []) or []),
         "found": b.get("found"), "planted": b.get("planted"),
-        "false_rejections": b.get("false_rejections"),
-        "timings_s": s.timings_s}))
+        "false_rejections": b.get("false_rejections"), "detectable": b.get("detectable"),
+        "found_detectable": b.get("found_detectable"), "timings_s": s.timings_s}))
 
 
 def run_scale(n_photos, n_blunders, rounds, alpha):
@@ -174,19 +174,26 @@ def run_scale(n_photos, n_blunders, rounds, alpha):
                    "iterations": spread([x["iterations"] for x in v]),
                    "rejected": v[-1]["rejected"], "reinstated": v[-1]["reinstated"],
                    "found": v[-1]["found"], "planted": v[-1]["planted"],
-                   "false_rejections": v[-1]["false_rejections"]}
+                   "false_rejections": v[-1]["false_rejections"],
+                   "detectable": v[-1]["detectable"],
+                   "found_detectable": v[-1]["found_detectable"],
+                   "precision_s": spread([x["timings_s"].get("precision", 0.0) for x in v])}
                for m, v in rows.items()}
     summary["ratio_batch_to_plain"] = spread(ratios)
-    print("\n| mode | to solution s | iterations | rejected | planted blunders found | "
-          "false rejections | brought back |")
-    print("|---|---|---|---|---|---|---|")
+    print("\n| mode | to solution s | of which precision passes s | iterations | rejected | "
+          "planted blunders found | of them detectable (80 % power) | false rejections | "
+          "brought back |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for m in SCALE_MODES:
         x = summary[m]
         sec, it = x["seconds"], x["iterations"]
+        pr = x["precision_s"]
+        det = (f"{x['found_detectable']} of {x['detectable']}" if x["detectable"] is not None
+               else "")
         print(f"| {m} | {sec['median']:.1f} ({sec['min']:.1f}-{sec['max']:.1f}) | "
-              f"{it['median']:g} ({it['min']}-{it['max']}) | {x['rejected']} | "
-              f"{x['found']} of {x['planted']} | {x['false_rejections']} | "
-              f"{x['reinstated']} |")
+              f"{pr['median']:.1f} | {it['median']:g} ({it['min']}-{it['max']}) | "
+              f"{x['rejected']} | {x['found']} of {x['planted']} | {det} | "
+              f"{x['false_rejections']} | {x['reinstated']} |")
     rt = summary["ratio_batch_to_plain"]
     print(f"\nbatch snooping / plain, time to solution, same round: {rt['median']:.2f} "
           f"({rt['min']:.2f}-{rt['max']:.2f})")

@@ -131,6 +131,23 @@ def dense_reference(rec, calibrate=()):
             "null": np.abs(n @ hfull).max() / (np.abs(n).max() * np.abs(hfull).max())}
 
 
+def compare_solution(run, rec, ref):
+    """The adjusted project ``run``'s photos and points against the reference's (to 1e-6
+    m); returns them with their sigmas and the orders that match them to the reference."""
+    with Project(run) as p:
+        sid = p.read_field("stations", "id")
+        eo = p.read_field("stations", "eo") + p.solution("station_corr")
+        ssig = p.solution("station_sigma")
+        pid = p.read_field("points", "id")
+        xyz = p.read_field("points", "xyz") + p.solution("point_corr")
+        psig = p.solution("point_sigma")
+    so, ro = np.argsort(sid), np.argsort(rec["stations"]["id"])
+    po, rpo = np.argsort(pid), np.argsort(rec["points"]["id"])
+    np.testing.assert_allclose(xyz[po], ref["xyz"][rpo], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(eo[so, 3:], ref["eo"][ro, 3:], rtol=0, atol=1e-6)
+    return eo, ssig, xyz, psig, so, ro, po, rpo
+
+
 @pytest.mark.parametrize("solver", ["band", "tree"])
 def test_free_network_equals_the_dense_inner_constraints(free_block, reference, tmp_path,
                                                          solver):
@@ -142,17 +159,7 @@ def test_free_network_equals_the_dense_inner_constraints(free_block, reference, 
                                         tol_angle=1e-12, tol_cost=1e-14, max_iterations=60))
     assert s.converged and s.datum == "free" and s.precision is not None
     assert s.sigma0 == pytest.approx(reference["sigma0"], rel=1e-7)
-    with Project(run) as p:
-        sid = p.read_field("stations", "id")
-        eo = p.read_field("stations", "eo") + p.solution("station_corr")
-        ssig = p.solution("station_sigma")
-        pid = p.read_field("points", "id")
-        xyz = p.read_field("points", "xyz") + p.solution("point_corr")
-        psig = p.solution("point_sigma")
-    so, ro = np.argsort(sid), np.argsort(rec["stations"]["id"])
-    po, rpo = np.argsort(pid), np.argsort(rec["points"]["id"])
-    np.testing.assert_allclose(xyz[po], reference["xyz"][rpo], rtol=0, atol=1e-6)
-    np.testing.assert_allclose(eo[so, 3:], reference["eo"][ro, 3:], rtol=0, atol=1e-6)
+    eo, ssig, xyz, psig, so, ro, po, rpo = compare_solution(run, rec, reference)
     turn = np.angle(np.exp(1j * (eo[so, :3] - reference["eo"][ro, :3])))   # (mod 2 pi)
     np.testing.assert_allclose(turn, 0.0, rtol=0, atol=1e-9)
     np.testing.assert_allclose(psig[po], reference["point_sigma"][rpo], rtol=1e-7)
@@ -183,17 +190,7 @@ def test_self_calibrating_free_network_equals_the_dense_inner_constraints(
                                         calibrate=FREE_CALIB))
     assert s.converged and s.datum == "free" and s.precision is not None
     assert s.sigma0 == pytest.approx(ref["sigma0"], rel=1e-7)
-    with Project(run) as p:
-        sid = p.read_field("stations", "id")
-        eo = p.read_field("stations", "eo") + p.solution("station_corr")
-        ssig = p.solution("station_sigma")
-        pid = p.read_field("points", "id")
-        xyz = p.read_field("points", "xyz") + p.solution("point_corr")
-        psig = p.solution("point_sigma")
-    so, ro = np.argsort(sid), np.argsort(rec["stations"]["id"])
-    po, rpo = np.argsort(pid), np.argsort(rec["points"]["id"])
-    np.testing.assert_allclose(xyz[po], ref["xyz"][rpo], rtol=0, atol=1e-6)
-    np.testing.assert_allclose(eo[so, 3:], ref["eo"][ro, 3:], rtol=0, atol=1e-6)
+    eo, ssig, xyz, psig, so, ro, po, rpo = compare_solution(run, rec, ref)
     np.testing.assert_allclose(psig[po], ref["point_sigma"][rpo], rtol=1e-6)
     np.testing.assert_allclose(ssig[so], ref["station_sigma"][ro], rtol=1e-6)
     rows = {r["parameter"]: r for r in s.calibration}

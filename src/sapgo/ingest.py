@@ -1080,6 +1080,38 @@ def set_frame(frames, j, unit, px, py, w, h, origin, axis, where, zero_ok=False)
     frames.given[j] = where
 
 
+def camera_lines(paths, cam_ids, usage, ncols):
+    """The lines of per-camera files (``--image-frames``, ``--additional-parameters``):
+    yields ``(where, tokens, camera)`` for each line that is not blank or a comment, with
+    ``camera`` the id's place in ``cam_ids`` (any of its records); a line of fewer than
+    ``ncols[0]`` or more than ``ncols[1]`` columns, a camera not in ``cam_ids`` or given
+    twice is an error naming the file and line (``usage``: the columns, for the message)."""
+    seen = {}
+    for path in paths:
+        try:
+            lines = Path(path).read_text().splitlines()
+        except UnicodeDecodeError as exc:
+            raise DataError(f"{path}: not a text file ({exc.reason})") from None
+        for k, line in enumerate(lines, start=1):
+            t = line.split("#", 1)[0].split()
+            if not t:
+                continue
+            where = f"{path}:{k}"
+            if not ncols[0] <= len(t) <= ncols[1]:
+                raise DataError(f"{where}: expected {usage}, got {len(t)} column(s)")
+            try:
+                cid = int(t[0])
+            except ValueError:
+                raise DataError(f"{where}: camera {t[0]!r} is not an id") from None
+            hit = np.flatnonzero(cam_ids == cid)
+            if not len(hit):
+                raise DataError(f"{where}: camera {cid} is not in the cameras file(s)")
+            if cid in seen:
+                raise DataError(f"{where}: camera {cid} has a line already ({seen[cid]})")
+            seen[cid] = where
+            yield where, t, int(hit[0])
+
+
 #: The /cameras fields of the additional-parameter sets (``--additional-parameters``).
 AP_FIELDS = ("ap_set", "ap_base") + AP_NAMES
 
@@ -1093,65 +1125,45 @@ def read_additional_parameters(paths, cams):
     for ``ebner``, 44 for ``gruen``; the rest 0). Errors name the file and line."""
     from .apsets import AP_SETS, DEFAULT_BASE_FRACTION, N_TERMS
 
-    seen = {}
-    for path in paths:
-        try:
-            lines = Path(path).read_text().splitlines()
-        except UnicodeDecodeError as exc:
-            raise DataError(f"{path}: not a text file ({exc.reason})") from None
-        for k, line in enumerate(lines, start=1):
-            t = line.split("#", 1)[0].split()
-            if not t:
-                continue
-            where = f"{path}:{k}"
-            if len(t) < 3:
-                raise DataError(f"{where}: expected camera set base [a1 ... aN] (set one of "
-                                f"{', '.join(AP_SETS)}), got {len(t)} column(s)")
+    usage = f"camera set base [a1 ... aN] (set one of {', '.join(AP_SETS)})"
+    for where, t, _ in camera_lines(paths, cams["id"], usage, (3, 3 + len(AP_NAMES))):
+        cid = int(t[0])
+        rows = np.flatnonzero(cams["id"] == cid)
+        if t[1].lower() not in AP_SETS:
+            raise DataError(f"{where}: additional-parameter set {t[1]!r}: one of "
+                            f"{', '.join(AP_SETS)}")
+        s = AP_SETS.index(t[1].lower())
+        n = int(N_TERMS[s])
+        if len(t) > 3 + n:
+            raise DataError(f"{where}: the {AP_SETS[s]} set has {n} coefficient(s), "
+                            f"got {len(t) - 3}")
+        if t[2].lower() == "auto":
+            side = float(max(cams["format_x"][rows[0]], cams["format_y"][rows[0]]))
+            base = DEFAULT_BASE_FRACTION * side
+            if s and not base > 0:
+                raise DataError(f"{where}: base auto needs camera {cid}'s format "
+                                f"(format_x, format_y in the cameras file); give the "
+                                f"base in mm")
+        else:
             try:
-                cid = int(t[0])
+                base = float(t[2])
             except ValueError:
-                raise DataError(f"{where}: camera {t[0]!r} is not an id") from None
-            rows = np.flatnonzero(cams["id"] == cid)
-            if not len(rows):
-                raise DataError(f"{where}: camera {cid} is not in the cameras file(s)")
-            if cid in seen:
-                raise DataError(f"{where}: camera {cid} has a line already ({seen[cid]})")
-            seen[cid] = where
-            if t[1].lower() not in AP_SETS:
-                raise DataError(f"{where}: additional-parameter set {t[1]!r}: one of "
-                                f"{', '.join(AP_SETS)}")
-            s = AP_SETS.index(t[1].lower())
-            n = int(N_TERMS[s])
-            if len(t) > 3 + n:
-                raise DataError(f"{where}: the {AP_SETS[s]} set has {n} coefficient(s), "
-                                f"got {len(t) - 3}")
-            if t[2].lower() == "auto":
-                side = float(max(cams["format_x"][rows[0]], cams["format_y"][rows[0]]))
-                base = DEFAULT_BASE_FRACTION * side
-                if s and not base > 0:
-                    raise DataError(f"{where}: base auto needs camera {cid}'s format "
-                                    f"(format_x, format_y in the cameras file); give the "
-                                    f"base in mm")
-            else:
-                try:
-                    base = float(t[2])
-                except ValueError:
-                    base = float("nan")
-                if s and not (np.isfinite(base) and base > 0):
-                    raise DataError(f"{where}: base {t[2]!r} must be a positive number (mm) "
-                                    f"or auto")
-            coef = np.zeros(len(AP_NAMES))
-            for j, tok in enumerate(t[3:]):
-                try:
-                    coef[j] = float(tok)
-                except ValueError:
-                    coef[j] = float("nan")
-                if not np.isfinite(coef[j]):
-                    raise DataError(f"{where}: a{j + 1} {tok!r} is not a finite number")
-            cams["ap_set"][rows] = s
-            cams["ap_base"][rows] = base if s else 0.0
-            for j, name in enumerate(AP_NAMES):
-                cams[name][rows] = coef[j]
+                base = float("nan")
+            if s and not (np.isfinite(base) and base > 0):
+                raise DataError(f"{where}: base {t[2]!r} must be a positive number (mm) "
+                                f"or auto")
+        coef = np.zeros(len(AP_NAMES))
+        for j, tok in enumerate(t[3:]):
+            try:
+                coef[j] = float(tok)
+            except ValueError:
+                coef[j] = float("nan")
+            if not np.isfinite(coef[j]):
+                raise DataError(f"{where}: a{j + 1} {tok!r} is not a finite number")
+        cams["ap_set"][rows] = s
+        cams["ap_base"][rows] = base if s else 0.0
+        for j, name in enumerate(AP_NAMES):
+            cams[name][rows] = coef[j]
 
 
 def read_image_frames(paths, cam_ids):
@@ -1162,40 +1174,18 @@ def read_image_frames(paths, cam_ids):
     ``up`` or ``down``). Returns :class:`ImageFrames` over the cameras' records. Errors
     name the file and line."""
     frames = ImageFrames(len(cam_ids))
-    seen = {}
-    for path in paths:
-        try:
-            lines = Path(path).read_text().splitlines()
-        except UnicodeDecodeError as exc:
-            raise DataError(f"{path}: not a text file ({exc.reason})") from None
-        for k, line in enumerate(lines, start=1):
-            t = line.split("#", 1)[0].split()
-            if not t:
-                continue
-            where = f"{path}:{k}"
-            if len(t) != 8:
-                raise DataError(f"{where}: expected 8 columns (camera unit pixel_x pixel_y "
-                                f"width height origin y_axis), got {len(t)}")
-            try:
-                cid = int(t[0])
-            except ValueError:
-                raise DataError(f"{where}: camera {t[0]!r} is not an id") from None
-            j = int(np.searchsorted(cam_ids, cid))
-            if j >= len(cam_ids) or cam_ids[j] != cid:
-                raise DataError(f"{where}: camera {cid} is not in the cameras file(s)")
-            if j in seen:
-                raise DataError(f"{where}: camera {cid} has a line already ({seen[j]})")
-            seen[j] = where
-            unit, origin, axis = t[1], t[6], t[7]
-            if unit not in IMAGE_UNITS:
-                raise DataError(f"{where}: unit {unit!r}: mm or px")
-            if origin not in IMAGE_ORIGINS:
-                raise DataError(f"{where}: origin {origin!r}: one of "
-                                f"{', '.join(IMAGE_ORIGINS)}")
-            if axis not in ("up", "down"):
-                raise DataError(f"{where}: y axis {axis!r}: up or down")
+    usage = "8 columns (camera unit pixel_x pixel_y width height origin y_axis)"
+    for where, t, j in camera_lines(paths, np.asarray(cam_ids), usage, (8, 8)):
+        unit, origin, axis = t[1], t[6], t[7]
+        if unit not in IMAGE_UNITS:
+            raise DataError(f"{where}: unit {unit!r}: mm or px")
+        if origin not in IMAGE_ORIGINS:
+            raise DataError(f"{where}: origin {origin!r}: one of "
+                            f"{', '.join(IMAGE_ORIGINS)}")
+        if axis not in ("up", "down"):
+            raise DataError(f"{where}: y axis {axis!r}: up or down")
 
-            set_frame(frames, j, unit, t[2], t[3], t[4], t[5], origin, axis, where)
+        set_frame(frames, j, unit, t[2], t[3], t[4], t[5], origin, axis, where)
     return frames
 
 
