@@ -147,19 +147,17 @@ def ap_displacement(u, v, s, base, a):
 @njit(cache=True, nogil=True)
 def ap_partials(u, v, s, base, sign, e, col):
     """The terms of set ``s`` at ``(u, v)`` times ``sign``: ``e[0, col + t]`` and
-    ``e[1, col + t]`` the x and y displacement per unit of coefficient ``t`` (zero for the
-    set's unused coefficients up to 44)."""
+    ``e[1, col + t]`` the x and y displacement per unit of coefficient ``t`` of the set's
+    (the entries of coefficients beyond the set are left as they are: no camera has them
+    to adjust)."""
+    n = N_TERMS[s]
+    if n == 0:
+        return
     px = np.empty(5)
     dpx = np.empty(5)
     py = np.empty(5)
     dpy = np.empty(5)
     terms = TERMS[s]
-    n = N_TERMS[s]
-    for t in range(n, MAX_TERMS):
-        e[0, col + t] = 0.0
-        e[1, col + t] = 0.0
-    if n == 0:
-        return
     _poly(POLY[s], u / base, px, dpx)
     _poly(POLY[s], v / base, py, dpy)
     for t in range(n):

@@ -454,7 +454,8 @@ def camera_partials(eo, xyz, c, e, ox, oy):
     """Partial derivatives of an observation's residual by the camera's border parameters.
 
     Fills ``e`` (2 x :data:`N_CALIBRATION`) with d(x, y) / d(f, x0, y0, k1 f^2, k2 f^4,
-    k3 f^6, p1 f, p2 f, b1, b2, a1, ..., a44) at station ``eo``, object point ``xyz``, camera row ``c``
+    k3 f^6, p1 f, p2 f, b1, b2, a1, ..., a44; the coefficients beyond the camera's
+    additional-parameter set left as they are) at station ``eo``, object point ``xyz``, camera row ``c``
     and measurement ``(ox, oy)`` (each scaled border parameter :data:`CALIBRATION_POWERS`,
     f held at its current value in the scaling), of the residual ``computed - observed`` of
     the module docstring. Forward model: ``d xi / d f = xi / f`` through the distortion's

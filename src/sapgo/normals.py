@@ -526,6 +526,13 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     cams_v = cams if cams_new is None else cams_new
     eps = np.empty(3)
     e_new = np.empty(6)
+    # per camera row: its fields up to the last one the step moves (0: none)
+    moved = np.zeros(cams.shape[0], np.int64)
+    if dtheta is not None:
+        for c in range(dtheta.shape[0]):
+            for f in range(N_CALIBRATION):
+                if dtheta[c, f] != 0.0:
+                    moved[c] = f + 1
     for j in range(pt_xyz.shape[0]):
         if pt_active[j] != 0:
             xyz_out[j] = pt_xyz[j]
@@ -555,16 +562,12 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             for q in range(k):
                 s = st_all[q]
                 cam = cam_of_station[s]
-                moved = False
-                for f in range(N_CALIBRATION):
-                    if dtheta[cam, f] != 0.0:
-                        moved = True
-                if not moved:
+                if moved[cam] == 0:
                     continue
                 camera_partials(eo[s], xyz, cams[cam], e, o_all[q, 0], o_all[q, 1])
                 dx = 0.0
                 dy = 0.0
-                for f in range(N_CALIBRATION):
+                for f in range(moved[cam]):
                     dx += e[0, f] * dtheta[cam, f]
                     dy += e[1, f] * dtheta[cam, f]
                 p = w_all[q]
