@@ -102,6 +102,31 @@ def test_lens_distortion_that_folds_the_image_is_refused(small_block, capsys):
     assert digest(small_block) == before
 
 
+@pytest.mark.parametrize("field, value, words", [
+    ("ap_set", 3, ["additional-parameter set 3", "none, ebner, gruen"]),
+    ("ap_base", 0.0, ["base of its ebner set must be positive"]),
+    ("a5", np.nan, ["a5 is NaN"]),
+    ("a1", 0.05, ["folds the image over"]),
+])
+def test_bad_additional_parameters_in_a_project_are_refused(small_block, capsys, field,
+                                                            value, words):
+    """A project whose camera holds an unknown additional-parameter set, a set without a
+    base, a coefficient that is not finite, or coefficients that fold the image (50 um of
+    Ebner's b1 per unit xi: the scale term): a one-line error naming the camera, the
+    project unchanged."""
+    rec = read_records(small_block)
+    cams = rec["cameras"]
+    cams["ap_set"], cams["ap_base"] = 1, 92.0
+    cams[field] = value
+    if field == "a1":
+        cams["a1"] = -100.0   # (a scale of -100 mm per 92 mm: folds the image)
+    rewrite(small_block, rec)
+    before = digest(small_block)
+    assert_one_line_error(*run_cli(capsys, "adjust", small_block)[::2], "cameras record 0",
+                          "(id 1)", *words)
+    assert digest(small_block) == before
+
+
 def test_generator_distortion_from_the_command_line(tmp_path, capsys):
     code, out, err = run_cli(capsys, "generate", "--strips", "2", "--photos-per-strip", "4",
                              "--control-points", "6", "--distortion=-2e-8,0,0,1e-6,0",

@@ -529,7 +529,7 @@ SOLVERS = ("auto", "band", "tree")
 
 @writes_project("order", "path")
 def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver="auto",
-                  leaf_stations=None, out=None, reset_rejections=False):
+                  leaf_stations=None, out=None, reset_rejections=False, checked=False):
     """Order a project: exclusions, station order, point order, records rewritten.
 
     ``method`` is ``"best"`` (smallest band width of all candidates) or one candidate name
@@ -545,7 +545,8 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
     the ordered project is written there instead (attribute ``ordered_from``: the uuid of
     ``path``) and ``path`` is left as it was (``sapgo adjust`` orders into its commit).
     ``reset_rejections``: observations rejected by an earlier run (data snooping) are
-    active again in the ordered project.
+    active again in the ordered project. ``checked``: the caller has checked the
+    project's values already (:func:`sapgo.validate.check_values`; ``sapgo adjust``).
     """
     import time
 
@@ -556,7 +557,8 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
     path = Path(path)
     work = path.with_name(path.name + ".order.work")
     with Project(path, "r") as p:
-        check_values(p, ordered_layout=False)
+        if not checked:   # (sapgo adjust has checked them just before)
+            check_values(p, ordered_layout=False)
         if solver not in SOLVERS:
             raise ParameterError(f"unknown solver {solver!r}; choose from {', '.join(SOLVERS)}")
         try:

@@ -9,7 +9,16 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import DataError
-from .geometry import BACKWARD, DISTORTION_MODELS, FORWARD, brown, camera_array, undistort
+from .apsets import AP_SETS, N_TERMS
+from .geometry import (
+    AP_NAMES,
+    BACKWARD,
+    DISTORTION_MODELS,
+    FORWARD,
+    brown,
+    camera_array,
+    undistort,
+)
 from .project import (
     CONTROL_MASK,
     KIND_CHECK,
@@ -65,9 +74,17 @@ def check_values(project: Project, ordered_layout=True):
         raise DataError(f"{path}: the project has no station (photo)")
     cams = project.cameras()
     for f in ("focal_length", "x0", "y0", "format_x", "format_y", "sigma_image",
-              "k1", "k2", "k3", "p1", "p2", "b1", "b2"):
+              "k1", "k2", "k3", "p1", "p2", "b1", "b2", "ap_base") + AP_NAMES:
         _check_finite("cameras", 0, cams["id"], f, cams[f])
     for i, c in enumerate(cams):
+        if not 0 <= c["ap_set"] < len(AP_SETS):
+            raise DataError(f"cameras record {i} (id {c['id']}): additional-parameter set "
+                            f"{c['ap_set']} is none of 0 .. {len(AP_SETS) - 1} "
+                            f"({', '.join(AP_SETS)})")
+        if c["ap_set"] and not c["ap_base"] > 0:
+            raise DataError(f"cameras record {i} (id {c['id']}): the base of its "
+                            f"{AP_SETS[int(c['ap_set'])]} set must be positive (mm), not "
+                            f"{c['ap_base']:g}")
         if c["distortion_model"] not in (FORWARD, BACKWARD):
             raise DataError(f"cameras record {i} (id {c['id']}): distortion model "
                             f"{c['distortion_model']} is neither {FORWARD} (forward) nor "
@@ -82,7 +99,9 @@ def check_values(project: Project, ordered_layout=True):
                 f"cameras record {i} (id {c['id']}): the lens distortion (k1 {c['k1']:g}, "
                 f"k2 {c['k2']:g}, k3 {c['k3']:g}, p1 {c['p1']:g}, p2 {c['p2']:g}, "
                 f"b1 {c['b1']:g}, b2 {c['b2']:g}, "
-                f"{DISTORTION_MODELS[int(c['distortion_model'])]} model) folds the "
+                + (f"its {AP_SETS[int(c['ap_set'])]} set's a1 .. a{int(N_TERMS[c['ap_set']])}, "
+                   if c["ap_set"] else "")
+                + f"{DISTORTION_MODELS[int(c['distortion_model'])]} model) folds the "
                 f"image over at ({fold[0]:.1f}, {fold[1]:.1f}) mm from the principal point, "
                 f"inside the format: check the coefficients and their units (k1 mm^-2, "
                 f"k2 mm^-4, k3 mm^-6, p1 and p2 mm^-1)"
@@ -274,7 +293,8 @@ def _distortion_fold(cam):
     principal point: ideal points for the forward model, measured ones for the backward)
     where the distortion mapping stops being one-to-one (Jacobian determinant <= 0), else
     None."""
-    if all(cam[k] == 0 for k in ("k1", "k2", "k3", "p1", "p2", "b1", "b2")):
+    if (all(cam[k] == 0 for k in ("k1", "k2", "k3", "p1", "p2", "b1", "b2"))
+            and cam["ap_set"] == 0):
         return None
     row = camera_array(np.asarray(cam).reshape(1))[0]
     hx, hy = 0.5 * cam["format_x"], 0.5 * cam["format_y"]
