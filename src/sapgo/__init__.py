@@ -13,6 +13,18 @@ Python entry points (each command of the ``sapgo`` tool calls one of these)::
 
 __version__ = "0.1.0"
 
+import os as _os
+
+#: How long OpenBLAS's threads spin for more work after a call before they sleep: 2^20
+#: cycles (about 0.4 ms) instead of OpenBLAS's 2^28 (about 0.1 s). Between the tree's BLAS
+#: calls and the numba kernels running on both threads after them, spinning threads took a
+#: core from the kernels: the point update ran at half speed (100 x 100 block: update 0.034
+#: -0.047 s an iteration against 0.016-0.019, time to solution 2.06-2.19 s against
+#: 1.90-1.95 s, 3 interleaved rounds; strips and the 200 x 200 block unchanged). OpenBLAS
+#: reads it when it is loaded: effective when sapgo is imported before numpy and SciPy (the
+#: ``sapgo`` command always is); a value the environment sets already is kept.
+_os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
+
 from . import kernelcache as _kernelcache  # noqa: E402
 
 _kernelcache.configure(__version__)   # (before any module defines a kernel)
