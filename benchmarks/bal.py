@@ -266,7 +266,9 @@ def run_sapgo(path, workdir, tol_name, intrinsics):
 
 
 def _snavely_class():
-    import pyceres
+    from colmap import import_other
+
+    pyceres = import_other("pyceres")
 
     def skew(v):
         return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
@@ -487,8 +489,9 @@ def main(argv=None):
     out = args.out
     if out is None and set(names) == set(PROBLEMS):
         out = Path(__file__).parent / "results" / "bal.json"
-    import pycolmap
+    from colmap import import_pycolmap
 
+    pycolmap = import_pycolmap()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         warm = Path(tmp) / "warm.h5"

@@ -322,6 +322,30 @@ def parse_progress(text):
     return rows
 
 
+def import_other(name):
+    """Module ``name`` of another tool (pycolmap, pyceres), its statically linked OpenBLAS
+    loaded with OpenBLAS's own spin time (28) when sapgo set its own
+    (``sapgo.BLAS_TIMEOUT_SET``: the variable is read when a library loads, so sapgo's
+    libraries keep 20 and the other tool runs as it does alone)."""
+    import importlib
+
+    key = "OPENBLAS_THREAD_TIMEOUT"
+    old = os.environ.get(key)
+    if sapgo.BLAS_TIMEOUT_SET:
+        os.environ[key] = "28"
+    try:
+        return importlib.import_module(name)
+    finally:
+        if old is not None:
+            os.environ[key] = old
+
+
+def import_pycolmap():
+    """pycolmap and its pyceres (:func:`import_other`)."""
+    import_other("pycolmap.pyceres")
+    return import_other("pycolmap")
+
+
 def solver_configs(n_photos, pycolmap):
     import pycolmap.pyceres as pc
 
@@ -660,8 +684,7 @@ def main(argv=None):
     ap.add_argument("--output", default=str(RESULTS))
     args = ap.parse_args(argv)
     try:
-        import pycolmap
-        import pycolmap.pyceres
+        pycolmap = import_pycolmap()
     except ImportError:
         raise SystemExit("this benchmark needs pycolmap: pip install pycolmap")
     pycolmap_version = pycolmap.__version__

@@ -215,8 +215,13 @@ def run_child(*args):
     # process it was forked from, which would floor every figure at this script's size
     from scale import LAUNCH
 
+    env = dict(os.environ)
+    if args[0] != "sapgo" and sapgo.BLAS_TIMEOUT_SET:
+        # (sapgo's own OpenBLAS spin time is its setting, not the other tools')
+        env["OPENBLAS_THREAD_TIMEOUT"] = "28"   # (OpenBLAS's default)
     proc = subprocess.run([sys.executable, "-S", "-c", LAUNCH, sys.executable, __file__,
-                           "--child", *map(str, args)], capture_output=True, text=True)
+                           "--child", *map(str, args)], capture_output=True, text=True,
+                          env=env)
     ch1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     # the CPU time other processes took meanwhile (the run's own process not counted)
     child = (ch1.ru_utime + ch1.ru_stime) - (ch0.ru_utime + ch0.ru_stime)

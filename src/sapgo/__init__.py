@@ -23,6 +23,8 @@ import os as _os
 #: 1.90-1.95 s, 3 interleaved rounds; strips and the 200 x 200 block unchanged). OpenBLAS
 #: reads it when it is loaded: effective when sapgo is imported before numpy and SciPy (the
 #: ``sapgo`` command always is); a value the environment sets already is kept.
+#: Whether sapgo set it (benchmarks give other tools OpenBLAS's own default, 28, then).
+BLAS_TIMEOUT_SET = "OPENBLAS_THREAD_TIMEOUT" not in _os.environ
 _os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "20")
 
 from . import kernelcache as _kernelcache  # noqa: E402
