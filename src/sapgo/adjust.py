@@ -172,9 +172,8 @@ class Options:
     #: Data snooping rejects at most this many observations.
     max_rejections: int = 1000
     #: Data snooping rejects, each round, every significant observation whose photos are
-    #: not those of one rejected already in the round (:func:`_snoop`; not yet confirmed
-    #: against one-at-a-time snooping); False (the default): the largest alone, one round a
-    #: rejection.
+    #: not those of one rejected already in the round, and confirms its rejections at the
+    #: end (:func:`_snoop`); False (the default): the largest alone, one round a rejection.
     snooping_batch: bool = False
     #: Bring back the observations an earlier run rejected (data snooping flags them
     #: rejected in the project; without this they stay out, and the report says how many).
