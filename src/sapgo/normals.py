@@ -302,6 +302,19 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
 
 
 @njit(cache=True, nogil=True)
+def _add_border_rows(out, scale, e, cal_row, b_q):
+    """``out[g] += scale (e[0, f] b_q[0] + e[1, f] b_q[1])`` for each calibrated field ``f``
+    of a ray (``g = cal_row[f]``, its border column; ``e`` the ray's border partials,
+    ``b_q`` its 2 x 3 partials by the point): the ray's share of ``Nbar_g = sum p E' B``."""
+    for f in range(N_CALIBRATION):
+        g = cal_row[f]
+        if g < 0:
+            continue
+        for c in range(3):
+            out[g, c] += scale * (e[0, f] * b_q[0, c] + e[1, f] * b_q[1, c])
+
+
+@njit(cache=True, nogil=True)
 def _ray_border(eo, xyz, c, cal_row, e, ox, oy):
     """The border partials ``e`` (2 x N_CALIBRATION) of a ray (measured at ``ox, oy``) of a
     camera with calibrated parameters (``cal_row``, the camera's row of ``cal``); False
@@ -732,13 +745,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                 if not _ray_border(eo[s], xyz, cams[cam], cal[cam], ec, o_all[q, 0],
                                    o_all[q, 1]):
                     continue
-                p = w_all[q]
-                for f in range(N_CALIBRATION):
-                    cg = cal[cam, f]
-                    if cg < 0:
-                        continue
-                    for c in range(3):
-                        vb[cg, c] -= p * (ec[0, f] * b_all[q, 0, c] + ec[1, f] * b_all[q, 1, c])
+                _add_border_rows(vb, -w_all[q], ec, cal[cam], b_all[q])
             kind = pt_kind[j]
             for c in range(3):  # a fixed component is no unknown
                 if ctrl_mask[kind, c] and pt_csig[j, c] == 0.0:
@@ -1036,17 +1043,13 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             cam = cam_of_station[s]
             if not _ray_border(eo[s], xyz, cams[cam], cal[cam], e, o_all[q, 0], o_all[q, 1]):
                 continue
-            p = w_all[q]
             for f in range(N_CALIBRATION):
                 c1 = cal[cam, f]
-                if c1 < 0:
-                    continue
-                if not seen[c1]:
+                if c1 >= 0 and not seen[c1]:
                     seen[c1] = True
                     touched[nt] = c1
                     nt += 1
-                for r in range(3):
-                    ngp[c1, r] += p * (e[0, f] * b_all[q, 0, r] + e[1, f] * b_all[q, 1, r])
+            _add_border_rows(ngp, w_all[q], e, cal[cam], b_all[q])
         kind = pt_kind[j]
         for r in range(3):  # a fixed control component is no unknown (as in _point_system)
             if ctrl_mask[kind, r] and pt_csig[j, r] == 0.0:
