@@ -721,6 +721,15 @@ def test_batch_snooping_confirmed_rejects_what_one_at_a_time_rejects(block_cache
     for photo, point in batch - one:
         assert abs(_statistic(tmp_path / "False.h5", photo, point) / crit - 1.0) < 0.01
     assert len(batch - one) <= 2
+    # the report says how many good observations test significant by chance at this alpha
+    import re
+
+    n = out[True][3].n_observations
+    line = re.search(r"at alpha 0.001 about (\d+) of the (\d+) observations test "
+                     r"significant by chance.*choose alpha near ([0-9.e+-]+)\)",
+                     out[True][3].full_report())
+    assert line and int(line[2]) == n and int(line[1]) == round(0.001 * n)
+    assert float(line[3]) == pytest.approx(1.0 / n, rel=0.2)
     # what the confirmation brought back is in, with its test below the critical value
     for r in out[True][3].reinstated:
         assert (r["photo_id"], r["point_id"]) not in batch

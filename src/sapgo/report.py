@@ -587,6 +587,12 @@ class Summary:
             extra = len(self.rejected) - len(tested)
             L.append(f"  data snooping rejected {len(tested)} observation(s): {shown}{more}"
                      + (f"; {extra} more with their point" if extra else ""))
+            alpha = (self.reliability or {}).get("alpha")
+            if alpha and alpha * self.n_observations >= 1.0:
+                L.append(f"  (at alpha {alpha:g} about {alpha * self.n_observations:.0f} of "
+                         f"the {self.n_observations} observations test significant by "
+                         f"chance, blunder or not: on a block this size choose alpha near "
+                         f"{1.0 / self.n_observations:.0e})")
         if self.reinstated:
             L.append(f"  batch snooping brought back {len(self.reinstated)} observation(s) "
                      f"when it confirmed its rejections (their tests no longer significant)")
