@@ -1865,7 +1865,7 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
     observation whose neighbourhood -- the photos that see its point -- shares no photo
     with one taken already in the round: a blunder moves the tests of its own point's rays
     and of the photos that see it most. When no test is significant any more, the batch
-    rejections are confirmed (:func:`_confirm`): a group of them with disjoint
+    rejections are confirmed (:func:`_confirm_start`, :func:`_confirm_finish`): a group of them with disjoint
     neighbourhoods is brought back, the block adjusted, and each tested again among the
     active observations; one whose test is no longer significant (it had taken the blame
     of a blunder beside it) stays in, the others go again; then the rounds go on."""
@@ -1908,6 +1908,7 @@ def _confirm_start(p, work, blk, opts, run):
     is confirmed (never brought back twice). Returns whether a group was brought back."""
     confirmed = set(run.get("snooping_confirmed", []))
     rejected = set(blk.rejected.tolist())
+    gone = set(blk.rejected_points.tolist())
     group, taken = [], set()
     for r in sorted(blk.rejections, key=lambda r: -r["w"]):
         i = int(r["observation"])
@@ -1916,7 +1917,7 @@ def _confirm_start(p, work, blk, opts, run):
         j, o0, o1, ob, photos = _neighbourhood(p, i)
         live = [k for k in range(o0, o1) if ob["status"][k - o0] == STATUS_ACTIVE
                 and k not in rejected]
-        if len(live) < 2 or j in set(blk.rejected_points.tolist()):
+        if len(live) < 2 or j in gone:
             confirmed.add(i)   # (its point went with it: it stays out)
             continue
         if photos & taken:
@@ -1999,13 +2000,13 @@ def _snoop_rounds(p, work, blk, opts, timings, log, run, converged):
             worst, best = cand_i[k], cand_t[k]
             if worst in confirmed and len(batch):   # (brought back once: alone, as the largest)
                 continue
-            if worst in blk.reinstated:
-                blk.reinstated.remove(worst)
-                run["reinstated"] = blk.reinstated
             j, o0, o1, ob, photos = _neighbourhood(p, worst)
             if photos & taken_photos:
                 continue   # (its tests move with a rejection of this round: next round)
             taken_photos |= photos
+            if worst in blk.reinstated:   # (brought back once, significant again now)
+                blk.reinstated.remove(worst)
+                run["reinstated"] = blk.reinstated
             batch.append((worst, best, j, o0, o1, ob))
         for worst, best, j, o0, o1, ob in batch:
             # a point left with fewer than two rays cannot be determined: all its rays go
