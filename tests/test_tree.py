@@ -431,3 +431,47 @@ def test_bordered_tree_solve_equals_dense(tmp_path):
         # x'b of the solution = y'y + t'S^-1 t
         assert sol.y_norm2 + decrease == pytest.approx(np.r_[d, g] @ want, rel=1e-10)
         sol.close()
+
+
+def test_large_strip_block_keeps_the_band_without_partitioning_it(monkeypatch):
+    """``choose_solver`` on a block above ``SCREEN_STATIONS``: a long strip block is settled
+    by the tree of a window of the band order (the whole block is never partitioned, and
+    the choice is the one the whole tree gives); a square block goes on to its tree."""
+    import sapgo.ordering as ordering
+    import sapgo.solve.partition as partition
+
+    monkeypatch.setattr(ordering, "SCREEN_STATIONS", 1000)
+    monkeypatch.setattr(ordering, "WINDOW_STATIONS", 600)
+    calls = []
+    real = partition.best_tree
+
+    def counting(pos, active, *a, **kw):
+        calls.append(int(np.count_nonzero(active)))
+        return real(pos, active, *a, **kw)
+
+    monkeypatch.setattr(partition, "best_tree", counting)
+
+    def band_order(nx, ny):   # across the strips: photo j of every strip, then j + 1
+        return np.arange(nx * ny).reshape(ny, nx).T.ravel()
+
+    def band_width(nx, ny, edges):
+        perm = band_order(nx, ny)
+        pos = np.empty(nx * ny, np.int64)
+        pos[perm] = np.arange(nx * ny)
+        return ordering.band_width_of(pos, edges)
+
+    pos, edges = grid_graph(800, 4)           # 3 200 stations in 4 strips
+    b = band_width(800, 4, edges)
+    tree, _, pred = ordering.choose_solver(pos, np.ones(3200, bool), edges, b,
+                                           band_perm=band_order(800, 4))
+    assert tree is None and calls == [600] and pred["tree_window"] > 2 * pred["band"]
+    calls.clear()
+    tree_all, _, pred_all = ordering.choose_solver(pos, np.ones(3200, bool), edges, b)
+    assert tree_all is None and calls == [3200]   # the whole tree agrees
+    assert pred["tree_window"] <= 1.2 * pred_all["tree"]
+    calls.clear()
+    pos, edges = grid_graph(40, 40)           # 1 600 stations, square
+    b = band_width(40, 40, edges)
+    tree, _, pred = ordering.choose_solver(pos, np.ones(1600, bool), edges, b,
+                                           band_perm=band_order(40, 40))
+    assert calls == [600, 1600] and tree is not None and pred["tree"] < pred["band"]

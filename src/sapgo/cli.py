@@ -116,7 +116,8 @@ def cmd_order(args):
     else:
         _say(f"band width after:  {r.band_width}  ({r.ordering}; candidates: {cands})")
     if r.predicted:
-        pred = ", ".join(f"{k} {v:.3g} s" for k, v in r.predicted.items())
+        names = {"tree_window": "tree (scaled from a window of the band order)"}
+        pred = ", ".join(f"{names.get(k, k)} {v:.3g} s" for k, v in r.predicted.items())
         _say(f"predicted factorisation: {pred}")
     return 0
 

@@ -613,10 +613,48 @@ TREE_NODE_SECONDS = 2e-4
 TREE_FIXED_SECONDS = 0.01
 
 
-def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stations=None):
+#: Above this many active stations ``choose_solver`` first screens the tree on a window of
+#: the band order (:func:`_window_tree_seconds`) before it partitions the whole block.
+SCREEN_STATIONS = 50_000
+#: Stations in that window.
+WINDOW_STATIONS = 20_000
+
+
+def _window_tree_seconds(pos, active, edges, band_perm, leaf_stations, k):
+    """The tree's predicted factorisation time of the whole block scaled from the tree of
+    ``WINDOW_STATIONS`` consecutive active stations in the middle of the band order: the
+    window's tree is built (both methods, :func:`~sapgo.solve.partition.best_tree`) and its
+    flops and nodes per station times the block's active stations.
+
+    A screen, not a prediction: eliminating an induced subgraph never fills more than the
+    whole graph does among its vertices, so the block's factor costs at least the sum over
+    disjoint windows, and a window of a long strip is like any other. On a square or
+    irregular block the window (a few rows across the band) is cheap and the screen lets
+    the whole block be partitioned."""
+    from .solve.partition import best_tree
+
+    n_st = len(active)
+    act = np.asarray(band_perm, np.int64)[:int(np.count_nonzero(active))]
+    m = min(len(act), WINDOW_STATIONS)
+    start = (len(act) - m) // 2
+    mask = np.zeros(n_st, bool)
+    mask[act[start:start + m]] = True
+    s, t = (np.asarray(x, np.int64) for x in edges)
+    keep = mask[s] & mask[t]
+    tree, _, _ = best_tree(pos, mask, (s[keep], t[keep]), leaf_stations, k=k)
+    f = tree.figures(k)
+    scale = len(act) / m
+    return scale * (f["flops"] / TREE_RATE + TREE_NODE_SECONDS * f["nodes"])
+
+
+def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stations=None,
+                  band_perm=None):
     """The band or the partition tree for a station graph, as ``sapgo order`` chooses:
     ``(tree or None, tree perm or None, predicted seconds per solver)``; ``solver`` "band"
-    or "tree" forces the choice."""
+    or "tree" forces the choice. ``band_perm`` (the band order, active stations first):
+    on a block of more than ``SCREEN_STATIONS`` active stations, "auto" keeps the band
+    without partitioning the block when the tree of a window predicts more than twice the
+    band's time (a long strip block; ``predicted["tree_window"]``)."""
     from .solve.partition import LEAF_STATIONS, best_tree
 
     n_active = int(np.count_nonzero(active))
@@ -624,6 +662,11 @@ def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stati
     if solver == "band" or n_active == 0:
         return None, None, predicted
     band = predicted["band"]
+    if solver == "auto" and band_perm is not None and n_active > SCREEN_STATIONS:
+        predicted["tree_window"] = _window_tree_seconds(
+            pos, active, edges, band_perm, leaf_stations or LEAF_STATIONS, k)
+        if predicted["tree_window"] > 2.0 * band:
+            return None, None, predicted
     tree, perm, _ = best_tree(pos, active, edges, leaf_stations or LEAF_STATIONS, k=k,
                               enough=None if solver == "tree" else lambda t: t > 2.0 * band)
     predicted = predict_solver(n_active, band_width, tree, k)
@@ -653,7 +696,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
     if method != "best" and solver == "auto":
         solver = "band"   # a band ordering asked for by name
     tree, perm_t, predicted = choose_solver(stations["eo"][:, 3:6], st_active, edges, b, k_par,
-                                            solver, leaf_stations)
+                                            solver, leaf_stations, band_perm=perm)
     if tree is not None:
         perm = perm_t
         pos = np.empty(n_st, np.int64)

@@ -479,7 +479,7 @@ def project_network(path, chunk=None):
         name = best_order(scored)
         chosen = (name, local[scored[name][2][:len(idx)]])
         tree, perm_t, _ = choose_solver(st["eo"][:, 3:6], active, (s, t),
-                                        scored[name][0], params)
+                                        scored[name][0], params, band_perm=scored[name][2])
         if tree is not None:
             chosen = (f"nested_dissection_{tree.method}", local[perm_t[:len(idx)]])
     else:
