@@ -284,3 +284,59 @@ def test_stations_of_nine_parameters(n, bw, chunk_rows):
     for i in range(n):
         r = inv[9 * i:9 * i + 9, 9 * i:9 * i + 9]
         np.testing.assert_allclose(blocks[i], r, rtol=1e-8, atol=1e-10 * np.abs(r).max())
+
+
+@pytest.mark.parametrize("n, bw, chunk_rows, seg_bytes, k", [
+    (61, 5, 3, 1, 6),        # a segment per factored chunk: 21 segments
+    (61, 5, 4, 40_000, 6),   # several chunks a segment
+    (20, 7, 2, 1, 6),        # segments shorter than the band
+    (33, 4, 2, 1, 9),        # stations of nine parameters
+    (9, 3, 50, 1, 6)])       # one segment
+def test_replayed_factor_equals_the_stored_factor(tmp_path, monkeypatch, n, bw, chunk_rows,
+                                                  seg_bytes, k):
+    """Without a factor file (:class:`FactorReplay`) the factor rows read back, in any order,
+    equal the stored ones bit for bit, and so do the solution and the cofactor blocks;
+    each backward read refactors one segment from its saved state and the rows fed again
+    (exactly the rows it needs), the last segment coming from the forward pass."""
+    import sapgo.solve.band as band_mod
+    from sapgo.solve.band import covariance_blocks
+
+    monkeypatch.setattr(band_mod, "REPLAY_SEGMENT_BYTES", seg_bytes)
+    a = random_block_banded(n, bw, seed=n + k, q=k)
+    band = dense_to_band(a, bw, block=k)
+    rhs = np.random.default_rng(5).normal(0, 1, (n, k))
+    fac = np.zeros_like(band)
+    y = np.zeros_like(rhs)
+    ref = BandSolver(n, bw, fac, y, chunk_rows=chunk_rows, block=k)
+    ref.feed(band, rhs)
+    delta_ref = ref.finish()
+    solver = BandSolver(n, bw, None, None, chunk_rows=chunk_rows, block=k, replay=tmp_path)
+    fed = []
+
+    def rebuild(lo, hi, feed):
+        fed.append((lo, hi))
+        for i in range(lo, hi, 2):
+            feed(band[i:min(hi, i + 2)], rhs[i:min(hi, i + 2)])
+
+    solver.replay.rebuild = rebuild
+    for i in range(0, n, 5):
+        solver.feed(band[i:i + 5], rhs[i:i + 5])
+    delta = solver.finish()
+    rep = solver.replay
+    assert rep.J == -(-n // rep.R) and rep.replays == rep.J - 1
+    need = [rep.rows_needed(j) for j in range(rep.J - 2, -1, -1)]
+    assert fed == [r for r in need if r[1] > r[0]]
+    np.testing.assert_array_equal(delta, delta_ref)
+    assert solver.yy == pytest.approx(float((y * y).sum()), rel=1e-13)
+    for lo, hi in [(0, n), (n - 3, n), (2, 9), (0, 1)]:
+        np.testing.assert_array_equal(rep.factor[lo:hi], fac[lo:hi])
+        np.testing.assert_array_equal(rep.y[lo:hi], y[lo:hi])
+    np.testing.assert_array_equal(covariance_blocks(rep.factor, n, bw, step=3),
+                                  covariance_blocks(fac, n, bw, step=3))
+    # a replay fed too few rows is refused, not solved with a hole
+    rep.cache.clear()
+    rep._last = None
+    rep.rebuild = lambda lo, hi, feed: feed(band[lo:hi - 1], rhs[lo:hi - 1])
+    if rep.J > 1:
+        with pytest.raises(ValueError, match="replay of segment 0: band rows fed to"):
+            rep.factor[0:1]

@@ -213,6 +213,14 @@ class Options:
     #: points' standard deviations, the observations' redundancy numbers and tests),
     #: "stations" (the stations' alone, in a fraction of the time) or "none".
     precision: str = "full"
+    #: Where the band's factor rows live between the factorisation and the passes that read
+    #: them back (``--factor-storage``): "file" (``factor.bin``: 12 KB a photo at band width
+    #: 42, read back at the disk's speed once beyond the page cache), "replay" (no factor
+    #: file: the solver's state at the start of every segment of about 5 000 photos, and
+    #: each segment refactored from its band rows built again when it is read back;
+    #: :class:`sapgo.solve.band.FactorReplay`) or "auto" (replay when the factor would
+    #: exceed :data:`FACTOR_FILE_BYTES`). Self-calibration's border needs the file.
+    factor_storage: str = "auto"
     #: The linear solver: "band" (recursive partitioning of the band: long strips), "tree"
     #: (the partition tree of nested dissection: any block shape) or "auto" (the project's
     #: order as ``sapgo order`` chose it by predicted cost; an unordered project is ordered
@@ -301,6 +309,9 @@ class Options:
                              f"named twice (a parameter is shared by a camera's photos or "
                              f"adjusted per photo, not both)")
         self.fix = tuple(parse_fix(f) for f in self.fix)
+        if self.factor_storage not in ("auto", "file", "replay"):
+            raise ParameterError(f"factor storage {self.factor_storage!r}: choose auto, file or "
+                                 f"replay")
         if self.precision not in ("full", "stations", "none"):
             raise ParameterError(f"precision {self.precision!r}: choose full, stations or none")
         if self.datum not in DATUMS:
@@ -349,6 +360,19 @@ class _PriorCursor:
         self.buf = project.read("station_priors", 0, 0)
         self.bpos = 0
         self.blk = blk
+
+    def seek(self, station):
+        """Start at the first prior record of a station at or after ``station`` (records
+        sorted by station; a binary search of the file)."""
+        lo, hi = 0, self.n
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if int(self.p.read_field("station_priors", "station", mid, mid + 1)[0]) < station:
+                lo = mid + 1
+            else:
+                hi = mid
+        self.pos, self.buf, self.bpos = lo, self.p.read("station_priors", 0, 0), 0
+        return self
 
     def records(self, lo, hi):
         """Prior records of stations in ``[lo, hi)``; calls must come in increasing station
@@ -487,6 +511,8 @@ class _Block:
     #: bytes of point and observation records held in core for the run (out of the memory
     #: budget that the tree solver's fronts and factor share)
     held: int = 0
+    #: the band's factor is replayed, not kept in a file (``Options.factor_storage``)
+    replay: bool = False
 
     @property
     def solver(self):
@@ -991,8 +1017,36 @@ def _point_error(p, chunk, j, status, blk):
     )
 
 
+class PointMarks:
+    """Where the points of given first stations begin: for each of ``rows`` (station
+    numbers), the index of the first active point whose first station is at or after it
+    (the points are sorted by first station; excluded ones carry none). Filled by the
+    forward build (:func:`build` ``marks``), read by the replays (``rows``)."""
+
+    def __init__(self, rows, n_points):
+        self.rows = np.unique(np.asarray(rows, np.int64))
+        self.points = np.full(len(self.rows), n_points, np.int64)
+        self.n_points = n_points
+        self._next = 0
+
+    def see(self, a, smin, status):
+        """The chunk of points ``a ..`` (their first stations and status)."""
+        while self._next < len(self.rows):
+            at = np.flatnonzero((status == 0) & (smin >= self.rows[self._next]))
+            if not len(at):
+                return
+            self.points[self._next] = a + int(at[0])
+            self._next += 1
+
+    def index(self, row):
+        i = int(np.searchsorted(self.rows, row))
+        if i == len(self.rows) or self.rows[i] != row:
+            raise KeyError(f"no mark at station {row}")
+        return int(self.points[i])
+
+
 def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, sink=None,
-          lam=0.0):
+          lam=0.0, marks=None, rows=None, diag=None):
     """Stream the points and hand over the reduced normal band rows as they are completed.
 
     Completed rows go to ``sink(band_rows, rhs_rows)`` in station order (the adjustment feeds
@@ -1008,6 +1062,11 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     right-hand side (both reduced, damped) and its undamped diagonal -- the border columns
     of the band rows having gone to ``work.border`` row by row with the band rows (else
     None).
+
+    ``marks`` (a :class:`PointMarks`): filled on the way. ``rows = (lo, hi)``: the band
+    rows of stations ``lo .. hi`` alone, built again from the points whose first station
+    lies in ``lo - b + 1 .. hi`` (found through ``marks`` of the full build of the same
+    state; ``diag`` its damping diagonal), for :class:`~sapgo.solve.band.FactorReplay`.
     """
     n = len(blk.station_ids)
     bw = blk.band_width
@@ -1030,8 +1089,27 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     xyz_ds = work.xyz_current if xyz is None else xyz
     priors = _PriorCursor(p, opts.chunk_points, blk)
     base = 0
+    ranges = p.chunks("points", opts.chunk_points)
+    if rows is not None:   # a replay's rows: from the points that reach them
+        if ng:
+            raise ValueError("band rows built again: not with a border")
+        lo_row, hi_row = rows
+        base = max(0, lo_row - bw + 1)
+        j0, j1 = marks.index(base), marks.index(hi_row)
+        ranges = [(a, min(j1, a + opts.chunk_points)) for a in range(j0, j1, opts.chunk_points)]
+        priors.seek(base)
+        row_sink = sink
+
+        def sink(rows_, rhs_rows):   # (the rows before lo_row are incomplete)
+            skip = max(0, lo_row - base)
+            stop = max(skip, min(len(rows_), hi_row - base))
+            if stop > skip:
+                row_sink(rows_[skip:stop], rhs_rows[skip:stop])
+    elif marks is not None:
+        marks.rows = marks.rows[marks.rows <= n]
     if lam > 0.0:
-        diag = np.zeros((n, k))
+        if rows is None:
+            diag = np.zeros((n, k))
         plain_sink = sink
 
         def sink(rows, rhs_rows):  # the rows are complete: add the damping on the diagonal
@@ -1039,7 +1117,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             idx = np.arange(k)
             rows[:, idx, idx] += lam * d
             plain_sink(rows, rhs_rows)
-    _init_rows(band, rhs, base, 0, cap, blk, priors)
+    _init_rows(band, rhs, base, base, base + cap, blk, priors)
 
     def advance(new_base):
         nonlocal base
@@ -1059,12 +1137,14 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
         _init_rows(band, rhs, new_base, base + cap, new_base + cap, blk, priors)
         base = new_base
 
-    with _progress(opts.progress, p.n_points, "build") as bar:
-        for a, b in p.chunks("points", opts.chunk_points):
+    with _progress(opts.progress and rows is None, p.n_points, "build") as bar:
+        for a, b in ranges:
             c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
                            blk.rejected_points)
             reweight(c, work, opts)
-            if lam > 0.0:
+            if marks is not None and rows is None:
+                marks.see(a, c.smin, c.active)
+            if lam > 0.0 and rows is None:
                 station_diagonal(c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
                                  c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams, diag)
             j = 0
@@ -1082,9 +1162,11 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
                     advance(int(c.smin[j]))
             del c  # release the chunk before the next one is read
             bar.update(b - a)
-            _fault("build", iteration)
-    while base < n:
-        advance(min(n, base + cap))
+            if rows is None:
+                _fault("build", iteration)
+    end = n if rows is None else hi_row
+    while base < end:
+        advance(min(end, base + cap))
     border = None
     if ng:
         cnn, ccg, cdiag = cnn_t.sum(axis=0), ccg_t.sum(axis=0), cdiag_t.sum(axis=0)
@@ -1406,7 +1488,8 @@ def _nonfinite_ray(p: Project, c, blk: _Block, res=None, when="at the starting v
             f"columns) and the camera")
 
 
-def _factor_solve(p: Project, work: Work, blk: _Block, opts: Options, it=0, mu=0.0):
+def _factor_solve(p: Project, work: Work, blk: _Block, opts: Options, it=0, mu=0.0,
+                  back=True):
     """Build the reduced normals (damped by ``mu``), factor and solve them with the block's
     solver: the band (the factorisation runs inside the build: every segment of band rows is
     factored as soon as the build has completed it, so the band rows never go to disk) or
@@ -1415,7 +1498,14 @@ def _factor_solve(p: Project, work: Work, blk: _Block, opts: Options, it=0, mu=0
     Returns a dict: ``delta``, ``diag`` (the stations' undamped diagonal with ``mu > 0``),
     ``border`` (self-calibration: ``(cnn, ccg, cdiag)``), ``theta``, ``border_cov``, ``xb``
     (``x'b`` of the step: ``y'y`` plus the border's share) and ``seconds`` (in the solver:
-    booked as "solve", the rest as "build")."""
+    booked as "solve", the rest as "build"). ``back=False``: the factorisation alone (for
+    the precision pass; ``delta`` None on the band).
+
+    Band without a factor file (``blk.replay``): the forward pass keeps the solver's state
+    at each replay segment's start and where each segment's points begin
+    (:class:`PointMarks`); the back substitution, and later passes reading the factor
+    (``work.band_factor()``), refactor each segment from its band rows built again. Any
+    change of state (an update, a rejection) makes the replay stale: ``blk.refactor``."""
     if blk.tree is not None:
         from .solve.tree import tree_step
 
@@ -1426,17 +1516,36 @@ def _factor_solve(p: Project, work: Work, blk: _Block, opts: Options, it=0, mu=0
         except BorderPivotError as exc:
             raise _border_pivot_error(exc, blk, p) from None
     n = len(blk.station_ids)
-    solver = BandSolver(n, blk.band_width, work.factor, work.y, opts.chunk_rows,
-                        opts.pivot_tolerance, block=blk.npar)
+    work.drop_replay()
+    replay = work.dir if blk.replay else None
+    solver = BandSolver(n, blk.band_width, None if replay else work.factor,
+                        None if replay else work.y, opts.chunk_rows, opts.pivot_tolerance,
+                        block=blk.npar, replay=replay)
+    marks = None
+    if replay is not None:
+        rep = solver.replay
+        need = [rep.rows_needed(j) for j in range(rep.J)]
+        marks = PointMarks([max(0, lo - blk.band_width + 1) for lo, _ in need]
+                           + [hi for _, hi in need], p.n_points)
     try:
-        diag, border = build(p, work, blk, opts, iteration=it, sink=solver.feed, lam=mu)
+        diag, border = build(p, work, blk, opts, iteration=it, sink=solver.feed, lam=mu,
+                             marks=marks)
+        if replay is not None:
+            def rebuild(lo, hi, feed):
+                build(p, work, blk, opts, iteration=it, sink=feed, lam=mu, marks=marks,
+                      rows=(lo, hi), diag=diag)
+
+            solver.replay.rebuild = rebuild
+            work.replay = solver.replay
         delta = solver.finish(None if border is None else
-                              (work.border, border[0], border[1]))
+                              (work.border, border[0], border[1]), back=back)
     except PivotError as exc:
         raise _pivot_error(exc, blk, p) from None
     except BorderPivotError as exc:
         raise _border_pivot_error(exc, blk, p) from None
-    if border is None:
+    if replay is not None:
+        xb = solver.yy
+    elif border is None:
         y = np.asarray(work.y[:], dtype=np.float64)
         xb = float((y * y).sum())
     else:
@@ -1532,7 +1641,9 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             "solve_s": t2 - t1,
             "update_s": t3 - t2,
         })
-        blk.refactor = lm or not ok
+        blk.refactor = lm or not ok or blk.replay   # (a replay is of the state before)
+        if blk.replay:
+            work.drop_replay()
         if lm or not ok:
             log[-1]["mu"] = mu
             log[-1]["rho"] = rho
@@ -1607,6 +1718,25 @@ def _tree_figures(blk, opts):
         return None
     return {**blk.tree.figures(blk.npar),
             **tiling(blk.tree, blk.npar, opts, blk.held, len(blk.station_ids))}
+
+
+#: Beyond this many bytes of band factor rows, ``--factor-storage auto`` replays the factor
+#: instead of writing it: up to here the page cache takes the file at memory speed (measured
+#: on 24 GB: 1.2 GB at 100 000 photos), beyond it the writes and reads go at the disk's.
+FACTOR_FILE_BYTES = 4 << 30
+
+
+def _choose_replay(blk: _Block, opts: Options):
+    """Whether the band's factor is replayed (``blk.replay``), by ``opts.factor_storage``."""
+    if blk.tree is not None:
+        return False
+    if opts.factor_storage == "replay":
+        if blk.n_border:
+            raise ParameterError("--factor-storage replay: self-calibration's border needs "
+                                 "the factor file; use --factor-storage file (or auto)")
+        return True
+    factor = 8 * len(blk.station_ids) * blk.npar * blk.npar * blk.band_width
+    return opts.factor_storage == "auto" and not blk.n_border and factor > FACTOR_FILE_BYTES
 
 
 def _work_band(blk: _Block):
@@ -1735,17 +1865,18 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                              f"starting from the beginning\n")
         converged = False
         work = None
+        blk.replay = _choose_replay(blk, opts)
         if checkpoint is not None:
             try:
                 work = Work(wpath, p, _work_band(blk), create=False, block=blk.npar,
-                            n_border=blk.n_border)
+                            n_border=blk.n_border, replay=blk.replay)
             except (OSError, ValueError) as exc:  # work files missing or cut short
                 sys.stderr.write(f"sapgo: warning: the interrupted run of {path} cannot be "
                                  f"resumed ({exc}); starting from the beginning\n")
                 checkpoint = None
         if work is None:
             work = Work(wpath, p, _work_band(blk), create=True, block=blk.npar,
-                        n_border=blk.n_border)
+                        n_border=blk.n_border, replay=blk.replay)
         try:
             if checkpoint is None:
                 run = {"run": uuid.uuid4().hex, "identity": ident}
@@ -1838,7 +1969,7 @@ def _precision(p: Project, work, blk: _Block, opts: Options, sigma0, correlation
     (factored once more first when the last one was damped or rejected). ``mode``: "full"
     (stations, points and the observations' quality: what snooping and robust estimation
     need) or "stations" (the stations' blocks alone, ``--precision stations``)."""
-    if blk.refactor:
+    if blk.refactor or (blk.replay and work.replay is None):
         _undamped_factor(p, work, blk, opts)
     if opts.precision != mode:
         opts = dataclasses.replace(opts, precision=mode)
@@ -1848,7 +1979,7 @@ def _precision(p: Project, work, blk: _Block, opts: Options, sigma0, correlation
 def _undamped_factor(p: Project, work, blk: _Block, opts: Options):
     """Build and factor the normals of the current state without damping (the work files'
     factor, ``y`` and border), for the precision sweep after Levenberg-Marquardt steps."""
-    step = _factor_solve(p, work, blk, opts)
+    step = _factor_solve(p, work, blk, opts, back=False)
     if step["border"] is not None:
         blk.border_cov = step["border_cov"]
     blk.refactor = False

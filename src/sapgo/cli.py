@@ -288,6 +288,7 @@ def cmd_adjust(args):
         snooping=args.snooping, snooping_batch=args.snooping_batch,
         snooping_alpha=args.alpha, reset_rejections=args.reset_rejections,
         precision=args.precision,
+        factor_storage=args.factor_storage,
         method=args.method,
         tol_cost=args.tol_cost,
         calibrate=args.calibrate or (),
@@ -923,6 +924,12 @@ def build_parser():
                         "normalised residual above the critical value and adjust again, until "
                         "none is left (rejected observations are flagged, not deleted; "
                         "default: no snooping)")
+    a.add_argument("--factor-storage", choices=("auto", "file", "replay"), default="auto",
+                   help="the band's factor between the factorisation and the passes that read "
+                        "it back: file (factor.bin, 12 KB a photo at band width 42), replay "
+                        "(no factor file: each segment refactored from its rows built again, "
+                        "scratch growing with the band, not the photos) or auto (replay "
+                        "beyond 4 GiB of factor; the default)")
     a.add_argument("--precision", choices=("full", "stations", "none"), default="full",
                    help="the precision pass after convergence: full (the default: photos' and "
                         "points' standard deviations, redundancy numbers and tests of the "

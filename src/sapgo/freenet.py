@@ -153,7 +153,7 @@ def _solve_stations(work, blk, opts, r):
     if blk.tree is None:
         from .solve.band import band_solve_columns
 
-        return band_solve_columns(work.factor, r, n, blk.band_width, opts.chunk_rows)
+        return band_solve_columns(work.band_factor()[0], r, n, blk.band_width, opts.chunk_rows)
     from .solve.fronts import FactorFile, TreeSolver, factor_layout
     from .solve.tree import FACTOR_FILE, work_plan
 

@@ -93,7 +93,7 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     cal = sig_b = xb_ds = None
     if ng:  # self-calibration: X = M^-1 B (its own file: W stays, the sweep can run again)
         xb_ds = RawArray(work.dir / "xborder.bin", (n_st, blk.npar, ng), mode="w")
-        border_back_substitute(work.factor, work.border, n_st, blk.band_width, opts.chunk_rows,
+        border_back_substitute(work.band_factor()[0], work.border, n_st, blk.band_width, opts.chunk_rows,
                                out=xb_ds)
         cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
     psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
@@ -111,7 +111,7 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     k = blk.npar
     cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
     try:
-        var = covariance_blocks(work.factor, n_st, blk.band_width, opts.chunk_rows, out=cov,
+        var = covariance_blocks(work.band_factor()[0], n_st, blk.band_width, opts.chunk_rows, out=cov,
                                 on_block=points_of if opts.precision == "full" else None,
                                 observations=p_read.n_observations)
         for a in range(0, n_st, opts.chunk_points) if ng else ():  # + X S^-1 X'

@@ -61,7 +61,8 @@ class Work:
     its log, timings and the identity of the project). State K uses buffer ``K % 2``.
     """
 
-    def __init__(self, path, p: Project, band_width, create, block=6, n_border=0):
+    def __init__(self, path, p: Project, band_width, create, block=6, n_border=0,
+                 replay=False):
         self.dir = Path(path)
         self.n_st, self.n_pt, self.n_obs = p.n_stations, p.n_points, p.n_observations
         self.band_width = band_width
@@ -75,11 +76,23 @@ class Work:
         if create:   # (the files are sparse: the bytes they can come to)
             from .project import ensure_free
 
-            need = 8 * (self.n_st * k * (k * bw + 1 + n_border) + 2 * self.n_pt * 3
+            rows = k * (k * bw + 1)
+            if replay:   # a solver state (k b columns of k b + P doubles) a segment
+                from .solve.band import REPLAY_SEGMENT_BYTES
+
+                seg = max(1, REPLAY_SEGMENT_BYTES // (8 * k * k * bw))
+                rows = (k * bw) * (k * bw + 64) / seg
+            need = 8 * (self.n_st * (rows + k * n_border) + 2 * self.n_pt * 3
                         + 2 * self.n_obs * 2)
             ensure_free(self.dir, need, "the run's work files")
-        self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=mode)
-        self.y = RawArray(self.dir / "y.bin", (self.n_st, k), mode=mode)
+        # (a replayed factor, sapgo.solve.band.FactorReplay, has no factor file: replay.bin)
+        self.factor = self.y = None
+        if not replay:
+            self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=mode)
+            self.y = RawArray(self.dir / "y.bin", (self.n_st, k), mode=mode)
+        #: the band factor's :class:`~sapgo.solve.band.FactorReplay` of the last
+        #: factorisation (valid until the state changes), or None
+        self.replay = None
         # self-calibration: the border columns of the band rows, then W = U'^-1 B
         self.border = (RawArray(self.dir / "border.bin", (self.n_st, k, n_border), mode=mode)
                        if n_border else None)
@@ -98,6 +111,20 @@ class Work:
         self.robust_r = None
         if not create and (self.dir / "robust_r.bin").exists():
             self.robust_r = RawArray(self.dir / "robust_r.bin", (self.n_obs, 3), mode="r")
+
+    def band_factor(self):
+        """``(factor rows, y)`` of the last band factorisation: the files, or the replay's
+        rows."""
+        if self.replay is not None:
+            return self.replay.factor, self.replay.y
+        if self.factor is None:
+            raise RuntimeError("the band factor was replayed and is stale: factor again")
+        return self.factor, self.y
+
+    def drop_replay(self):
+        if self.replay is not None:
+            self.replay.close()
+            self.replay = None
 
     @property
     def xyz_current(self):
@@ -169,8 +196,10 @@ class Work:
         self.robust_r = RawArray(self.dir / "robust_r.bin", (self.n_obs, 3), mode="r")
 
     def close(self):
+        self.drop_replay()
         for a in [self.factor, self.y, *self.xyz, *self.res]:
-            a.close()
+            if a is not None:
+                a.close()
         if self.border is not None:
             self.border.close()
         if self.robust_r is not None:

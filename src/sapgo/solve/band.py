@@ -50,6 +50,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -564,7 +565,8 @@ class BandSolver:
     """
 
     def __init__(self, n_st, band_width, factor_ds, y_ds, chunk_rows=256,
-                 pivot_tol=PIVOT_TOLERANCE, progress=None, panel=None, threads=None, block=6):
+                 pivot_tol=PIVOT_TOLERANCE, progress=None, panel=None, threads=None, block=6,
+                 replay=None):
         self.n_st = n_st
         self.block = kb = block          # parameters per station
         self.width = width = kb * band_width
@@ -587,7 +589,15 @@ class BandSolver:
         self.loaded = 0          # stations placed into the ring
         self.stored = 0          # stations whose factor rows left the ring
         self.k = 0               # scalar columns factored
+        self.limit = n           # factor no further (a replayed segment stops at its end)
         self.seconds = 0.0
+        #: ``y'y`` of the rows taken so far (when the factor rows are not kept in a file)
+        self.yy = 0.0
+        #: :class:`FactorReplay` (``replay`` a directory): no factor file; the ring's state
+        #: is kept at every replay segment's start and the rows are refactored on demand
+        self.replay = None
+        if replay is not None:
+            self.replay = FactorReplay(self, replay)
         # The factor rows are written by a helper thread only when a core is free for it: the
         # kernel's threads meet at a barrier every panel, and a transfer that takes one of
         # their cores stalls both (measured on 2 cores).
@@ -623,7 +633,7 @@ class BandSolver:
 
     def _factor_ready(self):
         n, u, p = self.n, self.u, self.p
-        while self.k < n:
+        while self.k < min(n, self.limit):
             k = self.k
             stop = min(n, k + self.seg)
             if self.loaded < self._reach(stop + u + p):
@@ -639,6 +649,26 @@ class BandSolver:
             if self.progress is not None:
                 self.progress((stop - k) // self.block)
             self.k = stop
+            if self.replay is not None and stop < n and stop % self.replay.cols_per_segment == 0:
+                self.replay.save(self)
+
+    def state(self):
+        """The ring's state at ``k`` (look-ahead panel factored): the columns ``k .. k + W``
+        the eliminations so far have touched (``W = max(6b, P)``), their right-hand side and
+        original diagonal; ``(cols, y, orig)``."""
+        h = np.arange(self.k, min(self.n, self.k + self.replay.state_cols)) % self.ring
+        return self.a.reshape(self.ring, self.ld1)[h], self.y[h], self.orig[h]
+
+    def restore(self, k, cols, y, orig):
+        """Resume at scalar column ``k`` from :meth:`state`; the band rows from station
+        ``loaded`` on are to be fed."""
+        h = np.arange(k, k + len(cols)) % self.ring
+        self.a.reshape(self.ring, self.ld1)[h] = cols
+        self.y[h] = y
+        self.orig[h] = orig
+        self.k = k
+        self.stored = k // self.block
+        self.loaded = (k + len(cols)) // self.block
 
     def _take(self, i1):
         """Factor rows of the stations ``stored .. i1`` out of the ring (diagonal-first: the
@@ -652,16 +682,24 @@ class BandSolver:
         return i0, fac, rhs
 
     def _write(self, i0, band, rhs):
-        if len(band):
-            self.factor_ds[i0:i0 + len(band)] = band
-            self.y_ds[i0:i0 + len(rhs)] = rhs
+        if not len(band):
+            return
+        if self.factor_ds is None:   # (replayed when needed)
+            self.yy += float((rhs * rhs).sum())
+            if self.replay is not None:
+                self.replay.keep_tail(i0, band, rhs)
+            return
+        self.factor_ds[i0:i0 + len(band)] = band
+        self.y_ds[i0:i0 + len(rhs)] = rhs
 
-    def finish(self, border=None):
+    def finish(self, border=None, back=True):
         """Factor the rest (every row must have been fed) and return ``delta`` (n x 6).
 
         ``border = (border_ds, cnn, ccg)``: a bordered band (:func:`border_solve`); the
         border's solution is left in ``theta``, ``y'y`` and ``t'S^-1 t`` in ``y_norm2`` and
-        ``border_decrease``, ``S^-1`` in ``border_cov``."""
+        ``border_decrease``, ``S^-1`` in ``border_cov``. ``back=False``: the factorisation
+        alone (returns None). With a replay the factor rows are read through
+        ``replay.factor`` and ``replay.y``."""
         if self.loaded != self.n_st:
             raise ValueError(f"{self.loaded} band rows fed for {self.n_st} stations")
         t0 = time.perf_counter()
@@ -670,15 +708,216 @@ class BandSolver:
         self._factor_ready()
         self._writer.wait()
         self._write(*self._take(self.n_st))
+        if self.replay is not None:
+            self.replay.recorded()
+            delta = None
+            if back:   # a segment at a time
+                delta = _back_substitute(self.replay.factor, self.replay.y, self.n_st,
+                                         self.replay.R, self.block)
+            self.seconds += time.perf_counter() - t0
+            return delta
         if border is not None:
             self.theta, self.y_norm2, self.border_decrease, self.border_cov = border_solve(
                 self.factor_ds, self.y_ds, border[0], border[1], border[2], self.n_st,
                 self.width // self.block, self.chunk_rows, self.pivot_tol)
-        # read back in blocks of at least 8 MiB (fewer, larger reads)
-        step = max(self.chunk_rows, (8 << 20) // (8 * self.block * self.width))
-        delta = _back_substitute(self.factor_ds, self.y_ds, self.n_st, step, self.block)
+        delta = None
+        if back:   # read back in blocks of at least 8 MiB (fewer, larger reads)
+            step = max(self.chunk_rows, (8 << 20) // (8 * self.block * self.width))
+            delta = _back_substitute(self.factor_ds, self.y_ds, self.n_st, step, self.block)
         self.seconds += time.perf_counter() - t0
         return delta
+
+
+#: A replayed segment's factor rows in core (bytes): the segments' length.
+REPLAY_SEGMENT_BYTES = 64 << 20
+
+
+class _Offset:
+    """Rows ``s0 ..`` of an array, written as the factor file's rows are (``a[i:j] = x``)."""
+
+    def __init__(self, arr, s0):
+        self.arr, self.s0 = arr, s0
+
+    def __setitem__(self, key, value):
+        a, b = key.start - self.s0, key.stop - self.s0
+        if a < 0 or b > len(self.arr):
+            raise ValueError(f"factor rows {key.start}..{key.stop} outside the segment")
+        self.arr[a:b] = value
+
+
+class _Rows:
+    """``replay.factor`` / ``replay.y``: read like the factor file (contiguous row ranges)."""
+
+    def __init__(self, replay, which, shape):
+        self.replay, self.which, self.shape = replay, which, shape
+
+    def __len__(self):
+        return self.shape[0]
+
+    def __getitem__(self, key):
+        if not isinstance(key, slice):
+            raise IndexError("replayed factor rows: contiguous row ranges only")
+        lo, hi, step = key.indices(self.shape[0])
+        if step != 1:
+            raise IndexError("replayed factor rows: contiguous row ranges only")
+        return self.replay.rows(lo, max(lo, hi))[self.which]
+
+
+class FactorReplay:
+    """The band's factor without a factor file: recomputed a segment at a time on demand.
+
+    While the :class:`BandSolver` factors (forward), the ring's state at the start of every
+    segment of ``R`` stations (``W = max(6b, P)`` touched columns of ``6b + P`` doubles, about
+    0.6 MB at b = 42; :meth:`BandSolver.state`) goes to ``replay.bin`` in ``directory`` and
+    the factor rows are dropped (the last segment's are kept). A read of factor rows
+    (``factor[lo:hi]``, ``y[lo:hi]``, in any order; the back substitution and Takahashi's
+    recurrence read backwards) restores the state of the segment holding them into a fresh
+    solver and feeds it the segment's band rows again from ``rebuild(lo, hi, feed)`` (the
+    caller's build of those rows, points and state unchanged since the forward pass), up
+    to the ``u + P`` scalar columns after the segment that its last panels need. The last
+    two segments read stay in core (their buffers reused).
+
+    Scratch: ``n / R`` states instead of ``n`` factor rows (``R`` from
+    :data:`REPLAY_SEGMENT_BYTES`: about 5 000 stations at b = 42, so 0.12 MB a thousand
+    stations against 12 MB); time: the band rows built and factored once more for each
+    backward pass. The same panels in the same order reproduce the factor exactly when the
+    rebuilt rows are the forward pass's (rounding of the build's parallel sums aside).
+    """
+
+    def __init__(self, solver, directory):
+        from ..rawfile import RawArray
+
+        self.n_st, self.kb, self.width = solver.n_st, solver.block, solver.width
+        self.n, self.u, self.p = solver.n, solver.u, solver.p
+        self.args = (solver.n_st, solver.width // solver.block, None, None,
+                     solver.chunk_rows, solver.pivot_tol, None, solver.p, solver.nthreads,
+                     solver.block)
+        seg_st = solver.seg // solver.block          # stations per factored chunk
+        row_bytes = 8 * self.kb * self.width
+        m = max(1, REPLAY_SEGMENT_BYTES // max(1, seg_st * row_bytes))
+        self.R = min(m * seg_st, max(1, self.n_st))   # stations per replay segment
+        self.cols_per_segment = self.kb * self.R
+        self.state_cols = _up(max(self.width, self.p), self.kb)
+        self.J = max(1, -(-self.n_st // self.R))
+        self.ld1 = solver.ld1
+        rec = self.state_cols * (self.ld1 + 2)
+        self.file = RawArray(Path(directory) / "replay.bin", (self.J, rec), mode="w")
+        #: ``rebuild(lo, hi, feed)``: feeds the band rows of stations ``lo .. hi`` (set by
+        #: the caller before the first read)
+        self.rebuild = None
+        self.replays = 0           # segments refactored so far
+        self.cache = {}            # segment -> (fac, y), the last two read
+        self._spare = []           # buffers of segments dropped from the cache
+        self._last = None          # ((lo, hi), rows): the last range read
+        self._tail = (self.J - 1) * self.R
+        self._tail_rows = None
+        self.factor = _Rows(self, 0, (self.n_st, self.kb, self.width))
+        self.y = _Rows(self, 1, (self.n_st, self.kb))
+
+    def rows_needed(self, j):
+        """Stations whose band rows segment ``j``'s replay is fed: ``(lo, hi)``."""
+        s0 = j * self.R
+        s1 = min(self.n_st, s0 + self.R)
+        lo = min(self.n_st, s0 + self.state_cols // self.kb) if j else 0
+        hi = min(self.n_st, s1 + -(-(self.u + self.p) // self.kb) + 1)
+        return lo, hi
+
+    def save(self, solver):
+        j = solver.k // self.cols_per_segment
+        cols, y, orig = solver.state()
+        rec = np.zeros(self.file.shape[1])
+        w, sc, ld1 = len(cols), self.state_cols, self.ld1
+        rec[:w * ld1] = cols.reshape(-1)
+        rec[sc * ld1:sc * ld1 + w] = y
+        rec[sc * (ld1 + 1):sc * (ld1 + 1) + w] = orig
+        self.file[j] = rec
+
+    def keep_tail(self, i0, band, rhs):
+        """The forward pass's rows of the last segment, kept (no replay for it)."""
+        i1 = i0 + len(band)
+        if i1 <= self._tail:
+            return
+        if self._tail_rows is None:
+            self._tail_rows = self._buffers(self.n_st - self._tail)
+        a = max(i0, self._tail)
+        self._tail_rows[0][a - self._tail:i1 - self._tail] = band[a - i0:]
+        self._tail_rows[1][a - self._tail:i1 - self._tail] = rhs[a - i0:]
+
+    def recorded(self):
+        """The forward pass is over."""
+        if self._tail_rows is not None:
+            self.cache[self.J - 1] = self._tail_rows
+            self._tail_rows = None
+
+    def _buffers(self, m):
+        for i, (fac, y) in enumerate(self._spare):
+            if len(fac) >= m:
+                del self._spare[i]
+                return fac[:m], y[:m]
+        return np.empty((self.R, self.kb, self.width))[:m], np.empty((self.R, self.kb))[:m]
+
+    def _replay(self, j):
+        s0 = j * self.R
+        s1 = min(self.n_st, s0 + self.R)
+        fac, y = self._buffers(s1 - s0)
+        args = list(self.args)
+        args[2], args[3] = _Offset(fac, s0), _Offset(y, s0)
+        sol = BandSolver(*args)
+        sol.limit = self.kb * s1
+        if j:
+            rec = self.file[j]
+            w = min(self.state_cols, self.n - self.kb * s0)
+            sc, ld1 = self.state_cols, self.ld1
+            sol.restore(self.kb * s0, rec[:w * ld1].reshape(w, ld1), rec[sc * ld1:sc * ld1 + w],
+                        rec[sc * (ld1 + 1):sc * (ld1 + 1) + w])
+        lo, hi = self.rows_needed(j)
+        if lo != sol.loaded:
+            raise AssertionError(f"replay of segment {j}: rows from {lo}, state at {sol.loaded}")
+        if hi > lo:
+            self.rebuild(lo, hi, sol.feed)
+        if sol.loaded < hi:
+            raise ValueError(f"replay of segment {j}: band rows fed to {sol.loaded}, "
+                             f"expected {hi}")
+        sol._factor_ready()
+        sol._writer.wait()
+        sol._write(*sol._take(s1))
+        self.replays += 1
+        return fac, y
+
+    def segment(self, j):
+        got = self.cache.get(j)
+        if got is None:
+            while len(self.cache) >= 2:   # (its buffers serve the next replay)
+                old = self.cache.pop(next(iter(self.cache)))
+                self._spare.append((old[0].base if old[0].base is not None else old[0],
+                                    old[1].base if old[1].base is not None else old[1]))
+            got = self._replay(j)
+            self.cache[j] = got
+        return got
+
+    def rows(self, lo, hi):
+        """Factor rows and ``y`` of the stations ``lo .. hi`` (copies)."""
+        if hi <= lo:
+            return (np.empty((0, self.kb, self.width)), np.empty((0, self.kb)))
+        if self._last is not None and self._last[0] == (lo, hi):   # (factor, then y)
+            return self._last[1]
+        parts = []
+        for j in range(lo // self.R, (hi - 1) // self.R + 1):
+            fac, y = self.segment(j)
+            a, b = max(lo, j * self.R) - j * self.R, min(hi, (j + 1) * self.R) - j * self.R
+            parts.append((fac[a:b].copy(), y[a:b].copy()))   # (the buffers are reused)
+        if len(parts) == 1:
+            out = parts[0]
+        else:
+            out = (np.concatenate([q[0] for q in parts]), np.concatenate([q[1] for q in parts]))
+        self._last = ((lo, hi), out)
+        return out
+
+    def close(self):
+        self.file.close()
+        self.cache.clear()
+        self._spare.clear()
+        self._last = None
 
 
 def solve_out_of_core(band_ds, rhs_ds, band_width, chunk_rows=256, pivot_tol=PIVOT_TOLERANCE,
