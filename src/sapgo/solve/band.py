@@ -711,9 +711,8 @@ class BandSolver:
         if self.replay is not None:
             self.replay.recorded()
             delta = None
-            if back:   # a segment at a time
-                delta = _back_substitute(self.replay.factor, self.replay.y, self.n_st,
-                                         self.replay.R, self.block)
+            if back:
+                delta = self.replay.back_substitute()
             self.seconds += time.perf_counter() - t0
             return delta
         if border is not None:
@@ -884,7 +883,17 @@ class FactorReplay:
         self.replays += 1
         return fac, y
 
+    def back_substitute(self):
+        """``delta = U^-1 y`` (n x k), a segment at a time from the last."""
+        x = np.zeros(self.n)
+        for j in range(self.J - 1, -1, -1):
+            fac, y = self.segment(j)
+            _back_rows(fac, y, x, j * self.R, self.n)
+        return x.reshape(self.n_st, self.kb)
+
     def segment(self, j):
+        """Factor rows and ``y`` of segment ``j`` (read-only views, valid until two more
+        segments have been read)."""
         got = self.cache.get(j)
         if got is None:
             while len(self.cache) >= 2:   # (its buffers serve the next replay)
@@ -896,17 +905,20 @@ class FactorReplay:
         return got
 
     def rows(self, lo, hi):
-        """Factor rows and ``y`` of the stations ``lo .. hi`` (copies)."""
+        """Factor rows and ``y`` of the stations ``lo .. hi``: views of the segment's
+        buffers when in one segment (valid until two more segments have been read; the
+        readers, streaming forwards or backwards, hold at most the last), else copies."""
         if hi <= lo:
             return (np.empty((0, self.kb, self.width)), np.empty((0, self.kb)))
         if self._last is not None and self._last[0] == (lo, hi):   # (factor, then y)
             return self._last[1]
         parts = []
-        for j in range(lo // self.R, (hi - 1) // self.R + 1):
+        j0, j1 = lo // self.R, (hi - 1) // self.R
+        for j in range(j0, j1 + 1):
             fac, y = self.segment(j)
             a, b = max(lo, j * self.R) - j * self.R, min(hi, (j + 1) * self.R) - j * self.R
-            parts.append((fac[a:b].copy(), y[a:b].copy()))   # (the buffers are reused)
-        if len(parts) == 1:
+            parts.append((fac[a:b], y[a:b]) if j0 == j1 else (fac[a:b].copy(), y[a:b].copy()))
+        if len(parts) == 1:   # (views: a later read may reuse the buffers)
             out = parts[0]
         else:
             out = (np.concatenate([q[0] for q in parts]), np.concatenate([q[1] for q in parts]))
