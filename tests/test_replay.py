@@ -69,10 +69,9 @@ def equal(x, y, rtol, what):
 
 @pytest.mark.parametrize("method", ["gauss-newton", "levenberg-marquardt"])
 def test_replay_gives_the_file_s_adjustment(prior_block, tmp_path, monkeypatch, method):
-    """Many segments (a factored chunk each): the solution equals the file's; so does the
-    precision, exactly when both factor the final state (Levenberg-Marquardt refactors
-    for the precision pass) and to 1e-6 with Gauss-Newton, whose file is the factor of the
-    state before the last step (the replay's precision is of the final state)."""
+    """Many segments (a factored chunk each): the solution and the precision equal the
+    file's (with Gauss-Newton the precision pass reads the last step's factor: the replay
+    builds its rows from the state before that step)."""
     monkeypatch.setattr(band_mod, "REPLAY_SEGMENT_BYTES", 1)
     made = []
     real = band_mod.FactorReplay._replay
@@ -90,9 +89,8 @@ def test_replay_gives_the_file_s_adjustment(prior_block, tmp_path, monkeypatch, 
                                                                              rel=1e-12)
     for k in ("eo", "xyz", "residuals"):
         equal(f[k], r[k], 1e-12, k)
-    tol = 1e-12 if method == "levenberg-marquardt" else 1e-6
     for k in ("station_sigma", "point_sigma", "obs_quality"):
-        equal(f[k], r[k], tol, k)
+        equal(f[k], r[k], 1e-12, k)
 
 
 def test_replay_with_snooping_rejects_the_same(prior_block, tmp_path, monkeypatch):
@@ -102,9 +100,9 @@ def test_replay_with_snooping_rejects_the_same(prior_block, tmp_path, monkeypatc
     assert s_f.rejected
     assert [x["observation"] for x in s_r.rejected] == [x["observation"] for x in s_f.rejected]
     np.testing.assert_allclose([x["w"] for x in s_r.rejected], [x["w"] for x in s_f.rejected],
-                               rtol=1e-6)
+                               rtol=1e-12)
     equal(f["eo"], r["eo"], 1e-12, "eo")
-    equal(f["obs_quality"], r["obs_quality"], 1e-6, "quality")
+    equal(f["obs_quality"], r["obs_quality"], 1e-12, "quality")
 
 
 def test_replay_free_network_and_scratch(block_cache, tmp_path, monkeypatch):

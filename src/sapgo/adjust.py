@@ -1045,8 +1045,23 @@ class PointMarks:
         return int(self.points[i])
 
 
+class _StateView:
+    """``blk`` seen with some of its attributes replaced (``eo``, ``cams``, ``rejected``,
+    ``rejected_points``: the state a replay's rows are built from), ``blk`` itself left
+    alone for whoever reads it meanwhile."""
+
+    def __init__(self, blk, state):
+        self._blk = blk
+        for k, v in state.items():
+            if v is not None:
+                setattr(self, k, v)
+
+    def __getattr__(self, name):
+        return getattr(self._blk, name)
+
+
 def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, sink=None,
-          lam=0.0, marks=None, rows=None, diag=None):
+          lam=0.0, marks=None, rows=None, diag=None, state=None):
     """Stream the points and hand over the reduced normal band rows as they are completed.
 
     Completed rows go to ``sink(band_rows, rhs_rows)`` in station order (the adjustment feeds
@@ -1066,8 +1081,11 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     ``marks`` (a :class:`PointMarks`): filled on the way. ``rows = (lo, hi)``: the band
     rows of stations ``lo .. hi`` alone, built again from the points whose first station
     lies in ``lo - b + 1 .. hi`` (found through ``marks`` of the full build of the same
-    state; ``diag`` its damping diagonal), for :class:`~sapgo.solve.band.FactorReplay`.
+    state; ``diag`` its damping diagonal), for :class:`~sapgo.solve.band.FactorReplay`;
+    ``state``: attributes of ``blk`` to build from instead (:class:`_StateView`).
     """
+    if state is not None:
+        blk = _StateView(blk, state)
     n = len(blk.station_ids)
     bw = blk.band_width
     cap = min(n, bw + opts.chunk_rows)
@@ -1504,8 +1522,11 @@ def _factor_solve(p: Project, work: Work, blk: _Block, opts: Options, it=0, mu=0
     Band without a factor file (``blk.replay``): the forward pass keeps the solver's state
     at each replay segment's start and where each segment's points begin
     (:class:`PointMarks`); the back substitution, and later passes reading the factor
-    (``work.band_factor()``), refactor each segment from its band rows built again. Any
-    change of state (an update, a rejection) makes the replay stale: ``blk.refactor``."""
+    (``work.band_factor()``), refactor each segment from its band rows built again from the
+    state of the forward pass (orientations, cameras, rejections, point coordinates: the
+    factor the file would hold, whatever changed since; with robust weights, whose
+    residuals move, the replay is dropped after the step and the precision pass factors
+    anew)."""
     if blk.tree is not None:
         from .solve.tree import tree_step
 
@@ -1531,11 +1552,18 @@ def _factor_solve(p: Project, work: Work, blk: _Block, opts: Options, it=0, mu=0
         diag, border = build(p, work, blk, opts, iteration=it, sink=solver.feed, lam=mu,
                              marks=marks)
         if replay is not None:
-            def rebuild(lo, hi, feed):
-                build(p, work, blk, opts, iteration=it, sink=feed, lam=mu, marks=marks,
-                      rows=(lo, hi), diag=diag)
+            # the state these rows are built from (an update changes eo in place: _iterate
+            # hands over its copy from before, state["eo"])
+            state = {"eo": None, "cams": blk.cams, "rejected": blk.rejected,
+                     "rejected_points": blk.rejected_points, "xyz": work.xyz_current}
+
+            def rebuild(lo, hi, feed):   # (blk is read meanwhile by the precision pass)
+                build(p, work, blk, opts, xyz=state["xyz"], iteration=it, sink=feed, lam=mu,
+                      marks=marks, rows=(lo, hi), diag=diag,
+                      state={k: v for k, v in state.items() if k != "xyz"})
 
             solver.replay.rebuild = rebuild
+            solver.replay.state = state
             work.replay = solver.replay
         delta = solver.finish(None if border is None else
                               (work.border, border[0], border[1]), back=back)
@@ -1641,9 +1669,12 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             "solve_s": t2 - t1,
             "update_s": t3 - t2,
         })
-        blk.refactor = lm or not ok or blk.replay   # (a replay is of the state before)
-        if blk.replay:
-            work.drop_replay()
+        blk.refactor = lm or not ok
+        if work.replay is not None:   # the factor stays that of the state before the step
+            if ok and work.robust_r is None:
+                work.replay.state["eo"] = eo_before
+            else:
+                work.drop_replay()
         if lm or not ok:
             log[-1]["mu"] = mu
             log[-1]["rho"] = rho
