@@ -17,6 +17,17 @@ between 20 000 and 200 000 photos and between 100 000 and 1 000 000 photos.
 Writes ``results/scale.json`` (``rows``: ``photos``, ``peak_rss_mb``, ``wall_s``,
 ``band_width`` and the details) and prints the Markdown table for README.md.
 
+The band's factor in a file or replayed (issue 20, item 5)::
+
+    python benchmarks/scale.py --storage 1000000 [--rounds 3] [--dir DIR]
+
+One block of 20 strips generated and ordered (each a process of its own, as above), then
+``sapgo adjust`` to convergence with the precision pass, ``--factor-storage file`` and
+``--factor-storage replay`` taking turns on fresh copies, ``--rounds`` times: per run the
+wall time, each phase (build, solve, update per iteration; precision), peak RSS and the work
+directory at its fullest (``--keep-scratch``); medians and (min-max) over the rounds, the
+load average before each run. Writes ``results/scale_storage.json`` and prints its table.
+
 Square blocks (the partition tree, issue 16)::
 
     python benchmarks/scale.py --squares 200,500,1000 [--dir DIR]
@@ -195,6 +206,97 @@ def one_square(side, root, memory=None):
     return row
 
 
+def storage(args):
+    """``--storage N``: the factor file against the replay on one block (module docstring)."""
+    import statistics
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from colmap import git_state
+    from shape import load
+
+    n = int(args.storage)
+    root = Path(args.dir or Path(__file__).parent.parent / "data" / "generated" / "scale")
+    root.mkdir(parents=True, exist_ok=True)
+    warm = root / "warm.h5"   # compile or load the kernels outside the measured runs
+    sapgo.generate_block(warm, strips=2, photos_per_strip=5, control_points=6, progress=False)
+    sapgo.adjust(warm, sapgo.Options(progress=False, factor_storage="replay"))
+    warm.unlink()
+    path = root / f"storage-{n}.h5"
+    row, gen, order, _ = generate_and_order(STRIPS, n // STRIPS, path)
+    with sapgo.open_project(path) as p:
+        row.update(points=p.n_points, observations=p.n_observations, band_width=p.band_width)
+    row["phases"] = {"generate": {"wall_s": gen[0], "peak_rss_mb": gen[1]},
+                     "order": {"wall_s": order[0], "peak_rss_mb": order[1]}}
+    runs = []
+    for r in range(args.rounds):
+        for mode in ("file", "replay"):
+            copy = root / f"storage-{n}-{mode}.h5"
+            shutil.copy(path, copy)
+            report = root / f"storage-{n}-{mode}.json"
+            before = load()
+            wall, rss, _ = run(SAPGO + ["adjust", str(copy), "--no-progress", "--quiet",
+                                        "--keep-scratch", "--factor-storage", mode,
+                                        "--json", str(report)])
+            work = copy.with_name(copy.name + ".work")
+            rep = json.loads(report.read_text())
+            per = rep["timings_per_iteration_s"]
+            runs.append({"round": r, "mode": mode, "wall_s": wall, "peak_rss_mb": rss,
+                         "work_bytes": du(work), "iterations": rep["iterations"],
+                         "sigma0": rep["sigma0"], "timings_s": rep["timings_s"],
+                         "per_iteration_s": per, "iteration_s": sum(per.values()),
+                         "load_before": before})
+            shutil.rmtree(work, ignore_errors=True)
+            copy.unlink()
+            report.unlink()
+            print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
+    path.unlink()
+
+    def stat(mode, get):
+        v = [get(x) for x in runs if x["mode"] == mode]
+        return {"median": statistics.median(v), "min": min(v), "max": max(v)}
+
+    summary = {}
+    for mode in ("file", "replay"):
+        summary[mode] = {
+            "to_solution_s": stat(mode, lambda x: x["wall_s"]),
+            "iteration_s": stat(mode, lambda x: x["iteration_s"]),
+            "solve_per_iteration_s": stat(mode, lambda x: x["per_iteration_s"]["solve"]),
+            "precision_s": stat(mode, lambda x: x["timings_s"].get("precision", 0.0)),
+            "peak_rss_mb": stat(mode, lambda x: x["peak_rss_mb"]),
+            "work_gb": stat(mode, lambda x: x["work_bytes"] / 1e9)}
+    result = {"machine": {"python": sys.version.split()[0], "platform": platform.platform(),
+                          "cpus": os.cpu_count(),
+                          "memory_gb": os.sysconf("SC_PAGE_SIZE")
+                          * os.sysconf("SC_PHYS_PAGES") / 1e9, "load_at_end": load()},
+              "sapgo_version": sapgo.__version__, "sapgo_source": git_state(), "block": row,
+              "runs": runs, "summary": summary}
+    out = Path(__file__).parent / "results" / "scale_storage.json"
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(storage_markdown(result))
+
+
+def storage_markdown(result):
+    b = result["block"]
+    out = [f"{b['photos']:,} photos ({b['strips']} x {b['photos_per_strip']}), band width "
+           f"{b['band_width']}; generate {b['phases']['generate']['wall_s']:.1f} s, order "
+           f"{b['phases']['order']['wall_s']:.1f} s; {len(result['runs']) // 2} rounds, code "
+           f"{(result['sapgo_source'].get('commit') or '?')[:7]}",
+           "", "| factor | to solution s | s/iteration | solve s/iteration | precision s | "
+           "peak RSS MB | work dir GB |", "|---|---|---|---|---|---|---|"]
+
+    def f(d, fmt):
+        return f"{d['median']:{fmt}} ({d['min']:{fmt}}-{d['max']:{fmt}})"
+
+    for mode, s in result["summary"].items():
+        out.append(f"| {mode} | {f(s['to_solution_s'], '.1f')} | {f(s['iteration_s'], '.1f')} | "
+                   f"{f(s['solve_per_iteration_s'], '.1f')} | {f(s['precision_s'], '.1f')} | "
+                   f"{f(s['peak_rss_mb'], '.0f')} | {f(s['work_gb'], '.2f')} |")
+    loads = [x["load_before"][0] for x in result["runs"] if x.get("load_before")]
+    if loads:
+        out += ["", f"Load average before the runs: {min(loads):.2f}-{max(loads):.2f}."]
+    return "\n".join(out)
+
+
 def square_markdown(rows):
     out = ["| block | photos | --memory | solver | tree: nodes, largest front, factor GB, "
            "TFlop | generate s | order s | adjust s (iterations) | s/iteration | precision s | "
@@ -274,9 +376,14 @@ def main():
                     "200,500,1000 (results/scale_square.json)")
     ap.add_argument("--memory", default=None, help="with --squares: sapgo adjust --memory "
                     "SIZE (default: sapgo's budget, 1 GiB)")
+    ap.add_argument("--storage", default="", help="photos: the factor file against the "
+                    "replay on one strip block (results/scale_storage.json)")
+    ap.add_argument("--rounds", type=int, default=3, help="with --storage: rounds")
     args = ap.parse_args()
     if args.squares:
         return squares(args)
+    if args.storage:
+        return storage(args)
     sizes = [int(s) for s in args.sizes.split(",") if s]
     full = {int(s) for s in args.solution_sizes.split(",") if s}
     root = Path(args.dir or Path(__file__).parent.parent / "data" / "generated" / "scale")
