@@ -244,6 +244,8 @@ def storage(args):
                          "work_bytes": du(work), "iterations": rep["iterations"],
                          "sigma0": rep["sigma0"], "timings_s": rep["timings_s"],
                          "per_iteration_s": per, "iteration_s": sum(per.values()),
+                         "iterations_s": [{k: x[k] for k in ("build_s", "solve_s", "update_s")}
+                                          for x in rep["iteration_log"]],
                          "load_before": before})
             shutil.rmtree(work, ignore_errors=True)
             copy.unlink()

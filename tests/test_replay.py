@@ -162,3 +162,19 @@ def test_replay_killed_and_resumed(prior_block, tmp_path, monkeypatch, fault):
         sig = p.solution("station_sigma")
     equal(ref["eo"], eo, 0, "eo")
     equal(ref["station_sigma"], sig, 0, "station_sigma")
+
+
+def test_auto_replays_beyond_its_share_of_memory(prior_block, tmp_path, monkeypatch):
+    """``--factor-storage auto``: the file up to half the machine's memory in factor rows,
+    the replay beyond (a share made tiny here)."""
+    import importlib
+
+    adjust_mod = importlib.import_module("sapgo.adjust")
+    assert adjust_mod.factor_file_limit() > 1 << 28
+    for fraction, expect in [(1 / 2, "factor.bin"), (1e-12, "replay.bin")]:
+        monkeypatch.setattr(adjust_mod, "FACTOR_FILE_FRACTION", fraction)
+        path = tmp_path / f"auto-{expect}.h5"
+        shutil.copy(prior_block, path)
+        sapgo.adjust(path, sapgo.Options(**OPTS, keep_scratch=True))
+        names = {x.name for x in work_path(path).iterdir()}
+        assert expect in names and ({"factor.bin", "replay.bin"} - {expect}).isdisjoint(names)

@@ -219,7 +219,8 @@ class Options:
     #: file: the solver's state at the start of every segment of about 5 000 photos, and
     #: each segment refactored from its band rows built again when it is read back;
     #: :class:`sapgo.solve.band.FactorReplay`) or "auto" (replay when the factor would
-    #: exceed :data:`FACTOR_FILE_BYTES`). Self-calibration's border needs the file.
+    #: exceed half the machine's memory, :func:`factor_file_limit`, or nine tenths of the
+    #: free disk). Self-calibration's border needs the file.
     factor_storage: str = "auto"
     #: The linear solver: "band" (recursive partitioning of the band: long strips), "tree"
     #: (the partition tree of nested dissection: any block shape) or "auto" (the project's
@@ -1751,14 +1752,27 @@ def _tree_figures(blk, opts):
             **tiling(blk.tree, blk.npar, opts, blk.held, len(blk.station_ids))}
 
 
-#: Beyond this many bytes of band factor rows, ``--factor-storage auto`` replays the factor
-#: instead of writing it: up to here the page cache takes the file at memory speed (measured
-#: on 24 GB: 1.2 GB at 100 000 photos), beyond it the writes and reads go at the disk's.
-FACTOR_FILE_BYTES = 4 << 30
+#: Beyond this fraction of the machine's memory in band factor rows, ``--factor-storage
+#: auto`` replays the factor instead of writing it. While the file stays in the page cache
+#: from one iteration to the next it is the faster (24 GB here: at 1 000 000 photos, 12 GB
+#: of factor, 22 s an iteration against the replay's 30, benchmarks/README.md); beyond the
+#: memory every iteration writes and reads it at the disk's speed.
+FACTOR_FILE_FRACTION = 1 / 2
 
 
-def _choose_replay(blk: _Block, opts: Options):
-    """Whether the band's factor is replayed (``blk.replay``), by ``opts.factor_storage``."""
+def factor_file_limit():
+    """Bytes of band factor rows up to which ``--factor-storage auto`` keeps the file."""
+    try:
+        mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        mem = 24 << 30
+    return int(FACTOR_FILE_FRACTION * mem)
+
+
+def _choose_replay(blk: _Block, opts: Options, work_dir):
+    """Whether the band's factor is replayed (``blk.replay``), by ``opts.factor_storage``:
+    "auto" replays a factor beyond :func:`factor_file_limit` or beyond nine tenths of the
+    free space where the work files go."""
     if blk.tree is not None:
         return False
     if opts.factor_storage == "replay":
@@ -1767,7 +1781,17 @@ def _choose_replay(blk: _Block, opts: Options):
                                  "the factor file; use --factor-storage file (or auto)")
         return True
     factor = 8 * len(blk.station_ids) * blk.npar * blk.npar * blk.band_width
-    return opts.factor_storage == "auto" and not blk.n_border and factor > FACTOR_FILE_BYTES
+    if opts.factor_storage != "auto" or blk.n_border:
+        return False
+    return factor > factor_file_limit() or factor > 0.9 * _free_bytes(work_dir)
+
+
+def _free_bytes(path):
+    """Free bytes on the filesystem of ``path`` (its nearest existing folder)."""
+    folder = Path(os.path.abspath(path))
+    while not folder.is_dir() and folder != folder.parent:
+        folder = folder.parent
+    return shutil.disk_usage(folder).free
 
 
 def _work_band(blk: _Block):
@@ -1896,7 +1920,7 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                              f"starting from the beginning\n")
         converged = False
         work = None
-        blk.replay = _choose_replay(blk, opts)
+        blk.replay = _choose_replay(blk, opts, wpath)
         if checkpoint is not None:
             try:
                 work = Work(wpath, p, _work_band(blk), create=False, block=blk.npar,

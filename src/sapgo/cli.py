@@ -929,7 +929,8 @@ def build_parser():
                         "it back: file (factor.bin, 12 KB a photo at band width 42), replay "
                         "(no factor file: each segment refactored from its rows built again, "
                         "scratch growing with the band, not the photos) or auto (replay "
-                        "beyond 4 GiB of factor; the default)")
+                        "beyond half the memory or nine tenths of the free disk; the "
+                        "default)")
     a.add_argument("--precision", choices=("full", "stations", "none"), default="full",
                    help="the precision pass after convergence: full (the default: photos' and "
                         "points' standard deviations, redundancy numbers and tests of the "

@@ -321,27 +321,33 @@ def candidate_orders(xy, strip, active, edges, grid=None):
     ``perm`` lists station record numbers in logical order (active stations only).
     ``grid``: the active stations' :func:`grid_coordinates`, when the caller has them.
     """
+    return dict(iter_candidate_orders(xy, strip, active, edges, grid))
+
+
+def iter_candidate_orders(xy, strip, active, edges, grid=None):
+    """:func:`candidate_orders` one at a time, ``(name, perm)``: a scorer that keeps only
+    the best holds two orders, not all 18 (8 bytes a station each)."""
     idx = np.flatnonzero(active)
     if len(idx) == 0:
-        return {"record": idx}
+        yield "record", idx
+        return
     xy = xy[idx]
     u, v, column, labels, strip_key = grid or grid_coordinates(xy, strip[idx])
-    cands = {
-        "across_strip": idx[np.lexsort((v, column))],
-        "across_strip_by_position": idx[np.lexsort((v, u))],
-        "down_strip": idx[np.lexsort((u, strip_key))],
-    }
+    yield "across_strip", idx[np.lexsort((v, column))]
+    yield "across_strip_by_position", idx[np.lexsort((v, u))]
+    yield "down_strip", idx[np.lexsort((u, strip_key))]
     # along the diagonals of the grid, and a spiral from the outside (Rostom's orderings)
     kx = np.unique(column, return_inverse=True)[1]
     ky = np.unique(strip_key, return_inverse=True)[1]
     for name, (perm, _) in grid_orders(kx, ky, v).items():
-        cands[name] = idx[perm]
+        yield name, idx[perm]
+    del kx, ky
     # sweeps across the block in 12 directions: for blocks of crossing flight lines
     for deg in range(0, 180, 15):
         a = math.radians(deg)
         d = xy @ np.array([math.cos(a), math.sin(a)])
         e = xy @ np.array([-math.sin(a), math.cos(a)])
-        cands[f"sweep_{deg}"] = idx[np.lexsort((e, d))]
+        yield f"sweep_{deg}", idx[np.lexsort((e, d))]
     # reverse Cuthill-McKee on the active subgraph (CSR built directly, int32 indices)
     local = np.full(len(active), -1, np.int64)
     local[idx] = np.arange(len(idx))
@@ -354,8 +360,7 @@ def candidate_orders(xy, strip, active, edges, grid=None):
     _adjacency(n, s, t, indptr, indices)
     del s, t, keep
     g = sp.csr_matrix((np.ones(len(indices), np.int8), indices, indptr), shape=(n, n))
-    cands["reverse_cuthill_mckee"] = idx[reverse_cuthill_mckee(g, symmetric_mode=True)]
-    return cands
+    yield "reverse_cuthill_mckee", idx[reverse_cuthill_mckee(g, symmetric_mode=True)]
 
 
 # -- exclusions ------------------------------------------------------------------------
@@ -570,18 +575,34 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
     return result
 
 
-def score_orders(cands, active, edges):
-    """``{name: (band_width, profile, perm, pos)}`` of the candidate orders (the inactive
+def score_orders(cands, active, edges, keep="best"):
+    """``{name: (band_width, profile, perm, pos)}`` of the candidate orders (a dict, or
+    ``(name, perm)`` pairs as :func:`iter_candidate_orders` yields them; the inactive
     stations appended at the end): ``perm`` the records in logical order, ``pos`` each
-    record's logical number."""
+    record's logical number. ``perm`` and ``pos`` are kept for the order ``keep`` names
+    ("best": :func:`best_order`'s; None: all), None for the others."""
     n_st = len(active)
     tail = np.flatnonzero(~active)
     scored = {}
-    for name, perm in cands.items():
+    held = None
+    for name, perm in (cands.items() if isinstance(cands, dict) else cands):
         full = np.concatenate([perm, tail])
+        del perm
         pos = np.empty(n_st, np.int64)
         pos[full] = np.arange(n_st)
         scored[name] = (band_width_of(pos, edges), profile_of(pos, edges), full, pos)
+        if keep is None:
+            continue
+        if keep == "best":
+            if held is not None and scored[held][:2] <= scored[name][:2]:
+                scored[name] = scored[name][:2] + (None, None)
+                continue
+            if held is not None:
+                scored[held] = scored[held][:2] + (None, None)
+            held = name
+        elif name != keep:
+            scored[name] = scored[name][:2] + (None, None)
+        del full, pos
     return scored
 
 
@@ -684,11 +705,12 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
 
     identity = np.arange(n_st)
     b_before = band_width_of(identity, edges)
-    cands = candidate_orders(stations["eo"][:, 3:5], stations["strip"], st_active, edges)
-    if method != "best" and method not in cands:
-        raise ParameterError(f"unknown ordering {method!r}; choose from best, {', '.join(cands)}")
-    scored = score_orders(cands, st_active, edges)
-    name = best_order(scored) if method == "best" else method
+    if method != "best" and method not in ORDERINGS[1:]:
+        raise ParameterError(f"unknown ordering {method!r}; choose from "
+                             f"{', '.join(ORDERINGS)}")
+    cands = iter_candidate_orders(stations["eo"][:, 3:5], stations["strip"], st_active, edges)
+    scored = score_orders(cands, st_active, edges, keep=method)
+    name = best_order(scored) if method == "best" or method not in scored else method
     b, _, perm, pos = scored[name]
     candidates = {k: int(v[0]) for k, v in scored.items()}
     scored.clear()
