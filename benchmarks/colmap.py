@@ -3,7 +3,7 @@
 How to run::
 
     pip install pycolmap          # benchmark-only dependency (4.x; measured with 4.2.1)
-    python benchmarks/colmap.py [--sizes 1000,10000] [--repeat 3] [--dir DIR]
+    python benchmarks/colmap.py [--sizes 1000,10000] [--rounds 7] [--dir DIR]
 
 A few minutes on 2 cores (DENSE_SCHUR at 1 000 photos alone takes about 40 s). Run it on an
 otherwise idle machine: before every timed run the script waits (up to 2 minutes) until other
@@ -36,8 +36,10 @@ starting values (the generator's perturbed stations and intersected points):
   region radius of 1e16, i.e. practically undamped steps from the start, as Gauss-Newton.
   Tolerances: function 1e-10, gradient 1e-10, parameter 1e-12, at most 50 iterations.
 
-Measured (``--repeat`` runs of each tool and configuration, the fastest kept; runs over 10 s
-once). Iterations: sapgo's Gauss-Newton iterations; Ceres' linear solves (one linearisation
+Measured in ``--rounds`` interleaved rounds (in each round sapgo, then every COLMAP
+configuration, each on a fresh copy; a tool whose run took over 10 s runs once): the run of
+median time to solution is reported for each, with the spread (min-max) of its times to
+solution and seconds per iteration, and the machine's load average before each round. Iterations: sapgo's Gauss-Newton iterations; Ceres' linear solves (one linearisation
 and one linear solve each; a rejected LM step would count too). Seconds per iteration: sapgo
 build + solve + update over its iterations; Ceres' minimizer time over its iterations. Time to
 solution: sapgo's ``adjust`` wall time (ordering, checks, reading and writing the project file
@@ -542,7 +544,26 @@ def best_of(runs, key="time_to_solution_s"):
     return min(runs, key=lambda r: r[key])
 
 
-def bench_size(n_photos, workdir, pycolmap, repeat):
+def median_of(runs, key="time_to_solution_s"):
+    """The run of median ``key`` (the lower middle of an even count), with the spread of its
+    times beside it."""
+    ordered = sorted(runs, key=lambda r: r[key])
+    r = dict(ordered[(len(ordered) - 1) // 2])
+    r["runs_time_to_solution_s"] = [x["time_to_solution_s"] for x in runs]
+    r["runs_s_per_iteration"] = [x["s_per_iteration"] for x in runs]
+    r["median_time_to_solution_s"] = float(np.median(r["runs_time_to_solution_s"]))
+    r["median_s_per_iteration"] = float(np.median(r["runs_s_per_iteration"]))
+    return r
+
+
+def load_average():
+    try:
+        return [float(x) for x in Path("/proc/loadavg").read_text().split()[:3]]
+    except OSError:
+        return None
+
+
+def bench_size(n_photos, workdir, pycolmap, rounds):
     spec = BLOCKS[n_photos]
     gen = workdir / f"block{n_photos}.h5"
     info = sapgo.generate_block(gen, progress=False, control_sigma=0.0, **spec)
@@ -551,40 +572,42 @@ def bench_size(n_photos, workdir, pycolmap, repeat):
     prob = load_problem(gen)  # starting values, read before anything adjusts a copy
     initial_rms = image_rms_um(rotation(prob["eo"]), prob["eo"][:, 3:], prob["xyz"], prob)
 
-    # sapgo, each run on a fresh copy of the generated file
-    sap_runs = []
-    for _ in range(repeat if repeat else 1):
-        path = workdir / f"sapgo{n_photos}.h5"
-        shutil.copyfile(gen, path)
-        sap_runs.append(run_sapgo(path))
-        print(f"  sapgo: {sap_runs[-1]['iterations']} it, {sap_runs[-1]['time_to_solution_s']:.2f}"
-              f" s, RMS {sap_runs[-1]['final_rms_um']:.4f} um", file=sys.stderr)
-        path.unlink()
-        if sap_runs[-1]["time_to_solution_s"] > REPEAT_BELOW_S:
-            break
-    sap = best_of(sap_runs)
-    sap["runs_time_to_solution_s"] = [r["time_to_solution_s"] for r in sap_runs]
-
-    # COLMAP: check the mapping, then each configuration
+    # COLMAP: check the mapping once
     rec, _, origin, _ = build_reconstruction(prob, pycolmap)
     check = verify_mapping(rec, prob, origin, pycolmap)
     del rec
-    runs = []
-    for cfg in solver_configs(n_photos, pycolmap):
-        reps = []
-        for _ in range(repeat):
+    configs = solver_configs(n_photos, pycolmap)
+    # interleaved rounds: sapgo (a fresh copy of the generated file), then each configuration
+    sap_runs, reps, errors, loads = [], {c["name"]: [] for c in configs}, {}, []
+    for rnd in range(max(1, rounds)):
+        loads.append(load_average())
+        if not (sap_runs and sap_runs[-1]["time_to_solution_s"] > REPEAT_BELOW_S):
+            path = workdir / f"sapgo{n_photos}.h5"
+            shutil.copyfile(gen, path)
+            sap_runs.append(run_sapgo(path))
+            print(f"  round {rnd}: sapgo: {sap_runs[-1]['iterations']} it, "
+                  f"{sap_runs[-1]['time_to_solution_s']:.2f} s, RMS "
+                  f"{sap_runs[-1]['final_rms_um']:.4f} um", file=sys.stderr)
+            path.unlink()
+        for cfg in configs:
+            name = cfg["name"]
+            if name in errors or (reps[name] and reps[name][-1]["time_to_solution_s"]
+                                  > REPEAT_BELOW_S):
+                continue
             r = run_colmap(prob, cfg, pycolmap)
             if "error" in r:
-                break
-            reps.append(r)
-            if r["time_to_solution_s"] > REPEAT_BELOW_S:
-                break
-        if not reps:
-            runs.append(r)
-            print(f"  COLMAP {cfg['name']}: {r['error']}", file=sys.stderr)
+                errors[name] = r
+                print(f"  COLMAP {name}: {r['error']}", file=sys.stderr)
+                continue
+            reps[name].append(r)
+    sap = median_of(sap_runs)
+    runs = []
+    for cfg in configs:
+        name = cfg["name"]
+        if not reps[name]:
+            runs.append(errors[name])
             continue
-        r = best_of(reps)
-        r["runs_time_to_solution_s"] = [x["time_to_solution_s"] for x in reps]
+        r = median_of(reps[name])
         r["rms_relative_difference_to_sapgo"] = ((r["final_rms_um"] - sap["final_rms_um"])
                                                  / sap["final_rms_um"])
         hit = next((row for row in r["log"] if row["image_rms_um"]
@@ -605,15 +628,19 @@ def bench_size(n_photos, workdir, pycolmap, repeat):
                       observations=info["observations"]),
         "initial_rms_um": initial_rms,
         "mapping_check": check,
+        "rounds": rounds,
+        "load_before_rounds": loads,
         "sapgo": sap,
         "colmap": None if best is None else dict(best, best_of_configurations=True),
         "colmap_all_configurations": runs,
     }
     if best is not None:
-        out["speedup_per_iteration"] = best["s_per_iteration"] / sap["s_per_iteration"]
+        out["speedup_per_iteration"] = (best["median_s_per_iteration"]
+                                        / sap["median_s_per_iteration"])
         out["speedup_per_iteration_fastest_colmap_iteration"] = (
             min(r["s_per_iteration"] for r in good) / sap["s_per_iteration"])
-        out["speedup_time_to_solution"] = best["time_to_solution_s"] / sap["time_to_solution_s"]
+        out["speedup_time_to_solution"] = (best["median_time_to_solution_s"]
+                                           / sap["median_time_to_solution_s"])
         out["rms_relative_difference"] = ((best["final_rms_um"] - sap["final_rms_um"])
                                           / sap["final_rms_um"])
     return out
@@ -623,14 +650,24 @@ def fmt(v, nd=3):
     return "-" if v is None else f"{v:.{nd}f}"
 
 
+def span(r, key, nd):
+    """``median (min-max)`` of a tool's runs (its single figure when it ran once)."""
+    runs = r.get({"time_to_solution_s": "runs_time_to_solution_s",
+                  "s_per_iteration": "runs_s_per_iteration"}[key]) or [r[key]]
+    if len(runs) == 1:
+        return fmt(runs[0], nd)
+    return f"{fmt(float(np.median(runs)), nd)} ({fmt(min(runs), nd)}-{fmt(max(runs), nd)})"
+
+
 def table(rows):
-    L = [("| photos | tool | configuration | iterations | s per iteration | time to solution s | "
+    L = [("| photos | tool | configuration | iterations | s per iteration median (min-max) | "
+          "time to solution s median (min-max) | "
           "final RMS um | Ceres iterations to sapgo's RMS |"),
          "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         s = r["sapgo"]
         L.append(f"| {r['photos']:,} | sapgo | Gauss-Newton, band Cholesky | {s['iterations']} | "
-                 f"{fmt(s['s_per_iteration'])} | {fmt(s['time_to_solution_s'], 2)} | "
+                 f"{span(s, 's_per_iteration', 3)} | {span(s, 'time_to_solution_s', 2)} | "
                  f"{fmt(s['final_rms_um'], 4)} | |")
         for c in r["colmap_all_configurations"]:
             if "error" in c:
@@ -640,8 +677,8 @@ def table(rows):
             to_rms = c["iterations_to_sapgo_rms"]
             L.append(f"| {r['photos']:,} | COLMAP {pycolmap_version} | "
                      f"{c['configuration']}{star} | "
-                     f"{c['iterations']} | {fmt(c['s_per_iteration'])} | "
-                     f"{fmt(c['time_to_solution_s'], 2)} | {fmt(c['final_rms_um'], 4)} | "
+                     f"{c['iterations']} | {span(c, 's_per_iteration', 3)} | "
+                     f"{span(c, 'time_to_solution_s', 2)} | {fmt(c['final_rms_um'], 4)} | "
                      f"{to_rms if to_rms is not None else '-'} |")
     L.append("")
     L.append("| photos | speedup per iteration (COLMAP best / sapgo) | speedup time to solution | "
@@ -678,9 +715,9 @@ def main(argv=None):
     ap.add_argument("--sizes", default="1000,10000",
                     help=f"comma-separated photo counts out of {sorted(BLOCKS)}")
     ap.add_argument("--dir", default=None, help="scratch directory (default: a temporary one)")
-    ap.add_argument("--repeat", type=int, default=3,
-                    help="runs per tool and configuration (runs over 10 s once); the fastest "
-                         "is reported")
+    ap.add_argument("--rounds", type=int, default=7,
+                    help="interleaved rounds (a tool whose run took over 10 s runs once); the "
+                         "median run is reported with the spread")
     ap.add_argument("--output", default=str(RESULTS))
     args = ap.parse_args(argv)
     try:
@@ -696,7 +733,7 @@ def main(argv=None):
     with tempfile.TemporaryDirectory(dir=args.dir, prefix="sapgo-colmap-") as tmp:
         workdir = Path(tmp)
         warm_numba(workdir)
-        rows = [bench_size(n, workdir, pycolmap, args.repeat) for n in sizes]
+        rows = [bench_size(n, workdir, pycolmap, args.rounds) for n in sizes]
     result = {
         "benchmark": "sapgo vs COLMAP bundle adjustment (pycolmap/Ceres), same blocks",
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
@@ -707,7 +744,7 @@ def main(argv=None):
         "ceres_version": getattr(pycolmap, "__ceres_version__", None),
         "pixels_per_mm": S_PX,
         "ceres_tolerances": CERES_TOL,
-        "repeat": args.repeat,
+        "rounds": args.rounds,
         "sizes": {str(r["photos"]): r for r in rows},
         "wall_s": time.perf_counter() - t_all,
     }

@@ -21,9 +21,11 @@ and their band rows are built by sapgo's own ``build`` pass. On each matrix, in 
   dense matrix-multiply rate (DGEMM 2000 x 2000, 2 threads).
 
 Operation count ``n (6b)^2`` (n scalar unknowns, b band width in stations), as the issue
-defines it; GFLOP/s = count / seconds. Every time is the best of ``REPEAT`` runs. Then solve
-time against photo count at fixed band width (20 strips) with the fitted exponent, and the
-fitted exponent against band width.
+defines it; GFLOP/s = count / seconds. Every time is the median of ``ROUNDS`` interleaved
+rounds (the tools taking turns within each round), its spread (min-max) recorded beside it;
+the machine's load average before each matrix is recorded. Then solve time against photo
+count at fixed band width (20 strips) with the fitted exponent, and the fitted exponent
+against band width.
 """
 
 import argparse
@@ -66,13 +68,29 @@ ROUNDS = 7
 STRIPS = [3, 5, 7, 12, 16, 24, 32, 40, 49]
 
 
+def med(times):
+    return float(np.median(times))
+
+
+def spread(times):
+    return [float(min(times)), float(max(times))]
+
+
+def load():
+    try:
+        return [float(x) for x in Path("/proc/loadavg").read_text().split()[:3]]
+    except OSError:
+        return None
+
+
 def best(fn, repeat=REPEAT):
+    """Median time of ``repeat`` runs of ``fn`` (and its last result)."""
     times, out = [], None
     for _ in range(repeat):
         t = time.perf_counter()
         out = fn()
         times.append(time.perf_counter() - t)
-    return min(times), out
+    return med(times), out
 
 
 def reduced_matrix(tmp, strips, photos):
@@ -113,7 +131,12 @@ def lower_storage(band):
 def gemm_rate():
     a = np.random.default_rng(0).random((2000, 2000))
     b = a.T.copy()
-    t, _ = best(lambda: a @ b, 5)
+    times = []
+    for _ in range(5):   # the ceiling: the fastest
+        t0 = time.perf_counter()
+        a @ b
+        times.append(time.perf_counter() - t0)
+    t = min(times)
     return 2 * 2000 ** 3 / t / 1e9
 
 
@@ -189,7 +212,7 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
     lap = {(form, threads): [] for form in ("lower", "upper") for threads in (1, 2)}
     ts = []
     ref = c = None
-    # Interleaved rounds, the best of each kept: this machine's speed drifts for seconds at a
+    # Interleaved rounds, medians kept: this machine's speed drifts for seconds at a
     # time (other tenants), which must not favour either side. A pause after LAPACK lets
     # OpenBLAS's idle threads stop spinning before sapgo's kernel runs.
     for _ in range(ROUNDS):
@@ -214,11 +237,12 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
                                  numba.get_num_threads())
         ts.append(time.perf_counter() - t0)
         assert fail < 0
-    lap = {k: min(v) for k, v in lap.items()}
-    t_lapack = min(lap.values())
+    lap_spread = {k: spread(v) for k, v in lap.items()}
+    lap = {k: med(v) for k, v in lap.items()}
+    t_lapack = min(lap.values())   # LAPACK's best configuration, by its median
     lapack_best = "%s form, %d thread%s" % (*min(lap, key=lap.get),
                                            "s" if min(lap, key=lap.get)[1] > 1 else "")
-    t_ours = min(ts)
+    t_ours = med(ts)
     diff = float(np.abs(np.asarray(c) - ref).max() / np.abs(ref).max())
     # The drop-in call against SciPy's, C-ordered input as a user would pass it (both copy),
     # also in interleaved rounds
@@ -232,7 +256,7 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
         t0 = time.perf_counter()
         c2 = cholesky_banded(ab, lower=True)
         calls["sapgo"].append(time.perf_counter() - t0)
-    t_call_lapack, t_call_ours = min(calls["scipy"]), min(calls["sapgo"])
+    t_call_lapack, t_call_ours = med(calls["scipy"]), med(calls["sapgo"])
     diff_call = float(np.abs(np.asarray(c2) - ref).max() / np.abs(ref).max())
     # full solves (factor, forward and back substitution), the same driver with 256-station
     # segments: in core (band rows in arrays) and out of core (band rows in files)
@@ -242,7 +266,6 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
         x = solve_out_of_core(b, r, bw, chunk_rows=256)
         return time.perf_counter() - t0, x
 
-    t_in, x_in = min((in_core() for _ in range(REPEAT)), key=lambda r: r[0])
     d = Path(tmp) / "ooc"
     d.mkdir(exist_ok=True)
 
@@ -258,11 +281,21 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
         rf.close()
         return dt, x
 
-    t_ooc, x_ooc = min((ooc() for _ in range(REPEAT)), key=lambda r: r[0])
+    def lapack_solve():
+        t0 = time.perf_counter()
+        x = scipy.linalg.cho_solve_banded((scipy.linalg.cholesky_banded(ab, lower=True), True),
+                                          rhs.ravel())
+        return time.perf_counter() - t0, x
+
+    solves = {"in": [], "ooc": [], "lapack": []}
+    for _ in range(ROUNDS):   # the three full solves taking turns
+        solves["in"].append(in_core())
+        solves["ooc"].append(ooc())
+        solves["lapack"].append(lapack_solve())
+    x_in, x_ooc, x_lap = (solves[k][-1][1] for k in ("in", "ooc", "lapack"))
+    solve_times = {k: [t for t, _ in v] for k, v in solves.items()}
+    t_in, t_ooc, t_lapack_solve = (med(solve_times[k]) for k in ("in", "ooc", "lapack"))
     sol_diff = float(np.abs(x_ooc - x_in).max() / np.abs(x_in).max())
-    # LAPACK full solve for the like-for-like solve comparison
-    t_lapack_solve, x_lap = best(lambda: scipy.linalg.cho_solve_banded(
-        (scipy.linalg.cholesky_banded(ab, lower=True), True), rhs.ravel()))
     row = {
         "band_width": bw, "stations": n_st, "unknowns": n, "count_gflop": count / 1e9,
         "factor_s": {"sapgo_in_core": t_ours, "lapack_dpbtrf": t_lapack,
@@ -272,6 +305,14 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
                         for (f, t), v in lap.items()},
                      "dense_ceiling": count / (gemm * 1e9)},
         "lapack_best_configuration": lapack_best,
+        "spread_s": {"sapgo_in_core_factor": spread(ts),
+                     **{f"lapack_{f}_{t}_thread{'s' if t > 1 else ''}": v
+                        for (f, t), v in lap_spread.items()},
+                     "sapgo_call": spread(calls["sapgo"]), "scipy_call": spread(calls["scipy"]),
+                     "solve_sapgo_in_core": spread(solve_times["in"]),
+                     "solve_sapgo_out_of_core": spread(solve_times["ooc"]),
+                     "solve_lapack": spread(solve_times["lapack"])},
+        "rounds": ROUNDS,
         "call_s": {"sapgo_cholesky_banded": t_call_ours,
                    "scipy_cholesky_banded": t_call_lapack},
         "ratio_call_scipy_over_sapgo": t_call_lapack / t_call_ours,
@@ -308,7 +349,7 @@ def scaling_in_photos(tmp, sizes):
         d = Path(tmp) / "scale"
         d.mkdir(exist_ok=True)
         ts = []
-        for _ in range(REPEAT):
+        for _ in range(ROUNDS):
             bf = RawArray.create(d / "band.bin", band.shape)
             rf = RawArray.create(d / "rhs.bin", rhs.shape)
             bf[:] = band
@@ -318,7 +359,8 @@ def scaling_in_photos(tmp, sizes):
             ts.append(time.perf_counter() - t)
             bf.close()
             rf.close()
-        rows.append({"photos": band.shape[0], "band_width": bw, "sapgo_out_of_core_s": min(ts)})
+        rows.append({"photos": band.shape[0], "band_width": bw, "sapgo_out_of_core_s": med(ts),
+                     "spread_s": spread(ts)})
         del band, rhs
     return rows
 
@@ -374,15 +416,23 @@ def plots(res, out_dir, suffix=""):
 
 
 def table(res):
-    out = ["| b | stations | LAPACK dpbtrf s | sapgo s | ratio | GFLOP/s sapgo / LAPACK / "
+    out = [f"Medians of {res['by_band_width'][0].get('rounds', '?')} interleaved rounds; "
+           "factor times with (min-max).", "",
+           "| b | stations | LAPACK dpbtrf s | sapgo s | ratio | GFLOP/s sapgo / LAPACK / "
            "ceiling | drop-in call ratio | sapgo in core solve s | out of core s | ooc/in-core | "
            f"{res['sparse_solver']} s | max rel diff |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["by_band_width"]:
         f, s, g = r["factor_s"], r["solve_s"], r["gflops"]
+        sp = r.get("spread_s", {})
+        cfg = r["lapack_best_configuration"].replace(" form, ", "_").replace(" thread", "_thread")
+        lap_sp = sp.get(f"lapack_{cfg}", [float("nan")] * 2)
+        our_sp = sp.get("sapgo_in_core_factor", [float("nan")] * 2)
         out.append(
-            f"| {r['band_width']} | {r['stations']} | {f['lapack_dpbtrf']:.4f} | "
-            f"{f['sapgo_in_core']:.4f} | **{r['ratio_lapack_over_sapgo']:.2f}** | "
+            f"| {r['band_width']} | {r['stations']} | {f['lapack_dpbtrf']:.4f} "
+            f"({lap_sp[0]:.4f}-{lap_sp[1]:.4f}) | "
+            f"{f['sapgo_in_core']:.4f} ({our_sp[0]:.4f}-{our_sp[1]:.4f}) | "
+            f"**{r['ratio_lapack_over_sapgo']:.2f}** | "
             f"{g['sapgo_in_core']:.0f} / {g['lapack_dpbtrf']:.0f} / {g['dense_ceiling']:.0f} | "
             f"{r['ratio_call_scipy_over_sapgo']:.2f} | {s['sapgo_in_core']:.4f} | "
             f"{s['sapgo_out_of_core']:.4f} | "
@@ -425,7 +475,9 @@ def main():
         one_matrix(tmp, warm_band, warm_rhs, warm_bw, gemm, with_sparse=False)
         for s in strips:
             band, rhs, bw = reduced_matrix(tmp, s, args.photos)
+            before = load()
             row = one_matrix(tmp, band, rhs, bw, gemm, with_sparse=bw <= 66)
+            row["load_before"] = before
             res["by_band_width"].append(row)
             print(f"b={bw:3d}: LAPACK {row['factor_s']['lapack_dpbtrf']:.4f} s, sapgo "
                   f"{row['factor_s']['sapgo_in_core']:.4f} s, ratio "
