@@ -612,6 +612,10 @@ def main(argv=None):
             "pycolmap": pycolmap.__version__, "sapgo": sapgo.__version__,
             "repeat": args.repeat, "problems": names, "exact": args.exact,
             "exact_tight": args.exact_tight, "target": TARGET}
+    sys.path.insert(0, str(Path(__file__).parent))
+    from colmap import git_state
+
+    meta["sapgo_source"] = git_state()
     if args.exact:
         import pyceres
 

@@ -34,6 +34,7 @@ import platform
 import shutil
 import tempfile
 import time
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -80,8 +81,8 @@ def run(seeds):
             for seed in seeds:
                 clean = Path(tmp) / "clean.h5"
                 bad = Path(tmp) / "bad.h5"
-                sapgo.generate_block(clean, seed=seed, **params)
-                sapgo.generate_block(bad, seed=seed, blunders=20, **params)
+                sapgo.generate_block(clean, seed=seed, force=True, **params)
+                sapgo.generate_block(bad, seed=seed, blunders=20, force=True, **params)
                 sc, _, eoc, xyzc, ssc, psc = solution(clean)
                 for name, kw in METHODS.items():
                     work = Path(tmp) / "work.h5"
@@ -129,7 +130,6 @@ def scale_child(path, mode, alpha):
 def run_scale(n_photos, n_blunders, rounds, alpha):
     import statistics
     import subprocess
-    import sys
 
     from colmap import git_state
     from shape import load
@@ -204,9 +204,40 @@ def run_scale(n_photos, n_blunders, rounds, alpha):
             "load_at_end": load(), "runs": rows, "summary": summary}
 
 
-def main():
-    import sys
+def markdown(rows):
+    """The table of benchmarks/README.md: each cell the seeds' figures, ``a / b / c``."""
+    from collections import OrderedDict
 
+    cells = OrderedDict()
+    for r in rows:
+        cells.setdefault((r["block"], r["method"]), []).append(r)
+    out = ["| block | method | found (of 20) | false | with their point | detectable | found of "
+           "detectable | stations within 1σ | points within 1σ | max station dev. [σ] | "
+           "iterations | time [s] |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+
+    def join(rs, get):
+        return " / ".join(get(r) for r in rs)
+
+    for (block, method), rs in cells.items():
+        rs = sorted(rs, key=lambda r: r["seed"])
+        tested = method.startswith("snooping")
+
+        def b(key):
+            return join(rs, lambda r: str(r["blunder_check"][key])) if tested else "–"
+
+        st_in = join(rs, lambda r: "%.0f %%" % (100 * r["stations"]["within_1_sigma"]))
+        pt_in = join(rs, lambda r: "%.1f %%" % (100 * r["points"]["within_1_sigma"]))
+        st_max = join(rs, lambda r: "%.1f" % r["stations"]["max"])
+        its = join(rs, lambda r: str(r["iterations"]))
+        secs = join(rs, lambda r: "%.1f" % r["seconds"])
+        out.append(
+            f"| {block} | {method} | {b('found')} | {b('false_rejections')} | "
+            f"{b('rejected_with_point')} | {b('detectable')} | {b('found_detectable')} | "
+            f"{st_in} | {pt_in} | {st_max} | {its} | {secs} |")
+    return "\n".join(out)
+
+
+def main():
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         scale_child(sys.argv[2], sys.argv[3], sys.argv[4])
         return
@@ -229,8 +260,13 @@ def main():
         return
     rows = run(args.seeds)
     out = Path(__file__).parent / "results" / "blunders.json"
+    sys.path.insert(0, str(Path(__file__).parent))
+    from colmap import git_state
+
     out.write_text(json.dumps({"machine": platform.processor() or platform.machine(),
-                               "sapgo": sapgo.__version__, "rows": rows}, indent=1))
+                               "sapgo": sapgo.__version__, "sapgo_source": git_state(),
+                               "rows": rows}, indent=1))
+    print(markdown(rows))
     print(f"wrote {out}")
 
 

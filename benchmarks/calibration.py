@@ -130,6 +130,10 @@ def main():
                      "control_points": args.control,
                      "photos": n_st, "points": n_pt, "observations": n_obs},
            "distortion": DIST, "true_camera": truth.tolist(), "runs": runs}
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from colmap import git_state
+
+    out["sapgo_source"] = git_state()
     res = ROOT / "benchmarks" / "results" / "calibration.json"
     res.write_text(json.dumps(out, indent=1))
     print()

@@ -61,6 +61,12 @@ def make(path, params):
 
 
 def main():
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from colmap import git_state
+
+    source = git_state()
     tmp = Path(tempfile.mkdtemp(prefix="sapgo-plan-"))
     rows = []
     try:
@@ -76,8 +82,16 @@ def main():
             # ROUNDS rounds of (plan's timing, adjust): this machine has slow spells of
             # seconds, so the two are interleaved and each side's fastest is compared
             pred, meas = [], []
+            tree = rec.get("solver") == "tree"
             for _ in range(ROUNDS):
-                t = solve_time(rec["dimension"], rec["band_width_m"], e["parameters_per_unit"])
+                if tree:   # the plan's model of the tree (flops and nodes), not a timed run
+                    from sapgo.ordering import TREE_RATE
+
+                    t = {"predicted_s": rec["predicted_solve_s"], "rate_flops": TREE_RATE,
+                         "timed_units": 0, "extrapolated": False}
+                else:
+                    t = solve_time(rec["dimension"], rec["band_width_m"],
+                                   e["parameters_per_unit"])
                 pred.append(t)
                 # (the plan's time is the fastest of up to 50 runs: adjust gets as many
                 # solves on the small blocks, where a round costs little)
@@ -89,7 +103,7 @@ def main():
             t = min(pred, key=lambda r: r["predicted_s"])
             predicted, measured = t["predicted_s"], min(meas)
             ratios = sorted(p["predicted_s"] / m for p, m in zip(pred, meas))
-            row = {"block": name, "photos": rec["dimension"],
+            row = {"block": name, "photos": rec["dimension"], "solver": rec.get("solver"),
                    "parameters": e["parameters_per_unit"], "recommended": e["recommended"],
                    "ordering_planned": rec["ordering"],
                    "band_width_planned": rec["band_width_m"], "band_width_adjust": s.band_width,
@@ -102,19 +116,22 @@ def main():
                    "measured_rounds_s": meas, "plan_s": t_plan}
             rows.append(row)
             print(json.dumps(row), flush=True)
-            out = {"machine": platform.machine(), "rows": rows}  # (after every block)
+            out = {"machine": platform.machine(), "sapgo_source": source,
+                   "rows": rows}  # (after every block)
             (ROOT / "benchmarks" / "results" / "plan.json").write_text(json.dumps(out,
                                                                               indent=1))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     print()
-    print("| block | photos | ordering (plan / adjust) | band width (plan / adjust) | "
-          "predicted solve | measured solve | predicted / measured | rounds' ratios | "
+    print("| block | photos | parameters | ordering (plan / adjust) | band width (plan / "
+          "adjust) | predicted solve | measured solve | predicted / measured | rounds' ratios | "
           "plan time |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['block']} | {r['photos']} | {r['ordering_planned']} / {r['ordering_adjust']} | "
-              f"{r['band_width_planned']} / {r['band_width_adjust']} | "
+        bw = ("tree" if r.get("solver") == "tree" else
+              f"{r['band_width_planned']} / {r['band_width_adjust']}")
+        print(f"| {r['block']} | {r['photos']} | {r['parameters']} | "
+              f"{r['ordering_planned']} / {r['ordering_adjust']} | {bw} | "
               f"{r['predicted_solve_s']:.3f} s | {r['measured_solve_s']:.3f} s | "
               f"{r['ratio']:.2f} | {' '.join(f'{x:.2f}' for x in r['round_ratios'])} | "
               f"{r['plan_s']:.2f} s |")

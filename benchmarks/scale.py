@@ -329,6 +329,13 @@ def _code(row):
     return (src.get("commit") or "?")[:7] + ("+" if src.get("uncommitted") else "")
 
 
+def _source():
+    sys.path.insert(0, str(Path(__file__).parent))
+    from colmap import git_state
+
+    return git_state()
+
+
 def growth(rows, a, b):
     by = {r["photos"]: r for r in rows}
     if a in by and b in by:
@@ -404,6 +411,7 @@ def main():
                     "cpus": os.cpu_count(),
                     "memory_gb": os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9},
         "sapgo_version": sapgo.__version__,
+        "sapgo_source": _source(),
         "rows": rows,
         "rss_growth_bytes_per_photo": {
             "20000_to_200000": growth(rows, 20000, 200000),

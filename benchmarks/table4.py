@@ -64,11 +64,19 @@ def markdown(rows):
     return "\n".join(out)
 
 
+def source():
+    """The commit and uncommitted source files of the sapgo checkout (colmap.git_state)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from colmap import git_state
+
+    return git_state()
+
+
 if __name__ == "__main__":
     rows = run()
     result = {"machine": {"python": sys.version.split()[0], "platform": platform.platform(),
                           "processor": platform.processor() or platform.machine()},
-              "sapgo_version": sapgo.__version__, "rows": rows}
+              "sapgo_version": sapgo.__version__, "sapgo_source": source(), "rows": rows}
     out = Path(__file__).parent / "results" / "table4.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(markdown(rows))
