@@ -288,7 +288,8 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
         return time.perf_counter() - t0, x
 
     solves = {"in": [], "ooc": [], "lapack": []}
-    for _ in range(ROUNDS):   # the three full solves taking turns
+    for _ in range(ROUNDS):   # the three full solves taking turns (a pause after LAPACK,
+        time.sleep(0.2)       # whose OpenBLAS threads spin for a while after a call)
         solves["in"].append(in_core())
         solves["ooc"].append(ooc())
         solves["lapack"].append(lapack_solve())
