@@ -621,6 +621,43 @@ def test_an_undetermined_point_is_set_aside_and_brought_back(small_block, tmp_pa
         "later" in s.full_report()
 
 
+def test_a_point_undetermined_without_damping_is_set_aside_by_the_precision_pass(
+        small_block, tmp_path, capsys, monkeypatch):
+    """After Levenberg-Marquardt the precision pass factors the undamped normals; a pass
+    point they cannot determine (rays nearly parallel, held by the damping: BAL
+    problem-49-7776 at tight tolerances has eleven) is set aside there, with the warning
+    and in the report, instead of refusing the whole run; the others get their precision."""
+    import importlib
+
+    from sapgo.errors import UndeterminedPointError
+
+    adjust_mod = importlib.import_module("sapgo.adjust")
+    real = adjust_mod._factor_solve
+    raised = []
+
+    def undetermined_once(p, work, blk, opts, it=0, mu=0.0, back=True):
+        if not back and not raised:   # (the precision pass's refactoring)
+            kind = p.read_field("points", "kind")
+            j = int(np.flatnonzero(np.isin(kind, (0, 4)))[0])   # a pass point of the run
+            raised.append(int(p.read_field("points", "id")[j]))
+            raise UndeterminedPointError(f"point id {raised[0]} cannot be determined", j)
+        return real(p, work, blk, opts, it, mu, back)
+
+    monkeypatch.setattr(adjust_mod, "_factor_solve", undetermined_once)
+    s = sapgo.adjust(small_block, sapgo.Options(progress=False,
+                                                method="levenberg-marquardt"))
+    assert raised and s.converged
+    pid = raised[0]
+    assert s.set_aside == [{"point": pid, "set_aside": s.iterations, "back": None}]
+    assert f"point id {pid} set aside in iteration {s.iterations}" in capsys.readouterr().err
+    with Project(small_block) as p:
+        order = p.read_field("points", "id")
+        sig = p.solution("point_sigma")
+    k = int(np.flatnonzero(order == pid)[0])
+    others = np.delete(np.arange(len(order)), k)
+    assert np.isfinite(sig[others]).all() and (sig[others] > 0).all()
+
+
 @pytest.mark.parametrize("solver", ["band", "tree"])
 def test_photos_at_phi_ninety_degrees_adjust(small_block, tmp_path, solver):
     """The small block turned 90 degrees about the Y axis (terrestrial photos looking along

@@ -1983,7 +1983,8 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                     _iterate(p, work, blk, opts, timings, log, run)
                 t0 = time.perf_counter()
                 sig, _, quality = _precision(p, work, blk, opts,
-                                                 _accepted(log)[-1]["sigma0"])
+                                                 _accepted(log)[-1]["sigma0"], run=run,
+                                                 iteration=len(log))
                 # reweighting converges linearly: it stops when the corrections are below
                 # a fraction of the least-squares standard deviations
                 act = sig[blk.station_active]
@@ -2019,22 +2020,34 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
 
 
 def _precision(p: Project, work, blk: _Block, opts: Options, sigma0, correlations=None,
-               mode="full"):
+               mode="full", run=None, iteration=0):
     """:func:`sapgo.quality.quality_sweep` from the undamped factor of the current state
     (factored once more first when the last one was damped or rejected). ``mode``: "full"
     (stations, points and the observations' quality: what snooping and robust estimation
-    need) or "stations" (the stations' blocks alone, ``--precision stations``)."""
+    need) or "stations" (the stations' blocks alone, ``--precision stations``). ``run``
+    and ``iteration``: a pass point undetermined without the damping is set aside, as in
+    an iteration (:func:`_undamped_factor`)."""
     if blk.refactor or (blk.replay and work.replay is None):
-        _undamped_factor(p, work, blk, opts)
+        _undamped_factor(p, work, blk, opts, run, iteration)
     if opts.precision != mode:
         opts = dataclasses.replace(opts, precision=mode)
     return quality_sweep(p, work, blk, opts, sigma0, correlations)
 
 
-def _undamped_factor(p: Project, work, blk: _Block, opts: Options):
+def _undamped_factor(p: Project, work, blk: _Block, opts: Options, run=None, iteration=0):
     """Build and factor the normals of the current state without damping (the work files'
-    factor, ``y`` and border), for the precision sweep after Levenberg-Marquardt steps."""
-    step = _factor_solve(p, work, blk, opts, back=False)
+    factor, ``y`` and border), for the precision sweep after Levenberg-Marquardt steps.
+    A pass point whose rays are (nearly) parallel, which the damping held, is set aside
+    (:func:`_set_aside`, reported with the iteration ``iteration``; with ``run`` given):
+    it has no precision to give, and the others are not held back by it."""
+    while True:
+        try:
+            step = _factor_solve(p, work, blk, opts, back=False)
+            break
+        except UndeterminedPointError as exc:
+            if run is None:
+                raise
+            _set_aside(p, work, blk, opts, run, exc, iteration)
     if step["border"] is not None:
         blk.border_cov = step["border_cov"]
     blk.refactor = False
@@ -2129,7 +2142,8 @@ def _confirm_finish(p, work, blk, opts, timings, log, run):
     group = [int(i) for i in run["snooping_group"]]
     confirmed = set(run.get("snooping_confirmed", []))
     t0 = time.perf_counter()
-    _, _, quality = _precision(p, work, blk, opts, _accepted(log)[-1]["sigma0"])
+    _, _, quality = _precision(p, work, blk, opts, _accepted(log)[-1]["sigma0"], run=run,
+                               iteration=len(log))
     timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t0
     crit = _snooping_critical(opts)
     again = [i for i in group if quality[i][5] > crit]
@@ -2153,7 +2167,8 @@ def _snoop_rounds(p, work, blk, opts, timings, log, run, converged):
     confirmed = set(run.get("snooping_confirmed", []))
     while len(blk.rejected) < opts.max_rejections:
         t0 = time.perf_counter()
-        _, _, quality = _precision(p, work, blk, opts, _accepted(log)[-1]["sigma0"])
+        _, _, quality = _precision(p, work, blk, opts, _accepted(log)[-1]["sigma0"],
+                                   run=run, iteration=len(log))
         _note_planted(p, blk, quality, run)
         cand_t, cand_i = [], []
         for a, b in p.chunks("observations", opts.chunk_points):
@@ -2403,7 +2418,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         correlations = reliability = None
     else:
         station_sigma, psig, quality = _precision(p_read, work, blk, opts,
-                                                      last["sigma0"], correlations, mode)
+                                                      last["sigma0"], correlations, mode,
+                                                      run=run, iteration=len(log))
         if mode != "full":   # (the stations' alone: no points, no observations' quality)
             psig = quality = None
         if blk.free:
