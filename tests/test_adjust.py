@@ -647,6 +647,8 @@ def test_a_point_undetermined_without_damping_is_set_aside_by_the_precision_pass
     s = sapgo.adjust(small_block, sapgo.Options(progress=False,
                                                 method="levenberg-marquardt"))
     assert raised and s.converged
+    # the adjustment's cost and sigma0 are those of its last step, the point in them
+    assert s.final_cost == pytest.approx(s.iteration_log[-1]["cost"], rel=1e-12)
     pid = raised[0]
     assert s.set_aside == [{"point": pid, "set_aside": s.iterations, "back": None}]
     assert f"point id {pid} set aside in iteration {s.iterations}" in capsys.readouterr().err

@@ -2039,7 +2039,8 @@ def _undamped_factor(p: Project, work, blk: _Block, opts: Options, run=None, ite
     factor, ``y`` and border), for the precision sweep after Levenberg-Marquardt steps.
     A pass point whose rays are (nearly) parallel, which the damping held, is set aside
     (:func:`_set_aside`, reported with the iteration ``iteration``; with ``run`` given):
-    it has no precision to give, and the others are not held back by it."""
+    it has no precision to give, and the others are not held back by it. The run's cost
+    stays the adjustment's (the point's residuals in it, as in sigma0)."""
     while True:
         try:
             step = _factor_solve(p, work, blk, opts, back=False)
@@ -2047,7 +2048,9 @@ def _undamped_factor(p: Project, work, blk: _Block, opts: Options, run=None, ite
         except UndeterminedPointError as exc:
             if run is None:
                 raise
+            cost = run.get("cost")
             _set_aside(p, work, blk, opts, run, exc, iteration)
+            run["cost"] = cost   # (the adjustment's cost: the precision pass moves nothing)
     if step["border"] is not None:
         blk.border_cov = step["border_cov"]
     blk.refactor = False
