@@ -470,6 +470,10 @@ def main():
                        "scipy": scipy.__version__, "cores": 2},
            "dense_gemm_gflops": gemm, "sparse_solver": sparse_solver(),
            "photos": args.photos, "by_band_width": []}
+    sys.path.insert(0, str(HERE))
+    from colmap import git_state
+
+    res["sapgo_source"] = git_state()
     with tempfile.TemporaryDirectory(dir=HERE.parent / "data" if (HERE.parent / "data").exists()
                                      else None) as tmp:
         warm_band, warm_rhs, warm_bw = reduced_matrix(tmp, 3, 60)

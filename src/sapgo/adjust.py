@@ -1783,15 +1783,9 @@ def _choose_replay(blk: _Block, opts: Options, work_dir):
     factor = 8 * len(blk.station_ids) * blk.npar * blk.npar * blk.band_width
     if opts.factor_storage != "auto" or blk.n_border:
         return False
-    return factor > factor_file_limit() or factor > 0.9 * _free_bytes(work_dir)
+    from .project import free_space
 
-
-def _free_bytes(path):
-    """Free bytes on the filesystem of ``path`` (its nearest existing folder)."""
-    folder = Path(os.path.abspath(path))
-    while not folder.is_dir() and folder != folder.parent:
-        folder = folder.parent
-    return shutil.disk_usage(folder).free
+    return factor > factor_file_limit() or factor > 0.9 * free_space(work_dir)[1]
 
 
 def _work_band(blk: _Block):

@@ -237,18 +237,24 @@ def solution_dataset(group, name, n, width=None):
 DISK_MARGIN = int(os.environ.get("SAPGO_DISK_MARGIN", 32 << 20))
 
 
-def ensure_free(path, need, what):
-    """Refuse (:class:`~sapgo.errors.DiskFullError`, one line) to write ``need`` more bytes
-    to the filesystem of ``path`` (a file or folder; its nearest existing folder) when fewer
-    than ``need`` + :data:`DISK_MARGIN` are free. ``what``: what would be written."""
+def free_space(path):
+    """``(folder, free bytes)`` of the filesystem of ``path`` (a file or folder; its nearest
+    existing folder)."""
     import shutil as _sh
-
-    from .errors import DiskFullError
 
     folder = Path(os.path.abspath(path))
     while not folder.is_dir() and folder != folder.parent:
         folder = folder.parent
-    free = _sh.disk_usage(folder).free
+    return folder, _sh.disk_usage(folder).free
+
+
+def ensure_free(path, need, what):
+    """Refuse (:class:`~sapgo.errors.DiskFullError`, one line) to write ``need`` more bytes
+    to the filesystem of ``path`` (a file or folder; its nearest existing folder) when fewer
+    than ``need`` + :data:`DISK_MARGIN` are free. ``what``: what would be written."""
+    from .errors import DiskFullError
+
+    folder, free = free_space(path)
     if free < need + DISK_MARGIN:
         raise DiskFullError(
             f"{folder}: not enough free space for {what}: it needs about "

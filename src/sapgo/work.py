@@ -87,9 +87,11 @@ class Work:
             ensure_free(self.dir, need, "the run's work files")
         # (a replayed factor, sapgo.solve.band.FactorReplay, has no factor file: replay.bin)
         self.factor = self.y = None
-        if not replay:
-            self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=mode)
-            self.y = RawArray(self.dir / "y.bin", (self.n_st, k), mode=mode)
+        if not replay:   # (a run resumed with the file that started replaying makes it:
+            # a resumed run factors anew before it reads the factor)
+            fmode = mode if (self.dir / "factor.bin").exists() else "w"
+            self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=fmode)
+            self.y = RawArray(self.dir / "y.bin", (self.n_st, k), mode=fmode)
         #: the band factor's :class:`~sapgo.solve.band.FactorReplay` of the last
         #: factorisation (valid until the state changes), or None
         self.replay = None
