@@ -36,7 +36,7 @@ import numba
 import numpy as np
 
 from .lock import writes_project
-from . import normals
+from . import normals, paging
 from .solve.band import (
     PIVOT_TOLERANCE,
     BandSolver,
@@ -222,6 +222,11 @@ class Options:
     #: exceed half the machine's memory, :func:`factor_file_limit`, or nine tenths of the
     #: free disk). Self-calibration's border needs the file.
     factor_storage: str = "auto"
+    #: Above this many stations the per-station vectors of the run (orientations, step,
+    #: variances: 48 bytes a station each) are memory-mapped from scratch files whose pages
+    #: go back to the page cache as the passes move on (:mod:`sapgo.paging`;
+    #: ``--page-stations``; None: :data:`sapgo.paging.PAGE_STATIONS`, 0: always).
+    page_stations: int | None = None
     #: The linear solver: "band" (recursive partitioning of the band: long strips), "tree"
     #: (the partition tree of nested dissection: any block shape) or "auto" (the project's
     #: order as ``sapgo order`` chose it by predicted cost; an unordered project is ordered
@@ -313,6 +318,9 @@ class Options:
         if self.factor_storage not in ("auto", "file", "replay"):
             raise ParameterError(f"factor storage {self.factor_storage!r}: choose auto, file or "
                                  f"replay")
+        if self.page_stations is not None and self.page_stations < 0:
+            raise ParameterError(f"page stations {self.page_stations}: a number of stations, "
+                                 f"0 or more")
         if self.precision not in ("full", "stations", "none"):
             raise ParameterError(f"precision {self.precision!r}: choose full, stations or none")
         if self.datum not in DATUMS:
@@ -538,11 +546,14 @@ class _Block:
 
 def _load_block(p: Project) -> _Block:
     cams = p.cameras()
+    active = paging.empty(p.n_stations, bool)
+    for a, b in p.chunks("stations"):
+        active[a:b] = p.read_field("stations", "status", a, b) == STATUS_ACTIVE
     blk = _Block(
-        station_ids=p.read_field("stations", "id"),
-        station_active=p.read_field("stations", "status") == STATUS_ACTIVE,
-        camera=np.ascontiguousarray(p.read_field("stations", "camera"), dtype=np.int32),
-        eo=np.ascontiguousarray(p.read_field("stations", "eo"), dtype=np.float64),
+        station_ids=paging.field(p, "stations", "id"),
+        station_active=active,
+        camera=paging.field(p, "stations", "camera", np.int32),
+        eo=paging.field(p, "stations", "eo", np.float64),
         cams=camera_array(cams),
         cam_sigma=np.ascontiguousarray(cams["sigma_image"]),
         band_width=p.band_width,
@@ -552,7 +563,7 @@ def _load_block(p: Project) -> _Block:
         npar=9 if p.attr("station_intrinsics", "") == "adjusted" else 6,
         tree=p.tree(),
     )
-    blk.fixed = np.zeros(len(blk.station_ids), np.int8)
+    blk.fixed = paging.zeros(len(blk.station_ids), np.int8)
     if blk.npar == 9:
         cam = blk.camera[blk.station_active]
         shared = np.bincount(cam, minlength=len(blk.cams))
@@ -759,7 +770,7 @@ def _set_fixed(blk: _Block, p: Project, opts: Options):
     """``blk.fixed`` from ``Options.fix``: every named photo must exist and be adjusted, and
     a fixed parameter must not have a prior as well."""
     n = len(blk.station_ids)
-    blk.fixed = np.zeros(n, np.int8)
+    blk.fixed = paging.zeros(n, np.int8)
     blk.n_fixed_params = 0
     if not opts.fix:
         return
@@ -1128,7 +1139,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
         marks.rows = marks.rows[marks.rows <= n]
     if lam > 0.0:
         if rows is None:
-            diag = np.zeros((n, k))
+            diag = paging.zeros((n, k))
         plain_sink = sink
 
         def sink(rows, rhs_rows):  # the rows are complete: add the damping on the diagonal
@@ -1215,13 +1226,26 @@ def _moved_cameras(blk: _Block, delta, dtheta=None):
     return np.ascontiguousarray(cams)
 
 
-def next_orientations(eo, delta):
+def next_orientations(eo, delta, out=None):
     """The stations after a step ``delta`` (n x 6 or more): the attitudes turned by the
-    rotation vectors ``delta[:, :3]`` (:func:`sapgo.geometry.turn`), the centres moved."""
+    rotation vectors ``delta[:, :3]`` (:func:`sapgo.geometry.turn`), the centres moved.
+    ``out``: the array to fill (a chunk of rows at a time), else a new one."""
+    if out is not None:
+        for a, b in paging.rows(len(eo)):
+            out[a:b] = next_orientations(eo[a:b], delta[a:b])
+        return out
     out = np.array(eo, dtype=np.float64, copy=True)
     out[:, :3] = turned(eo[:, :3], delta[:, :3])
     out[:, 3:6] += delta[:, 3:6]
     return out
+
+
+def _abs_max(a, cols):
+    """``max |a[:, cols]|`` (0 for no rows), a chunk of rows at a time."""
+    m = 0.0
+    for i, j in paging.rows(len(a)):
+        m = max(m, float(np.abs(a[i:j, cols]).max()))
+    return m
 
 
 def _uncovered(cover):
@@ -1232,12 +1256,14 @@ def _uncovered(cover):
 
 
 def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, stats,
-                 stats_robust, cams_new, lam=0.0, dtheta=None, iteration=0, bar=None):
+                 stats_robust, cams_new, lam=0.0, dtheta=None, iteration=0, bar=None,
+                 eo_next=None):
     """:func:`update` of points ``a0 .. b0``: their new coordinates and residuals into the
     work buffers, ``stats`` (:func:`sapgo.normals.update_points`) and ``stats_robust``
-    accumulated."""
+    accumulated. ``eo_next``: :func:`next_orientations` of the step (computed when None)."""
     xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
-    eo_next = next_orientations(blk.eo, delta)
+    if eo_next is None:
+        eo_next = next_orientations(blk.eo, delta)
     for a in range(a0, b0, opts.chunk_points):
         b = min(b0, a + opts.chunk_points)
         c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
@@ -1275,6 +1301,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
     stats = np.zeros(11)
     stats_robust = np.zeros(2, np.int64)  # observations downweighted, and to below a tenth
     cams_new = _moved_cameras(blk, delta, dtheta)
+    eo_next = next_orientations(blk.eo, delta, out=paging.empty(blk.eo.shape))
     client = getattr(opts, "client", None)
     with _progress(opts.progress, p.n_points, "update") as bar:
         mine = [(0, p.n_points)]
@@ -1292,7 +1319,7 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
         t0 = time.perf_counter()
         for a, b in mine:
             update_range(p, work, blk, delta, opts, a, b, stats, stats_robust, cams_new, lam,
-                         dtheta, iteration, bar)
+                         dtheta, iteration, bar, eo_next)
         if client is not None:
             from .solve.distributed import client_seconds
 
@@ -1301,10 +1328,11 @@ def update(p: Project, work, blk: _Block, delta, opts: Options, iteration=0, lam
     for a, b in p.chunks("station_priors", opts.chunk_points) if blk.use_priors else ():
         pr = p.read("station_priors", a, b)
         pr = pr[blk.station_active[pr["station"]]]
-        v = next_orientations(blk.eo[pr["station"]], delta[pr["station"]]) - pr["value"]
+        v = eo_next[pr["station"]] - pr["value"]
         v[:, :3] = _wrap(v[:, :3])
         vpv_prior += float(np.einsum("ni,nij,nj->", v, pr["weight"], v))
-    blk.eo[:] = next_orientations(blk.eo, delta)
+    paging.assign(blk.eo, eo_next)
+    del eo_next
     blk.cams = cams_new
     return {
         "vpv": stats[0] + stats[1] + vpv_prior,
@@ -1575,8 +1603,10 @@ def _factor_solve(p: Project, work: Work, blk: _Block, opts: Options, it=0, mu=0
     if replay is not None:
         xb = solver.yy
     elif border is None:
-        y = np.asarray(work.y[:], dtype=np.float64)
-        xb = float((y * y).sum())
+        xb = 0.0
+        for a, b in paging.rows(n):
+            y = work.y[a:b]
+            xb += float((y * y).sum())
     else:
         xb = solver.y_norm2 + solver.border_decrease
     return {"delta": delta, "diag": diag, "border": border,
@@ -1596,7 +1626,6 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
     ``mu``. With ``Options.method`` "auto", Gauss-Newton turns into Levenberg-Marquardt at
     the first step that raises the cost. ``reject=False``: every step is taken (the
     cost function changes between steps, as in robust reweighting)."""
-    n = len(blk.station_ids)
     limit = limit or opts.max_iterations
     while len(log) < limit:
         it = len(log) + 1
@@ -1617,14 +1646,14 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
         dtheta = _border_step(blk, theta) if border is not None else None
         t2 = time.perf_counter()
         t1 = t0 + (t2 - t0 - step["seconds"])
-        eo_before, cams_before = blk.eo.copy(), blk.cams
+        eo_before, cams_before = paging.copy(blk.eo), blk.cams
         st = update(p, work, blk, delta, opts, iteration=it, lam=mu, dtheta=dtheta)
         t3 = time.perf_counter()
         timings["build"] += t1 - t0
         timings["solve"] += t2 - t1
         timings["update"] += t3 - t2
-        d_ang = float(np.abs(delta[:, :3]).max()) if n else 0.0
-        d_pos = float(np.abs(delta[:, 3:6]).max()) if n else 0.0
+        d_ang = _abs_max(delta, slice(0, 3))
+        d_pos = _abs_max(delta, slice(3, 6))
         step_s = delta
         xb_step = step["xb"]
         del delta, step
@@ -1636,8 +1665,8 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             # reduced system: y = U'^-1 d) + sum over points of c' Ndd^-1 c
             # (+ t' S^-1 t, the border's share, with self-calibration)
             xb = xb_step
-            dsd = float((np.clip(diag, 1e-6, 1e32) * step_s ** 2).sum()) if diag is not None \
-                else 0.0
+            dsd = sum(float((np.clip(diag[a:b], 1e-6, 1e32) * step_s[a:b] ** 2).sum())
+                      for a, b in paging.rows(len(diag))) if diag is not None else 0.0
             if border is not None:
                 dsd += float((np.clip(border[2], 1e-6, 1e32) * theta ** 2).sum())
             pred = 0.5 * (xb + st["points_cNc"] + mu * (dsd + st["points_dDd"]))
@@ -1681,7 +1710,7 @@ def _iterate(p: Project, work: Work, blk: _Block, opts: Options, timings, log, r
             log[-1]["rho"] = rho
             log[-1]["step"] = "accepted" if ok else "rejected"
         if not ok:  # restore the state; damp more (Levenberg-Marquardt from now on)
-            blk.eo[:] = eo_before
+            paging.assign(blk.eo, eo_before)
             blk.cams = cams_before
             if lm:
                 nu = float(run.get("nu", 2.0))
@@ -1876,7 +1905,9 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
     rejected, (kept out, brought back), for the report."""
     log = []
     resumed_from = None
-    with Project(src, "r", shown=path) as p:
+    with Project(src, "r", shown=path) as p, paging.paged(
+            wpath.parent, _paged(p, opts), 0 if opts.page_stations == 0 else
+            paging.MIN_PAGED_BYTES):
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
         _set_fixed(blk, p, opts)
@@ -1936,7 +1967,7 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                 work.save(0, blk.eo, dict(run, log=[], timings=timings, converged=False))
             else:
                 run = {"run": checkpoint["run"], "identity": ident}
-                blk.eo = np.ascontiguousarray(checkpoint["eo"], dtype=np.float64)
+                blk.eo = paging.load_npy(checkpoint["eo_path"])
                 if checkpoint.get("cams") is not None:
                     blk.cams = np.ascontiguousarray(checkpoint["cams"], dtype=np.float64)
                 blk.rejections = list(checkpoint.get("rejections", []))
@@ -2011,6 +2042,12 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
         shutil.rmtree(wpath, ignore_errors=True)
     timings["total"] = time.perf_counter() - t_start
     return summary
+
+
+def _paged(p: Project, opts: Options):
+    """Are the run's per-station vectors memory-mapped (:mod:`sapgo.paging`)?"""
+    limit = paging.PAGE_STATIONS if opts.page_stations is None else opts.page_stations
+    return p.n_stations > limit or limit == 0
 
 
 def _precision(p: Project, work, blk: _Block, opts: Options, sigma0, correlations=None,
@@ -2230,6 +2267,18 @@ def _snoop_rounds(p, work, blk, opts, timings, log, run, converged):
     return converged
 
 
+def _station_index(blk, ids):
+    """``{photo id: station}`` of the photo ids ``ids`` (those of the block), found a chunk
+    of stations at a time."""
+    want = np.unique(np.asarray(ids, np.int64))
+    out = {}
+    for a, b in paging.rows(len(blk.station_ids)):
+        sid = np.asarray(blk.station_ids[a:b], np.int64)
+        for k in np.flatnonzero(np.isin(sid, want)):
+            out[int(sid[k])] = a + int(k)
+    return out
+
+
 def _note_planted(p, blk, quality, run):
     """Once, with every observation still in: for each planted blunder (``/truth/blunders``)
     its observation and non-centrality ``lambda = d' R d / sigma^2`` (``d`` the blunder,
@@ -2238,7 +2287,7 @@ def _note_planted(p, blk, quality, run):
     if blk.planted is not None or not (p.has_truth and "truth/blunders" in p.file):
         return
     bl = p.read("truth/blunders")
-    st_index = {int(i): k for k, i in enumerate(blk.station_ids.tolist())}
+    st_index = _station_index(blk, bl["station_id"])
     want = {int(pid) for pid in bl["point_id"]}
     where = {}
     for a, b in p.chunks("points"):
@@ -2313,6 +2362,20 @@ def _blunder_check(p, blk, alpha):
     return out
 
 
+class _FieldRows:
+    """A project's field read by row ranges (``f[a:b]``), a chunk at a time."""
+
+    def __init__(self, p, table, name):
+        self.p, self.table, self.name = p, table, name
+
+    def __len__(self):
+        return int(self.p.file[self.table].shape[0])
+
+    def __getitem__(self, key):
+        a, b, _ = key.indices(len(self))
+        return self.p.read_field(self.table, self.name, a, b)
+
+
 class ReportSums:
     """The report's statistics over a project's points and their image observations,
     accumulated by point ranges (:meth:`add`) and merged (:meth:`merge`: a Dask worker's
@@ -2324,7 +2387,7 @@ class ReportSums:
         self.reliability = reliability
         self.checks = check_point_statistics()
         self.truth = truth_statistics() if p.has_truth else None
-        self.strips = StripComparison(p.read_field("stations", "strip"), blk.station_active,
+        self.strips = StripComparison(_FieldRows(p, "stations", "strip"), blk.station_active,
                                       p.frame())
         self.excluded = []   # (point index, id), the first LISTED_IDS
         self.n_excluded = 0
@@ -2410,7 +2473,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     # --precision none: no precision
     no_precision = mode == "none"
     if no_precision:  # no precision: zeros, and no report of it
-        station_sigma = np.zeros((len(blk.station_ids), 6))
+        station_sigma = paging.zeros((len(blk.station_ids), 6))
         psig = quality = None
         correlations = reliability = None
     else:
@@ -2490,7 +2553,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         strip_comparison=strips.result(),
         frame=frame_info(p_read.frame()),
         precision=None if no_precision else precision_summary(
-            station_sigma[blk.station_active], psig, p_read, opts.chunk_points),
+            station_sigma, psig, p_read, opts.chunk_points, blk.station_active),
         correlations=None if correlations is None else correlations.result(),
         reliability=None if reliability is None else reliability.result(),
         precision_mode=mode,

@@ -289,6 +289,7 @@ def cmd_adjust(args):
         snooping_alpha=args.alpha, reset_rejections=args.reset_rejections,
         precision=args.precision,
         factor_storage=args.factor_storage,
+        page_stations=args.page_stations,
         method=args.method,
         tol_cost=args.tol_cost,
         calibrate=args.calibrate or (),
@@ -931,6 +932,11 @@ def build_parser():
                         "scratch growing with the band, not the photos) or auto (replay "
                         "beyond half the memory or nine tenths of the free disk; the "
                         "default)")
+    a.add_argument("--page-stations", type=int, default=None, metavar="N",
+                   help="above N stations keep the per-station vectors (orientations, step, "
+                        "variances: 48 bytes a photo each) in memory-mapped scratch files "
+                        "beside the project, their pages returned to the page cache as the "
+                        "passes move on (default 2000000; 0: always)")
     a.add_argument("--precision", choices=("full", "stations", "none"), default="full",
                    help="the precision pass after convergence: full (the default: photos' and "
                         "points' standard deviations, redundancy numbers and tests of the "

@@ -730,10 +730,12 @@ class Project:
                             f"a copy") from None
 
     def chunks(self, name, size=CHUNK_RECORDS):
-        """Yield ``(start, stop)`` ranges covering dataset ``name`` in processing order."""
-        n = self.file[name].shape[0]
-        for start in range(0, n, size):
-            yield start, min(n, start + size)
+        """Yield ``(start, stop)`` ranges covering dataset ``name`` in processing order (while
+        a run's per-station vectors are paged, their pages are released after each range:
+        :func:`sapgo.paging.rows`)."""
+        from .paging import rows
+
+        yield from rows(self.file[name].shape[0], size)
 
     def cameras(self):
         """The camera records as :data:`CAMERA_DTYPE` (fields an older version's file lacks:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import paging
 from .normals import PointChunk, point_sigmas
 from .project import STATUS_ACTIVE
 from .rawfile import RawArray
@@ -83,12 +84,18 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     n_st = len(blk.station_ids)
     if blk.tree is not None:
         return _quality_tree(p_read, work, blk, opts, sigma0, correlations)
-    first = np.zeros(n_st + 1, np.int64)
+    first = paging.zeros(n_st + 1, np.int64)
     for a, b in p_read.chunks("points", opts.chunk_points):
         sm = p_read.read_field("points", "station_min", a, b)
-        act = p_read.read_field("points", "status", a, b) == STATUS_ACTIVE
-        first[1:] += np.bincount(sm[act], minlength=n_st)[:n_st]
-    np.cumsum(first, out=first)
+        sm = sm[p_read.read_field("points", "status", a, b) == STATUS_ACTIVE]
+        if len(sm):   # (points are sorted by their first station: a range of stations)
+            lo = int(sm.min())
+            cnt = np.bincount(sm - lo)
+            first[1 + lo:1 + lo + len(cnt)] += cnt
+    carry = 0
+    for a, b in paging.rows(n_st + 1):
+        first[a:b] = np.cumsum(first[a:b]) + carry
+        carry = int(first[b - 1])
     ng = blk.n_border
     cal = sig_b = xb_ds = None
     if ng:  # self-calibration: X = M^-1 B (its own file: W stays, the sweep can run again)
@@ -114,13 +121,11 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
         var = covariance_blocks(work.band_factor()[0], n_st, blk.band_width, opts.chunk_rows, out=cov,
                                 on_block=points_of if opts.precision == "full" else None,
                                 observations=p_read.n_observations)
-        for a in range(0, n_st, opts.chunk_points) if ng else ():  # + X S^-1 X'
-            b = min(n_st, a + opts.chunk_points)
+        for a, b in paging.rows(n_st, opts.chunk_points) if ng else ():  # + X S^-1 X'
             x = np.asarray(xb_ds[a:b], dtype=np.float64)
             blocks = cov[a:b] + np.einsum("iag,gh,ibh->iab", x, sig_b, x)
             cov[a:b] = blocks
-        for a in range(0, n_st, opts.chunk_points):   # the attitude in omega, phi, kappa
-            b = min(n_st, a + opts.chunk_points)
+        for a, b in paging.rows(n_st, opts.chunk_points):   # the attitude in omega, phi, kappa
             blocks = in_angles(cov[a:b], blk.eo[a:b], blk.fixed[a:b])
             cov[a:b] = blocks
             var[a:b] = np.diagonal(blocks, axis1=1, axis2=2)
@@ -137,8 +142,7 @@ def _station_correlations(cov, blk, opts, correlations):
     """Correlations of each station's parameters from its cofactor blocks (``cov``) into
     ``correlations``, chunk by chunk."""
     n_st = len(blk.station_ids)
-    for a in range(0, n_st, opts.chunk_points):
-        b = min(n_st, a + opts.chunk_points)
+    for a, b in paging.rows(n_st, opts.chunk_points):
         rho = station_correlations(cov[a:b][:, :6, :6])
         rho[~blk.station_active[a:b]] = np.nan
         correlations.add("stations", blk.station_ids[a:b], rho)
@@ -212,9 +216,13 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
 
 
 def station_sigma(blk, sigma0, var):
-    station_sigma = sigma0 * np.sqrt(np.maximum(var[:, :6], 0.0))
-    station_sigma[~blk.station_active] = 0.0
-    return station_sigma
+    """The stations' standard deviations (n x 6, zero for those not adjusted) from their
+    variances ``var``, a chunk of rows at a time."""
+    out = paging.empty((len(var), 6))
+    for a, b in paging.rows(len(var)):
+        out[a:b] = sigma0 * np.sqrt(np.maximum(var[a:b, :6], 0.0))
+        out[a:b][~blk.station_active[a:b]] = 0.0
+    return out
 
 
 def _quality_tree(p_read, work, blk, opts, sigma0, correlations=None):

@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from . import paging
 from .project import CONTROL_MASK, EO_NAMES as EO, KIND_CHECK
 from .stripcmp import format_strip_comparison
 
@@ -94,17 +95,27 @@ class check_point_statistics:
                 "n_z": int(self.ctrl_n[2]), "rms_x": rms[0], "rms_y": rms[1], "rms_z": rms[2]}
 
 
-def precision_summary(station_sigma, point_sigma=None, project=None, chunk=65536):
+def precision_summary(station_sigma, point_sigma=None, project=None, chunk=65536,
+                      active=None):
     """Mean and maximum a-posteriori standard deviation of each station parameter (angles in
-    arc seconds, positions in m) over the active stations, and of each point coordinate over
-    the active points that are not fixed (``point_sigma``: the points' file, read in
-    chunks)."""
-    if not len(station_sigma):
+    arc seconds, positions in m) over the active stations (``active``: a mask of the rows
+    of ``station_sigma``; None: every row), and of each point coordinate over the active
+    points that are not fixed (``point_sigma``: the points' file, read in chunks)."""
+    total, top, count = np.zeros(6), np.full(6, -np.inf), 0
+    for a, b in paging.rows(len(station_sigma), chunk):
+        sig = np.asarray(station_sigma[a:b, :6])
+        if active is not None:
+            sig = sig[active[a:b]]
+        if len(sig):
+            total += sig.sum(axis=0)
+            top = np.maximum(top, sig.max(axis=0))
+            count += len(sig)
+    if not count:
         return None
     names = ("omega_arcsec", "phi_arcsec", "kappa_arcsec", "X_m", "Y_m", "Z_m")
     scale = [1.0 / (math.pi / (180 * 3600))] * 3 + [1.0] * 3
-    out = {"stations": {n: {"mean": float(np.mean(station_sigma[:, k]) * scale[k]),
-                            "max": float(np.max(station_sigma[:, k]) * scale[k])}
+    out = {"stations": {n: {"mean": float(total[k] / count * scale[k]),
+                            "max": float(top[k] * scale[k])}
                         for k, n in enumerate(names)}}
     if point_sigma is not None and project is not None:
         s, m, n = np.zeros(3), np.zeros(3), np.zeros(3, np.int64)

@@ -25,6 +25,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from . import paging
+
 from .frames import LOCAL
 from .geometry import _add_ray, _solve_sym3
 
@@ -102,7 +104,11 @@ class StripComparison:
     """Accumulates :func:`_strip_points` over chunks; :meth:`result` gives the report."""
 
     def __init__(self, strip_of_station, station_active, frame=None):
-        self.strip = np.where(station_active, strip_of_station, -1).astype(np.int64)
+        """``strip_of_station``: an array, or anything sliced by rows (a project's field
+        through :meth:`sapgo.project.Project.read_field`, a chunk at a time)."""
+        self.strip = paging.empty(len(station_active), np.int64)
+        for a, b in paging.rows(len(self.strip)):
+            self.strip[a:b] = np.where(station_active[a:b], strip_of_station[a:b], -1)
         self.acc = {}  # (strip a, strip b) -> [n, sum dx^2, sum dy^2, sum dz^2]
         #: differences along east, north, up at the point for a frame with a CRS (a lunar
         #: block's frame axes are far from them), else along the frame's X, Y, Z

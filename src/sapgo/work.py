@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import paging
 from .project import Project
 from .rawfile import RawArray
 
@@ -154,7 +155,7 @@ class Work:
         eo_file = self.dir / f"eo.{iteration}.npy"
         tmp = self.dir / f"eo.{iteration}.npy.tmp"
         with open(tmp, "wb") as f:
-            np.save(f, eo)
+            paging.save_npy(f, np.ascontiguousarray(eo))
         os.replace(tmp, eo_file)
         record = dict(record, iteration=iteration, eo_file=eo_file.name)
         if cams is not None:
@@ -179,12 +180,13 @@ class Work:
         f = Path(path) / "checkpoint.json"
         try:
             record = json.loads(f.read_text())
-            eo = np.load(Path(path) / record["eo_file"])
+            eo_path = Path(path) / record["eo_file"]
+            paging.npy_header(eo_path)   # (read by the run: paging.load_npy)
             if record.get("cams_file"):
                 record["cams"] = np.load(Path(path) / record["cams_file"])
-        except (OSError, ValueError, KeyError):
+        except (OSError, ValueError, KeyError, SyntaxError):
             return None
-        record["eo"] = eo
+        record["eo_path"] = eo_path
         return record
 
     def start_robust(self, quality, chunk):

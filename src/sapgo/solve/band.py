@@ -57,6 +57,7 @@ import numpy as np
 import scipy.linalg
 from numba import njit, prange
 
+from .. import paging
 from ..blas import FNS, L, N, R, T, U, blas_limits, gemm, gemv, potrf, syrk, trmm, trsm, trsv, trtri
 
 #: A pivot at or below this fraction of the original diagonal element counts as zero.
@@ -885,7 +886,7 @@ class FactorReplay:
 
     def back_substitute(self):
         """``delta = U^-1 y`` (n x k), a segment at a time from the last."""
-        x = np.zeros(self.n)
+        x = paging.zeros(self.n)
         for j in range(self.J - 1, -1, -1):
             fac, y = self.segment(j)
             _back_rows(fac, y, x, j * self.R, self.n)
@@ -963,7 +964,7 @@ def _back_substitute(band_ds, rhs_ds, n_st, step, block=6):
     """``delta = U^-1 y`` reading the factor rows in reverse segments, the next one read while
     the current one is solved."""
     n = block * n_st
-    x = np.zeros(n)
+    x = paging.zeros(n)
 
     def read(lo, hi):
         return (np.ascontiguousarray(band_ds[lo:hi], dtype=np.float64),
@@ -1137,7 +1138,7 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     ut, w = np.empty(nb * max(u, 1)), np.empty(nb * max(u, 1))
     keep = out is None
     blocks_all = np.empty((n_st, kb, kb)) if keep else None
-    var = np.empty((n_st, kb))
+    var = paging.empty((n_st, kb))
     cur = 0
     stop = n_st
     pool = ThreadPoolExecutor(1) if overlap else None
