@@ -28,6 +28,18 @@ wall time, each phase (build, solve, update per iteration; precision), peak RSS 
 directory at its fullest (``--keep-scratch``); medians and (min-max) over the rounds, the
 load average before each run. Writes ``results/scale_storage.json`` and prints its table.
 
+Ten million photos on this machine (issue 20, item 5)::
+
+    python benchmarks/scale.py --huge 10000000 [--dir DIR]
+
+One block of 20 strips: ``sapgo generate``, ``sapgo order --memory 256M`` and ``sapgo
+adjust`` to convergence with the precision pass (``--keep-scratch``), each a process of its
+own as above, with defaults everywhere (the factor storage and the paging of per-photo
+vectors as ``auto`` chooses them). Per phase: wall time, peak RSS and the disk it took at
+most (free space sampled every second: project copies, sort runs, work files and the
+unlinked ``paged.*`` files together). Writes ``huge`` into ``results/scale.json`` (its other
+rows are kept) and prints its table.
+
 Square blocks (the partition tree, issue 16)::
 
     python benchmarks/scale.py --squares 200,500,1000 [--dir DIR]
@@ -92,6 +104,35 @@ def run(cmd):
         raise RuntimeError(f"{' '.join(cmd)} failed ({code}): {errors}")
     maxrss_kb = int(errors.rsplit("LAUNCH ", 1)[1].split()[1])
     return wall, maxrss_kb / 1024.0, text
+
+
+class DiskWatch:
+    """The least free space on ``path``'s file system while the block runs (sampled every
+    ``period`` s on a thread): ``used()`` is the most the process took beyond the start."""
+
+    def __init__(self, path, period=1.0):
+        import threading
+
+        self.path, self.period = str(path), period
+        self.start_free = self.min_free = shutil.disk_usage(self.path).free
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        while not self._stop.wait(self.period):
+            self.min_free = min(self.min_free, shutil.disk_usage(self.path).free)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self.min_free = min(self.min_free, shutil.disk_usage(self.path).free)
+
+    def used(self):
+        return self.start_free - self.min_free
 
 
 def du(path):
@@ -388,7 +429,12 @@ def main():
     ap.add_argument("--storage", default="", help="photos: the factor file against the "
                     "replay on one strip block (results/scale_storage.json)")
     ap.add_argument("--rounds", type=int, default=3, help="with --storage: rounds")
+    ap.add_argument("--huge", type=int, default=0, help="photos: one block of 20 strips "
+                    "generated, ordered and adjusted to convergence with precision (every "
+                    "phase recorded: results/scale.json, key huge)")
     args = ap.parse_args()
+    if args.huge:
+        return huge(args)
     if args.squares:
         return squares(args)
     if args.storage:
@@ -419,8 +465,100 @@ def main():
         },
     }
     out = Path(__file__).parent / "results" / "scale.json"
+    if out.exists() and "huge" in json.loads(out.read_text()):   # (kept: a run of its own)
+        result["huge"] = json.loads(out.read_text())["huge"]
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(markdown(result))
+
+
+def huge(args):
+    """``--huge PHOTOS``: generate, order and adjust one block to convergence, each phase a
+    process of its own; wall, peak RSS and the disk taken at most per phase."""
+    root = Path(args.dir or Path(__file__).parent.parent / "data" / "generated" / "scale")
+    root.mkdir(parents=True, exist_ok=True)
+    warm = root / "warm.h5"   # compile or load the kernels outside the measured runs
+    sapgo.generate_block(warm, strips=2, photos_per_strip=5, control_points=6, progress=False)
+    sapgo.adjust(warm, sapgo.Options(progress=False))
+    warm.unlink()
+    n = args.huge
+    g = n // STRIPS
+    path = root / f"huge-{n}.h5"
+    report = root / f"huge-{n}.json"
+    free_gb = shutil.disk_usage(root).free / 1e9
+    load = os.getloadavg()
+    phases = {}
+    cmds = {
+        "generate": SAPGO + ["generate", "--strips", str(STRIPS), "--photos-per-strip", str(g),
+                             "--control-points", str(n // PHOTOS_PER_CONTROL_POINT),
+                             str(path)],
+        "order": SAPGO + ["order", "--memory", "256M", str(path)],
+        "adjust": SAPGO + ["adjust", str(path), "--no-progress", "--quiet", "--keep-scratch",
+                           "--json", str(report)],
+    }
+    for name, cmd in cmds.items():
+        with DiskWatch(root) as disk:
+            wall, rss, _ = run(cmd)
+        phases[name] = {"wall_s": wall, "peak_rss_mb": rss, "disk_taken_gb": disk.used() / 1e9}
+        print(f"{name}: {wall:.1f} s, peak RSS {rss:.0f} MB, disk taken at most "
+              f"{disk.used() / 1e9:.2f} GB", file=sys.stderr)
+        if name == "generate":
+            project_bytes = du(path)
+    work = path.with_name(path.name + ".work")
+    rep = json.loads(report.read_text())
+    c, t = rep["check_points"], rep["timings_s"]
+    result = {
+        "what": f"{n:,} photos ({STRIPS} strips x {g:,}), 9-point pattern, one full control "
+                f"point per {PHOTOS_PER_CONTROL_POINT} photos: generate, order and adjust to "
+                f"convergence with the precision pass, each a process of its own (wall, peak "
+                f"RSS of the process, disk taken at most: free space sampled every second)",
+        "commands": [" ".join(["sapgo"] + c_[3:]) for c_ in cmds.values()],
+        "machine": {"cpus": os.cpu_count(),
+                    "memory_gb": os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9,
+                    "free_disk_before_gb": free_gb, "load_before": load,
+                    "load_at_end": os.getloadavg()},
+        "sapgo_source": _source(),
+        "photos": n, "points": None, "observations": rep["n_observations"],
+        "phases": phases,
+        "project_bytes": project_bytes,
+        "work_dir_bytes_at_end": du(work),
+        "adjustment": {
+            "converged": rep["converged"], "iterations": rep["iterations"],
+            "sigma0": rep["sigma0"], "band_width": rep["band_width"],
+            "check_sxy_m": c["sxy"], "check_sz_m": c["sz"],
+            "seconds_per_iteration": rep["timings_per_iteration_s"],
+            "precision_s": t.get("precision"), "commit_s": t.get("commit"),
+        },
+        "peak_rss_mb_any_phase": max(p["peak_rss_mb"] for p in phases.values()),
+        "disk_taken_gb_any_phase": max(p["disk_taken_gb"] for p in phases.values()),
+    }
+    result["points"] = rep["n_points"]
+    shutil.rmtree(work, ignore_errors=True)
+    path.unlink()
+    report.unlink()
+    out = Path(__file__).parent / "results" / "scale.json"
+    whole = json.loads(out.read_text()) if out.exists() else {}
+    whole["huge"] = result
+    out.write_text(json.dumps(whole, indent=2) + "\n")
+    print(huge_markdown(result))
+
+
+def huge_markdown(r):
+    ph, a = r["phases"], r["adjustment"]
+    per = a["seconds_per_iteration"]
+    out = ["| phase | wall s | peak RSS MB | disk taken at most GB |", "|---|---|---|---|"]
+    for name in ("generate", "order", "adjust"):
+        p = ph[name]
+        out.append(f"| {name} | {p['wall_s']:.0f} | {p['peak_rss_mb']:.0f} | "
+                   f"{p['disk_taken_gb']:.1f} |")
+    out += ["", f"{r['photos']:,} photos, {r['points']:,} points, {r['observations']:,} "
+            f"observations, band width {a['band_width']}: {a['iterations']} iterations "
+            f"(build {per['build']:.1f} s, solve {per['solve']:.1f} s, update "
+            f"{per['update']:.1f} s each), precision pass {a['precision_s']:.0f} s; sigma0 "
+            f"{a['sigma0']:.4f}, check points sXY {a['check_sxy_m']:.3f} m, sZ "
+            f"{a['check_sz_m']:.3f} m; project {r['project_bytes'] / 1e9:.1f} GB, work "
+            f"directory at the end {r['work_dir_bytes_at_end'] / 1e9:.1f} GB (sapgo "
+            f"{_code(r)})."]
+    return "\n".join(out)
 
 
 def squares(args):

@@ -148,3 +148,57 @@ def test_paged_run_killed_and_resumed(prior_block, tmp_path, fault):  # noqa: F8
     equal(ref["eo"], eo, 0, "eo")
     equal(ref["station_sigma"], sig, 0, "station_sigma")
     assert [x for x in tmp_path.iterdir() if x.name.startswith("paged.")] == []
+
+
+def _datasets(path):
+    import h5py
+
+    out = {}
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                out[name] = obj[()]
+        f.visititems(visit)
+        out["attrs"] = {k: v for k, v in f.attrs.items() if k not in ("uuid", "history")}
+    return out
+
+
+@pytest.mark.parametrize("solver", ["band", "auto"])
+def test_paged_order_is_the_in_core_order(block_cache, tmp_path, monkeypatch, solver):
+    """``sapgo order`` of a block above ``page_stations`` (0 here): per-station
+    vectors and the station graph mapped, the edges sorted externally; the same records,
+    candidates and band width as in core. A photo with too few points (excluded) makes
+    the exclusion passes run twice."""
+    from conftest import read_records, rewrite
+
+    rec = read_records(block_cache("paged-order", strips=5, photos_per_strip=40,
+                                   control_points=12, seed=4))
+    from sapgo.project import STATUS_REJECTED
+
+    ob = rec["observations"]
+    mine = np.flatnonzero(ob["station"] == 57)
+    ob["status"][mine[2:]] = STATUS_REJECTED   # photo 57 keeps 2 points: excluded
+    src = tmp_path / "src.h5"
+    rewrite(src, rec)
+    results = {}
+    real = paging.Pager.zeros
+    monkeypatch.setattr(paging, "CHUNK_ROWS", 37)
+    for name, limit in [("core", None), ("mapped", 0)]:
+        path = tmp_path / f"{name}.h5"
+        shutil.copy(src, path)
+        calls = []
+        monkeypatch.setattr(paging.Pager, "zeros",
+                            lambda self, *a, **k: calls.append(1) or real(self, *a, **k))
+        r = sapgo.order_project(path, solver=solver, memory="4M", page_stations=limit)
+        results[name] = (r, _datasets(path), len(calls))
+    (rc, dc, nc), (rm, dm, nm) = results["core"], results["mapped"]
+    assert nc == 0 and nm > 20 and rc.excluded_stations
+    assert (rm.band_width, rm.ordering, rm.candidates, rm.excluded_stations,
+            rm.n_excluded_points) == (rc.band_width, rc.ordering, rc.candidates,
+                                      rc.excluded_stations, rc.n_excluded_points)
+    assert dm.keys() == dc.keys()
+    for k in dc:
+        if k == "attrs":
+            assert {a: str(v) for a, v in dm[k].items()} == {a: str(v) for a, v in dc[k].items()}
+        else:
+            np.testing.assert_array_equal(dm[k], dc[k], err_msg=k)

@@ -1856,7 +1856,8 @@ def adjust(path, options: Options | None = None) -> Summary:
             t0 = time.perf_counter()
             order_info = order_project(path, opts.ordering, memory=opts.memory,
                                        solver=opts.solver, out=ordered,
-                                       reset_rejections=opts.reset_rejections, checked=True)
+                                       reset_rejections=opts.reset_rejections, checked=True,
+                                       page_stations=opts.page_stations)
             timings["order"] = time.perf_counter() - t0
     else:
         ordered.unlink(missing_ok=True)   # (an interrupted run's, of an older project)

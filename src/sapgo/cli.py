@@ -101,7 +101,7 @@ def cmd_order(args):
     from .ordering import order_project
 
     r = order_project(args.project, args.method, memory=args.memory, solver=args.solver,
-                      leaf_stations=args.leaf_stations)
+                      leaf_stations=args.leaf_stations, page_stations=args.page_stations)
     _report_exclusions(r.excluded_points, r.excluded_stations, r.n_excluded_points,
                        r.n_excluded_stations)
     cands = ", ".join(f"{k} {v}" for k, v in r.candidates.items())
@@ -736,6 +736,11 @@ def build_parser():
                         "auto (default): the one of the smaller predicted factorisation time")
     o.add_argument("--leaf-stations", type=int, default=None, metavar="N",
                    help="the partition tree's largest leaf (default 48 stations)")
+    o.add_argument("--page-stations", type=int, default=None, metavar="N",
+                   help="above N photos keep the per-photo vectors and the station graph in "
+                        "memory-mapped scratch files beside the project, their pages "
+                        "returned to the page cache as the passes move on (default 2000000; "
+                        "0: always)")
     o.set_defaults(func=cmd_order)
 
     ini = sub.add_parser("init", help="starting values of a block's photos and points from "

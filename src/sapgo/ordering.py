@@ -32,6 +32,7 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from . import paging
 from .lock import writes_project
 from .errors import ParameterError
 from .extsort import DEFAULT_MEMORY, ExternalSorter, parse_memory, rechunk
@@ -149,7 +150,7 @@ def band_width_of(pos, edges):
     s, t = edges
     if len(s) == 0:
         return 1
-    return int(1 + _spans(np.asarray(pos, np.int64), s, t, np.zeros(len(pos), np.int64)))
+    return int(1 + _spans(np.asarray(pos, np.int64), s, t, paging.zeros(len(pos), np.int64)))
 
 
 def profile_of(pos, edges):
@@ -157,9 +158,9 @@ def profile_of(pos, edges):
     s, t = edges
     if len(s) == 0:
         return 0
-    reach = np.zeros(len(pos), np.int64)
+    reach = paging.zeros(len(pos), np.int64)
     _spans(np.asarray(pos, np.int64), s, t, reach)
-    return int(reach.sum())
+    return sum(int(reach[a:b].sum()) for a, b in paging.rows(len(reach)))
 
 
 @njit(cache=True)
@@ -220,7 +221,7 @@ def _nearest(xy):
     return dist[:, 1], xy[j[:, 1]] - xy
 
 
-def _columns(u, labels, base):
+def _columns(u, labels, base, order=None):
     """Photo column numbers: counted photo by photo along each strip, so they do not drift.
 
     A global ``u / base`` drifts by a column every few thousand photos when ``base`` is
@@ -229,16 +230,18 @@ def _columns(u, labels, base):
     strip starts at a quarter-base column: a strip shifted by half a base lies between its
     neighbours' columns. A strip of another photo scale (its base 2 % or more from the
     block's) is not in the block's columns: each of its photos goes to the quarter-base
-    column of its position.
+    column of its position. ``order``: ``np.lexsort((u, labels))`` when the caller has it.
     """
-    column = np.zeros(len(u), np.float64)
+    column = paging.zeros(len(u), np.float64)
     if base <= 0 or len(u) == 0:
         return column
-    umin = u.min()
-    order = np.lexsort((u, labels))
-    lab = labels[order]
-    us = u[order]
-    cuts = np.flatnonzero(np.diff(lab)) + 1
+    umin = min(float(u[a:b].min()) for a, b in paging.rows(len(u)))
+    if order is None:
+        order = np.lexsort((u, labels))
+    lab = paging.take(labels, order)
+    us = paging.take(u, order)
+    cuts = np.concatenate([[0]] + [a + 1 + np.flatnonzero(np.diff(lab[a:b + 1]))
+                                   for a, b in paging.rows(len(lab) - 1)])[1:].astype(np.int64)
     for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(us)]])):
         gaps = np.diff(us[a:b])
         pos = gaps[gaps > 0]
@@ -265,30 +268,63 @@ def grid_coordinates(xy, strip):
     across-track gap exceeds half a base); ``strip_key``: each station's strip position
     across the flight lines (its strip's mean ``v``)."""
     along, across = _flight_axes(xy, strip)
-    u = xy @ along
-    v = xy @ across
-    known = bool((strip >= 0).all())
+    n = len(xy)
+    u, v = paging.empty(n), paging.empty(n)
+    for a, b in paging.rows(n):   # (a chunk at a time: the arrays may be mapped)
+        u[a:b] = xy[a:b] @ along
+        v[a:b] = xy[a:b] @ across
+    known = all(bool((strip[a:b] >= 0).all()) for a, b in paging.rows(n))
+    order = None
     # photo spacing along the strips: median gap between neighbours sorted along track
     if known:
-        _, labels = np.unique(strip, return_inverse=True)
+        labels = _labels(strip)
         order = np.lexsort((u, labels))
-        same = np.diff(labels[order]) == 0
-        gaps = np.diff(u[order])[same]
+        gaps = paging.empty(max(0, n - 1))
+        m = 0
+        for a, b in paging.rows(n - 1):
+            o = order[a:b + 1]
+            g = np.diff(u[o])[np.diff(labels[o]) == 0]
+            g = g[g > 0]
+            gaps[m:m + len(g)] = g
+            m += len(g)
+        gaps = gaps[:m]
     elif len(xy) >= 3:  # strips unknown: the distance to the nearest photo
         gaps = _nearest(xy)[0]
+        gaps = gaps[gaps > 0]
     else:
         gaps = np.diff(np.sort(u))
-    gaps = gaps[gaps > 0]
+        gaps = gaps[gaps > 0]
     base = float(np.median(gaps)) if len(gaps) else 1.0
+    del gaps
     if known:
-        strip_key = (np.bincount(labels, v) / np.bincount(labels))[labels]
+        k = max((int(labels[a:b].max()) for a, b in paging.rows(n)), default=-1) + 1
+        total, count = np.zeros(k), np.zeros(k)
+        for a, b in paging.rows(n):
+            total += np.bincount(labels[a:b], v[a:b], minlength=k)
+            count += np.bincount(labels[a:b], minlength=k)
+        mean = total / np.maximum(count, 1)
+        strip_key = paging.empty(n)
+        for a, b in paging.rows(n):
+            strip_key[a:b] = mean[labels[a:b]]
     else:  # strips unknown: a new strip wherever the across-track gap exceeds half a base
         vs = np.argsort(v)
         breaks = np.concatenate([[0], np.cumsum(np.diff(v[vs]) > 0.5 * base)])
         strip_key = np.empty(len(v))
         strip_key[vs] = breaks
         labels = strip_key.astype(np.int64)
-    return u, v, _columns(u, labels, base), labels, strip_key
+    return u, v, _columns(u, labels, base, order), labels, strip_key
+
+
+def _labels(x):
+    """``np.unique(x, return_inverse=True)[1]``, a chunk at a time into a (possibly
+    mapped) array: each value's rank among the distinct values."""
+    uniq = np.zeros(0, np.asarray(x[:0]).dtype)
+    for a, b in paging.rows(len(x)):
+        uniq = np.union1d(uniq, x[a:b])
+    out = paging.empty(len(x), np.int64)
+    for a, b in paging.rows(len(x)):
+        out[a:b] = np.searchsorted(uniq, x[a:b])
+    return out
 
 
 def grid_orders(kx, ky, across):
@@ -296,12 +332,20 @@ def grid_orders(kx, ky, across):
     along the strips) and ``ky`` (strips, in order across them); ``across`` breaks ties
     within a diagonal. ``{name: (perm, lines)}``: the diagonal lines ``kx + ky``, and the
     spiral's rings from the outside inwards (each ring by angle from its corner)."""
-    kd = kx + ky
+    n = len(kx)
+    kd = paging.empty(n, np.int64)
+    for a, b in paging.rows(n):   # (a chunk at a time: the arrays may be mapped)
+        kd[a:b] = kx[a:b] + ky[a:b]
     out = {"diagonal": (np.lexsort((across, kd)), kd)}
     if len(kx):
-        ring = np.minimum.reduce([kx, kx.max() - kx, ky, ky.max() - ky])
-        cx, cy = kx.max() / 2.0, ky.max() / 2.0
-        angle = np.mod(np.arctan2(ky - cy, kx - cx) - math.pi, 2 * math.pi)
+        mx = max(int(kx[a:b].max()) for a, b in paging.rows(n))
+        my = max(int(ky[a:b].max()) for a, b in paging.rows(n))
+        cx, cy = mx / 2.0, my / 2.0
+        ring, angle = paging.empty(n, np.int64), paging.empty(n)
+        for a, b in paging.rows(n):
+            x, y = kx[a:b], ky[a:b]
+            ring[a:b] = np.minimum.reduce([x, mx - x, y, my - y])
+            angle[a:b] = np.mod(np.arctan2(y - cy, x - cx) - math.pi, 2 * math.pi)
         out["spiral"] = (np.lexsort((angle, ring)), ring)
     else:
         out["spiral"] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
@@ -327,40 +371,61 @@ def candidate_orders(xy, strip, active, edges, grid=None):
 def iter_candidate_orders(xy, strip, active, edges, grid=None):
     """:func:`candidate_orders` one at a time, ``(name, perm)``: a scorer that keeps only
     the best holds two orders, not all 18 (8 bytes a station each)."""
-    idx = np.flatnonzero(active)
+    idx = paging.nonzero(active)
     if len(idx) == 0:
         yield "record", idx
         return
-    xy = xy[idx]
-    u, v, column, labels, strip_key = grid or grid_coordinates(xy, strip[idx])
-    yield "across_strip", idx[np.lexsort((v, column))]
-    yield "across_strip_by_position", idx[np.lexsort((v, u))]
-    yield "down_strip", idx[np.lexsort((u, strip_key))]
+    xy = paging.take(xy, idx)
+    u, v, column, labels, strip_key = grid or grid_coordinates(xy, paging.take(strip, idx))
+
+    def ordered(perm):   # (the records of the active stations in the order perm)
+        return paging.take(idx, perm)
+
+    yield "across_strip", ordered(np.lexsort((v, column)))
+    yield "across_strip_by_position", ordered(np.lexsort((v, u)))
+    yield "down_strip", ordered(np.lexsort((u, strip_key)))
     # along the diagonals of the grid, and a spiral from the outside (Rostom's orderings)
-    kx = np.unique(column, return_inverse=True)[1]
-    ky = np.unique(strip_key, return_inverse=True)[1]
+    kx, ky = _labels(column), _labels(strip_key)
+    del u, column, labels, strip_key
     for name, (perm, _) in grid_orders(kx, ky, v).items():
-        yield name, idx[perm]
-    del kx, ky
+        yield name, ordered(perm)
+    del kx, ky, v
     # sweeps across the block in 12 directions: for blocks of crossing flight lines
+    d, e = paging.empty(len(idx)), paging.empty(len(idx))
     for deg in range(0, 180, 15):
         a = math.radians(deg)
-        d = xy @ np.array([math.cos(a), math.sin(a)])
-        e = xy @ np.array([-math.sin(a), math.cos(a)])
-        yield f"sweep_{deg}", idx[np.lexsort((e, d))]
+        for i, j in paging.rows(len(idx)):
+            d[i:j] = xy[i:j] @ np.array([math.cos(a), math.sin(a)])
+            e[i:j] = xy[i:j] @ np.array([-math.sin(a), math.cos(a)])
+        yield f"sweep_{deg}", ordered(np.lexsort((e, d)))
+    del d, e, xy
     # reverse Cuthill-McKee on the active subgraph (CSR built directly, int32 indices)
-    local = np.full(len(active), -1, np.int64)
-    local[idx] = np.arange(len(idx))
-    s, t = edges
-    keep = active[s] & active[t]
-    s, t = local[s[keep]].astype(np.int32), local[t[keep]].astype(np.int32)
     n = len(idx)
-    indptr = np.zeros(n + 1, np.int32)
-    indices = np.empty(2 * len(s), np.int32)
+    local = paging.empty(len(active), np.int32)
+    for i, j in paging.rows(len(active)):
+        local[i:j] = -1
+    for i, j in paging.rows(n):
+        local[idx[i:j]] = np.arange(i, j)
+    es, et = edges
+    s, t = paging.empty(len(es), np.int32), paging.empty(len(es), np.int32)
+    m = 0
+    for i, j in paging.rows(len(es)):
+        ls, lt = local[es[i:j]], local[et[i:j]]
+        keep = (ls >= 0) & (lt >= 0)
+        k = int(keep.sum())
+        s[m:m + k], t[m:m + k] = ls[keep], lt[keep]
+        m += k
+    del local
+    s, t = s[:m], t[:m]
+    indptr = paging.zeros(n + 1, np.int32)
+    indices = paging.empty(2 * m, np.int32)
     _adjacency(n, s, t, indptr, indices)
-    del s, t, keep
-    g = sp.csr_matrix((np.ones(len(indices), np.int8), indices, indptr), shape=(n, n))
-    yield "reverse_cuthill_mckee", idx[reverse_cuthill_mckee(g, symmetric_mode=True)]
+    del s, t
+    ones = paging.empty(len(indices), np.int8)
+    for i, j in paging.rows(len(ones)):
+        ones[i:j] = 1
+    g = sp.csr_matrix((ones, indices, indptr), shape=(n, n))
+    yield "reverse_cuthill_mckee", ordered(reverse_cuthill_mckee(g, symmetric_mode=True))
 
 
 # -- exclusions ------------------------------------------------------------------------
@@ -403,7 +468,8 @@ def _chunk_activity(starts, counts, obs_station, obs_status, single_ok, station_
     A ray is usable when the observation is not rejected and its station is active; a point
     is active with 2 distinct usable stations (1 for full or vertical control). Fills
     ``point_active``, ``obs_active`` (usable rays of active points) and adds 1 to
-    ``station_points[s]`` for every active point seen by station ``s``.
+    ``station_points[s]`` for every active point seen by station ``s`` (not counted when
+    ``station_points`` is empty).
     """
     for j in range(starts.shape[0]):
         a = starts[j]
@@ -419,7 +485,8 @@ def _chunk_activity(starts, counts, obs_station, obs_status, single_ok, station_
         for i in range(a, b):
             if not ok:
                 obs_active[i] = False
-            elif obs_active[i] and _first_ray(obs_station, obs_active, a, i):
+            elif (station_points.shape[0] > 0 and obs_active[i]
+                  and _first_ray(obs_station, obs_active, a, i)):
                 station_points[obs_station[i]] += 1
 
 
@@ -477,8 +544,7 @@ class _Chunk:
         single = (kind == KIND_CONTROL) | (kind == KIND_VERTICAL)
         self.point_active = np.zeros(b - a, np.bool_)
         self.obs_active = np.zeros(self.o1 - self.o0, np.bool_)
-        sp_counts = station_points if station_points is not None else np.zeros(
-            len(station_active), np.int64)
+        sp_counts = station_points if station_points is not None else np.zeros(0, np.int64)
         _chunk_activity(self.starts, self.counts, self.station,
                         np.ascontiguousarray(self.obs["status"]), single, station_active,
                         self.point_active, self.obs_active, sp_counts)
@@ -495,7 +561,7 @@ def _unique(x):
     return x[keep]
 
 
-def _station_activity(p, chunk, reset=False):
+def _station_activity(p, chunk, reset=False, memory=None, work=None):
     """Active stations and the station-graph edges after the exclusion rules.
 
     Passes over the point chunks until the active stations stop changing (usually one pass:
@@ -505,26 +571,82 @@ def _station_activity(p, chunk, reset=False):
     observations rejected by an earlier run count as active (``--reset-rejections``).
     """
     n_st = p.n_stations
-    active = np.ones(n_st, np.bool_)
+    active = paging.empty(n_st, np.bool_)
+    for a, b in paging.rows(n_st):
+        active[a:b] = True
+    dt = np.int32 if n_st < 2**31 else np.int64
     while True:
-        per_station = np.zeros(n_st, np.int64)
-        parts, n_parts, merged = [], 0, np.zeros(0, np.int64)
+        per_station = paging.zeros(n_st, np.int64)
+        edges = _EdgeKeys(n_st, memory, work)
         for a, b in p.chunks("points", chunk):
             c = _Chunk(p, a, b, active, per_station, fields=("station", "status"),
                        reset=reset)
-            k = _unique(_point_pairs(c.starts, c.counts, c.station, c.obs_active, n_st))
-            parts.append(k)
-            n_parts += len(k)
-            if n_parts > max(len(merged), 1 << 20):
-                merged = _unique(np.concatenate([merged] + parts))
-                parts, n_parts = [], 0
-        new = active & (per_station >= MIN_POINTS_PER_STATION)
-        if (new == active).all():
-            keys = _unique(np.concatenate([merged] + parts))
-            del merged, parts
-            dt = np.int32 if n_st < 2**31 else np.int64
-            return active, ((keys // n_st).astype(dt), (keys % n_st).astype(dt))
-        active = new
+            edges.add(_unique(_point_pairs(c.starts, c.counts, c.station, c.obs_active,
+                                           n_st)))
+        changed = False
+        for a, b in paging.rows(n_st):
+            new = active[a:b] & (per_station[a:b] >= MIN_POINTS_PER_STATION)
+            changed = changed or bool((new != active[a:b]).any())
+            active[a:b] = new
+        del per_station
+        if not changed:
+            return active, edges.edges(dt)
+        edges.close()
+
+
+class _EdgeKeys:
+    """The unique keys ``s * n + t`` of the station graph's edges, gathered chunk by chunk:
+    merged in core, or, while the run's vectors are paged (:mod:`sapgo.paging`: a very large
+    block), sorted externally within ``memory`` bytes in ``work`` and written into mapped
+    arrays."""
+
+    def __init__(self, n_st, memory=None, work=None):
+        self.n_st = n_st
+        self.sorter = None
+        if paging.active():
+            self.sorter = ExternalSorter(np.dtype([("k", "<i8")]), ["k"],
+                                         (memory or DEFAULT_MEMORY) // 2, work, "edges")
+        self.parts, self.n_parts, self.merged = [], 0, np.zeros(0, np.int64)
+
+    def add(self, keys):
+        if self.sorter is not None:
+            self.sorter.add(keys.view(self.sorter.dtype))
+            return
+        self.parts.append(keys)
+        self.n_parts += len(keys)
+        if self.n_parts > max(len(self.merged), 1 << 20):
+            self.merged = _unique(np.concatenate([self.merged] + self.parts))
+            self.parts, self.n_parts = [], 0
+
+    def edges(self, dt):
+        """``(s, t)`` with ``s < t``, in key order."""
+        n = self.n_st
+        if self.sorter is None:
+            keys = _unique(np.concatenate([self.merged] + self.parts))
+            self.parts = self.merged = None
+            return (keys // n).astype(dt), (keys % n).astype(dt)
+        s = paging.empty(self.sorter.count, dt)
+        t = paging.empty(self.sorter.count, dt)
+        m, last = 0, None
+        for chunk in self.sorter.sorted_chunks():
+            k = chunk["k"]
+            keep = np.empty(len(k), bool)
+            if len(k):
+                keep[0] = last is None or k[0] != last
+                np.not_equal(k[1:], k[:-1], out=keep[1:])
+                last = k[-1]
+            k = k[keep]
+            s[m:m + len(k)] = k // n
+            t[m:m + len(k)] = k % n
+            m += len(k)
+            paging.release()
+        self.close()
+        return s[:m], t[:m]
+
+    def close(self):
+        if self.sorter is not None:
+            self.sorter.close()
+            self.sorter = None
 
 
 # -- the order command -----------------------------------------------------------------
@@ -534,7 +656,8 @@ SOLVERS = ("auto", "band", "tree")
 
 @writes_project("order", "path")
 def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver="auto",
-                  leaf_stations=None, out=None, reset_rejections=False, checked=False):
+                  leaf_stations=None, out=None, reset_rejections=False, checked=False,
+                  page_stations=None):
     """Order a project: exclusions, station order, point order, records rewritten.
 
     ``method`` is ``"best"`` (smallest band width of all candidates) or one candidate name
@@ -545,13 +668,18 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
     (default :data:`sapgo.solve.partition.LEAF_STATIONS`). Every pass streams
     the records in chunks; the points and observations are put in their new order by external
     sorts within ``memory`` bytes (default :data:`sapgo.extsort.DEFAULT_MEMORY`). In core:
-    per-station vectors and the station graph (a few edges per station). The project is
+    per-station vectors and the station graph (a few edges per station), memory-mapped
+    beyond ``page_stations``. The project is
     rewritten through a temporary file that replaces it only when complete; with ``out``
     the ordered project is written there instead (attribute ``ordered_from``: the uuid of
     ``path``) and ``path`` is left as it was (``sapgo adjust`` orders into its commit).
     ``reset_rejections``: observations rejected by an earlier run (data snooping) are
     active again in the ordered project. ``checked``: the caller has checked the
     project's values already (:func:`sapgo.validate.check_values`; ``sapgo adjust``).
+    ``page_stations``: above this many stations (default
+    :data:`sapgo.paging.PAGE_STATIONS`; 0: always) the per-station vectors, the station
+    graph's edges (sorted externally within ``memory``) and the candidate orders are
+    memory-mapped (:mod:`sapgo.paging`).
     """
     import time
 
@@ -567,8 +695,12 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
         if solver not in SOLVERS:
             raise ParameterError(f"unknown solver {solver!r}; choose from {', '.join(SOLVERS)}")
         try:
-            result = _order(p, work, method, memory, chunk, solver, leaf_stations, out,
-                            reset_rejections)
+            # a very large block's per-station vectors and station graph memory-mapped
+            limit = paging.PAGE_STATIONS if page_stations is None else page_stations
+            with paging.paged(path.resolve().parent, p.n_stations > limit or limit == 0,
+                              0 if limit == 0 else paging.MIN_PAGED_BYTES):
+                result = _order(p, work, method, memory, chunk, solver, leaf_stations, out,
+                                reset_rejections)
         finally:
             shutil.rmtree(work, ignore_errors=True)
     result.seconds = time.perf_counter() - t0
@@ -582,14 +714,17 @@ def score_orders(cands, active, edges, keep="best"):
     record's logical number. ``perm`` and ``pos`` are kept for the order ``keep`` names
     ("best": :func:`best_order`'s; None: all), None for the others."""
     n_st = len(active)
-    tail = np.flatnonzero(~active)
+    tail = np.concatenate([a + np.flatnonzero(~active[a:b]) for a, b in paging.rows(n_st)]
+                          or [np.zeros(0, np.int64)]).astype(np.int64)
     scored = {}
     held = None
     for name, perm in (cands.items() if isinstance(cands, dict) else cands):
-        full = np.concatenate([perm, tail])
+        full = paging.empty(n_st, np.int64)
+        for a, b in paging.rows(len(perm)):
+            full[a:b] = perm[a:b]
+        full[len(perm):] = tail
         del perm
-        pos = np.empty(n_st, np.int64)
-        pos[full] = np.arange(n_st)
+        pos = paging.inverse(full)
         scored[name] = (band_width_of(pos, edges), profile_of(pos, edges), full, pos)
         if keep is None:
             continue
@@ -660,9 +795,14 @@ def _window_tree_seconds(pos, active, edges, band_perm, leaf_stations, k):
     start = (len(act) - m) // 2
     mask = np.zeros(n_st, bool)
     mask[act[start:start + m]] = True
-    s, t = (np.asarray(x, np.int64) for x in edges)
-    keep = mask[s] & mask[t]
-    tree, _, _ = best_tree(pos, mask, (s[keep], t[keep]), leaf_stations, k=k)
+    parts = []
+    for a, b in paging.rows(len(edges[0])):   # (the window's edges, a chunk at a time)
+        s, t = (np.asarray(x[a:b], np.int64) for x in edges)
+        keep = mask[s] & mask[t]
+        parts.append((s[keep], t[keep]))
+    s = np.concatenate([q[0] for q in parts]) if parts else np.zeros(0, np.int64)
+    t = np.concatenate([q[1] for q in parts]) if parts else np.zeros(0, np.int64)
+    tree, _, _ = best_tree(pos, mask, (s, t), leaf_stations, k=k)
     f = tree.figures(k)
     scale = len(act) / m
     return scale * (f["flops"] / TREE_RATE + TREE_NODE_SECONDS * f["nodes"])
@@ -699,12 +839,11 @@ def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stati
 def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, out=None,
            reset=False):
 
-    stations = p.read("stations")
+    stations = paging.records(p, "stations")
     n_st, n_pt = p.n_stations, p.n_points
-    st_active, edges = _station_activity(p, chunk, reset)
+    st_active, edges = _station_activity(p, chunk, reset, memory, work)
 
-    identity = np.arange(n_st)
-    b_before = band_width_of(identity, edges)
+    b_before = band_width_of(paging.arange(n_st), edges)
     if method != "best" and method not in ORDERINGS[1:]:
         raise ParameterError(f"unknown ordering {method!r}; choose from "
                              f"{', '.join(ORDERINGS)}")
@@ -721,8 +860,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
                                             solver, leaf_stations, band_perm=perm)
     if tree is not None:
         perm = perm_t
-        pos = np.empty(n_st, np.int64)
-        pos[perm] = np.arange(n_st)
+        pos = paging.inverse(perm)
         b = band_width_of(pos, edges)
         name = f"nested_dissection_{tree.method}"
     del edges
@@ -852,10 +990,12 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
                         sol["obs_quality"][at:at + len(c)] = c["quality"]
                     at += len(c)
 
-        # 4. per-station records
-        new_stations = stations[perm].copy()
-        new_stations["status"] = np.where(st_active[perm], STATUS_ACTIVE, STATUS_EXCLUDED)
-        w.append("stations", new_stations)
+        # 4. per-station records (a chunk at a time)
+        for a, b_ in paging.rows(n_st):
+            new_stations = stations[perm[a:b_]]
+            new_stations["status"] = np.where(st_active[perm[a:b_]], STATUS_ACTIVE,
+                                              STATUS_EXCLUDED)
+            w.append("stations", new_stations)
         w.append("cameras", p.cameras())
         priors = p.read("station_priors")
         if len(priors):
@@ -863,7 +1003,10 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
             priors = priors[np.argsort(priors["station"], kind="stable")]
         w.append("station_priors", priors)
         if has_truth:
-            w.append("truth/stations", p.read("truth/stations")[perm])
+            truth = paging.records(p, "truth/stations")
+            for a, b_ in paging.rows(n_st):
+                w.append("truth/stations", truth[perm[a:b_]])
+            del truth
             if "truth/blunders" in p.file:  # keyed by ids: unchanged by the order
                 w.append("truth/blunders", p.read("truth/blunders"))
         for group in KEYED_GROUPS:  # keyed by ids: unchanged by the order
@@ -885,9 +1028,10 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
         ordering=name,
         candidates=candidates,
         excluded_points=excluded_points,
-        excluded_stations=[int(i) for i in stations["id"][~st_active][:LISTED_IDS]],
+        excluded_stations=[int(i) for a, b_ in paging.rows(n_st)
+                           for i in stations["id"][a:b_][~st_active[a:b_]]][:LISTED_IDS],
         n_excluded_points=n_excluded_points,
-        n_excluded_stations=int((~st_active).sum()),
+        n_excluded_stations=sum(int((~st_active[a:b_]).sum()) for a, b_ in paging.rows(n_st)),
         solver="tree" if tree is not None else "band",
         tree=tree.figures(k_par) if tree is not None else None,
         predicted=predicted,

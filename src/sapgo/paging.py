@@ -166,7 +166,8 @@ def field(p, table, name, dtype=None):
     return out
 
 
-def _release():
+def release():
+    """While paged, return every map's pages to the page cache now."""
     if _active is not None:
         _active.release()
 
@@ -176,7 +177,7 @@ def rows(n, step=CHUNK_ROWS):
     each (a pass at memory speed outruns the janitor)."""
     for a in range(0, n, step):
         yield a, min(n, a + step)
-        _release()
+        release()
 
 
 def save_npy(f, a):
@@ -220,3 +221,50 @@ def assign(dst, src):
     """``dst[:] = src``, a chunk of rows at a time."""
     for a, b in rows(len(dst)):
         dst[a:b] = src[a:b]
+
+
+def take(a, idx):
+    """``a[idx]`` (rows of ``a`` at the indices ``idx``), gathered a chunk at a time into a
+    (possibly mapped) array."""
+    out = empty((len(idx),) + a.shape[1:], a.dtype)
+    for i, j in rows(len(idx)):
+        out[i:j] = a[idx[i:j]]
+    return out
+
+
+def arange(n, dtype=np.int64):
+    """``np.arange(n)``, a chunk at a time into a (possibly mapped) array."""
+    out = empty(n, dtype)
+    for a, b in rows(n):
+        out[a:b] = np.arange(a, b)
+    return out
+
+
+def inverse(perm, n=None):
+    """``pos`` with ``pos[perm] = arange(len(perm))``, a chunk at a time."""
+    out = empty(len(perm) if n is None else n, np.int64)
+    for a, b in rows(len(perm)):
+        out[perm[a:b]] = np.arange(a, b)
+    return out
+
+
+def nonzero(mask):
+    """``np.flatnonzero(mask)`` into a (possibly mapped) array, a chunk at a time."""
+    count = sum(int(np.count_nonzero(mask[a:b])) for a, b in rows(len(mask)))
+    out = empty(count, np.int64)
+    at = 0
+    for a, b in rows(len(mask)):
+        k = a + np.flatnonzero(mask[a:b])
+        out[at:at + len(k)] = k
+        at += len(k)
+    return out
+
+
+def records(p, table):
+    """A table's records (``p.read(table)``), read a chunk at a time into a (possibly
+    mapped) array."""
+    first = p.read(table, 0, 0)
+    out = empty(int(p.file[table].shape[0]), first.dtype)
+    for a, b in p.chunks(table):
+        out[a:b] = p.read(table, a, b)
+    return out

@@ -106,7 +106,7 @@ def check_values(project: Project, ordered_layout=True):
                 f"inside the format: check the coefficients and their units (k1 mm^-2, "
                 f"k2 mm^-4, k3 mm^-6, p1 and p2 mm^-1)"
             )
-    cam_of_station = np.zeros(n_st, np.int64)
+    cam_of_station = np.zeros(n_st, np.int32)   # (40 MB at 10 000 000 photos)
     for a, b in project.chunks("stations"):
         st = project.read("stations", a, b)
         _check_finite("stations", a, st["id"], "eo", st["eo"])
@@ -250,6 +250,9 @@ MAX_COORDINATE = 1e10
 #: Plausibility: a photo farther from the block's centre than this many times the block's
 #: own size is an error.
 STATION_REACH = 100.0
+#: The block's centre and size are medians over at most about this many photos (every
+#: photo up to it, else every k-th: the check's memory does not grow with the block).
+SPREAD_SAMPLE = 1 << 20
 
 
 def _triple(v):
@@ -260,19 +263,24 @@ def _check_station_spread(project):
     """Photos at absurd positions: beyond :data:`MAX_COORDINATE`, or farther from the
     median photo than :data:`STATION_REACH` times the block's size (the median distance of
     the photos from it, at least the median distance of the points from it, at least 1 m)."""
-    pos = np.concatenate([project.read_field("stations", "eo", a, b)[:, 3:6]
-                          for a, b in project.chunks("stations")])
-    ids = project.read_field("stations", "id")
-    i = _first_bad((np.abs(pos) > MAX_COORDINATE).any(axis=1))
-    if i >= 0:
-        raise DataError(f"stations record {i} (id {ids[i]}): X, Y, Z {_triple(pos[i])} are "
-                        f"beyond {MAX_COORDINATE:.0e} m from the frame's origin: check the "
-                        f"photo's units and columns")
-    if len(pos) < 2:
+    n_st = project.n_stations
+    # the medians over every photo up to SPREAD_SAMPLE photos, else over every k-th
+    step = max(1, -(-n_st // SPREAD_SAMPLE))
+    sample = []
+    for a, b in project.chunks("stations"):
+        pos = project.read_field("stations", "eo", a, b)[:, 3:6]
+        i = _first_bad((np.abs(pos) > MAX_COORDINATE).any(axis=1))
+        if i >= 0:
+            sid = project.read_field("stations", "id", a + i, a + i + 1)[0]
+            raise DataError(f"stations record {a + i} (id {sid}): X, Y, Z {_triple(pos[i])} "
+                            f"are beyond {MAX_COORDINATE:.0e} m from the frame's origin: "
+                            f"check the photo's units and columns")
+        sample.append(pos[(-a) % step::step])
+    if n_st < 2:
         return
-    centre = np.median(pos, axis=0)
-    dist = np.linalg.norm(pos - centre, axis=1)
-    size = float(np.median(dist))
+    sample = np.concatenate(sample)
+    centre = np.median(sample, axis=0)
+    size = float(np.median(np.linalg.norm(sample - centre, axis=1)))
     n_pt = project.n_points
     if n_pt:
         starts = np.unique(np.linspace(0, max(n_pt - 4096, 0), 16).astype(np.int64))
@@ -280,10 +288,17 @@ def _check_station_spread(project):
                               for a in starts])   # (a sample: 16 runs of 4096 points)
         size = max(size, float(np.median(np.linalg.norm(xyz - centre, axis=1))))
     size = max(size, 1.0)
-    i = int(np.argmax(dist))
-    if dist[i] > STATION_REACH * size:
-        raise DataError(f"stations record {i} (id {ids[i]}): X, Y, Z {_triple(pos[i])} lie "
-                        f"{dist[i]:.3g} m from the block's median photo, {dist[i] / size:.0f} "
+    far, i, where = -1.0, -1, None
+    for a, b in project.chunks("stations"):
+        pos = project.read_field("stations", "eo", a, b)[:, 3:6]
+        dist = np.linalg.norm(pos - centre, axis=1)
+        k = int(np.argmax(dist))
+        if dist[k] > far:
+            far, i, where = float(dist[k]), a + k, pos[k]
+    if far > STATION_REACH * size:
+        sid = project.read_field("stations", "id", i, i + 1)[0]
+        raise DataError(f"stations record {i} (id {sid}): X, Y, Z {_triple(where)} lie "
+                        f"{far:.3g} m from the block's median photo, {far / size:.0f} "
                         f"times the block's size ({size:.3g} m): check the photo's "
                         f"coordinates (units, columns, frame)")
 

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from .. import paging
 from ..errors import ParameterError
 from ..lock import writes_project
 import numpy as np
@@ -73,7 +74,8 @@ def generate_block(path, preset=None, progress=None, force=False, **overrides):
                                     "history": append_history("[]", creator)},
                        truth=True) as w, \
             tqdm(total=spec.n_cols, desc="generate", unit="col", leave=False,
-                 disable=not enabled, dynamic_ncols=True) as bar:
+                 disable=not enabled, dynamic_ncols=True) as bar, \
+            paging.paged(Path(path).resolve().parent, spec.n_photos > paging.PAGE_STATIONS):
         counts = write_block(spec, w, progress=bar.update)
         counts["blunders"] = plant_blunders(w, spec.blunders, spec.blunder_size, spec.seed)
         w.finish()

@@ -28,6 +28,7 @@ import math
 
 import numpy as np
 
+from .. import paging
 from ..errors import ParameterError
 from ..geometry import camera_array, intersect_points, project_observations
 from ..project import (
@@ -293,25 +294,37 @@ def _texture_slab(spec, x0, x1, rng, terrain, true_eo, cams):
 
 
 def _station_arrays(spec, z_mean):
-    """True and approximate orientation of every station (per-station vectors)."""
+    """True and approximate orientation of every station (per-station vectors; mapped from
+    scratch files while :func:`sapgo.paging.paged`), drawn a chunk of stations at a time in
+    the order of one draw per column over all stations (the generator's stream, and so the
+    block, do not depend on the chunks)."""
     rng = np.random.default_rng([spec.seed, 1])
     S, G = spec.strips, spec.photos_per_strip
     n = S * G
     B, A, H = spec.base, spec.strip_spacing, spec.flying_height
-    st_strip, st_g = np.divmod(np.arange(n), G)
-    heading = np.where(st_strip % 2 == 0, 0.0, math.pi)
     tilt = math.radians(spec.tilt)
-    true_eo = np.empty((n, 6))
-    true_eo[:, 0] = np.clip(rng.normal(0, tilt, n), -3 * tilt, 3 * tilt)
-    true_eo[:, 1] = np.clip(rng.normal(0, tilt, n), -3 * tilt, 3 * tilt)
-    true_eo[:, 2] = heading + rng.normal(0, math.radians(1.0), n)
-    true_eo[:, 3] = st_g * B + rng.normal(0, 0.01 * B, n)
-    true_eo[:, 4] = (st_strip + 0.5) * A + rng.normal(0, 0.01 * A, n)
-    true_eo[:, 5] = z_mean + H + rng.normal(0, 0.003 * H, n)
-    approx_eo = true_eo.copy()
-    approx_eo[:, :3] += rng.normal(0, spec.station_angle_perturbation * ARCSEC, (n, 3))
-    approx_eo[:, 3:] += rng.normal(0, spec.station_position_perturbation, (n, 3))
-    return st_strip, true_eo, approx_eo
+    true_eo = paging.empty((n, 6))
+    for col in range(6):
+        for a, b in paging.rows(n):
+            st_strip, st_g = np.divmod(np.arange(a, b), G)
+            if col < 2:
+                v = np.clip(rng.normal(0, tilt, b - a), -3 * tilt, 3 * tilt)
+            elif col == 2:
+                v = np.where(st_strip % 2 == 0, 0.0, math.pi) + rng.normal(
+                    0, math.radians(1.0), b - a)
+            elif col == 3:
+                v = st_g * B + rng.normal(0, 0.01 * B, b - a)
+            elif col == 4:
+                v = (st_strip + 0.5) * A + rng.normal(0, 0.01 * A, b - a)
+            else:
+                v = z_mean + H + rng.normal(0, 0.003 * H, b - a)
+            true_eo[a:b, col] = v
+    approx_eo = paging.copy(true_eo)
+    for a, b in paging.rows(n):
+        approx_eo[a:b, :3] += rng.normal(0, spec.station_angle_perturbation * ARCSEC, (b - a, 3))
+    for a, b in paging.rows(n):
+        approx_eo[a:b, 3:] += rng.normal(0, spec.station_position_perturbation, (b - a, 3))
+    return true_eo, approx_eo
 
 
 def write_block(spec: BlockSpec, writer, progress=None):
@@ -340,23 +353,25 @@ def write_block(spec: BlockSpec, writer, progress=None):
                                *spec.distortion)
     cams = camera_array(cameras)
     writer.append("cameras", cameras)
-    st_strip, true_eo, approx_eo = _station_arrays(spec, z_mean)
+    true_eo, approx_eo = _station_arrays(spec, z_mean)
     n_st = S * G
-    stations = np.zeros(n_st, STATION_DTYPE)
-    stations["id"] = np.arange(1, n_st + 1)
-    stations["strip"] = st_strip + 1
-    stations["eo"] = approx_eo
-    writer.append("stations", stations)
-    truth_st = np.zeros(n_st, TRUTH_STATION_DTYPE)
-    truth_st["id"] = stations["id"]
-    truth_st["eo"] = true_eo
-    writer.append("truth/stations", truth_st)
+    for a, b in paging.rows(n_st):
+        stations = np.zeros(b - a, STATION_DTYPE)
+        stations["id"] = np.arange(a + 1, b + 1)
+        stations["strip"] = np.arange(a, b) // G + 1
+        stations["eo"] = approx_eo[a:b]
+        writer.append("stations", stations)
+    for a, b in paging.rows(n_st):
+        truth_st = np.zeros(b - a, TRUTH_STATION_DTYPE)
+        truth_st["id"] = np.arange(a + 1, b + 1)
+        truth_st["eo"] = true_eo[a:b]
+        writer.append("truth/stations", truth_st)
     del stations, truth_st
 
     rr, cc = control_layout(n_rows, n_cols, spec.control_points, row_step, col_step, 2 * sub)
     control_index = np.sort(cc.astype(np.int64) * n_rows + rr)
     csig = spec.control_sigma if spec.control_sigma is not None else spec.control_perturbation
-    cam_of_station = np.zeros(n_st, np.int64)
+    cam_of_station = paging.zeros(n_st, np.int64)
     # the pattern of a photo: rows 0 .. 2 sub of its strip, columns sub g - sub .. sub g + sub
     k = np.arange(-sub, sub + 1)
     dr, dc = np.meshgrid(np.arange(0, 2 * sub + 1), k, indexing="ij")
