@@ -504,6 +504,7 @@ def huge(args):
         if name == "generate":
             project_bytes = du(path)
     work = path.with_name(path.name + ".work")
+    project_after = du(path)
     rep = json.loads(report.read_text())
     c, t = rep["check_points"], rep["timings_s"]
     result = {
@@ -520,6 +521,7 @@ def huge(args):
         "photos": n, "points": None, "observations": rep["n_observations"],
         "phases": phases,
         "project_bytes": project_bytes,
+        "project_bytes_adjusted": project_after,
         "work_dir_bytes_at_end": du(work),
         "adjustment": {
             "converged": rep["converged"], "iterations": rep["iterations"],
@@ -555,7 +557,9 @@ def huge_markdown(r):
             f"(build {per['build']:.1f} s, solve {per['solve']:.1f} s, update "
             f"{per['update']:.1f} s each), precision pass {a['precision_s']:.0f} s; sigma0 "
             f"{a['sigma0']:.4f}, check points sXY {a['check_sxy_m']:.3f} m, sZ "
-            f"{a['check_sz_m']:.3f} m; project {r['project_bytes'] / 1e9:.1f} GB, work "
+            f"{a['check_sz_m']:.3f} m; project {r['project_bytes'] / 1e9:.1f} GB "
+            f"({r['project_bytes_adjusted'] / 1e9:.1f} GB adjusted: the adjustment's disk "
+            f"includes this copy, written beside the project and renamed over it), work "
             f"directory at the end {r['work_dir_bytes_at_end'] / 1e9:.1f} GB (sapgo "
             f"{_code(r)})."]
     return "\n".join(out)
