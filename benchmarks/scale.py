@@ -38,7 +38,8 @@ own as above, with defaults everywhere (the factor storage and the paging of per
 vectors as ``auto`` chooses them). Per phase: wall time, peak RSS and the disk it took at
 most (free space sampled every second: project copies, sort runs, work files and the
 unlinked ``paged.*`` files together). Writes ``huge`` into ``results/scale.json`` (its other
-rows are kept) and prints its table.
+rows are kept) and prints its table. ``--huge-phases generate,order`` measures those two
+again (each phase records its commit) and keeps the adjustment's record.
 
 Square blocks (the partition tree, issue 16)::
 
@@ -432,6 +433,8 @@ def main():
     ap.add_argument("--huge", type=int, default=0, help="photos: one block of 20 strips "
                     "generated, ordered and adjusted to convergence with precision (every "
                     "phase recorded: results/scale.json, key huge)")
+    ap.add_argument("--huge-phases", default="generate,order,adjust", help="with --huge: "
+                    "generate,order to measure those again (the adjustment's record kept)")
     args = ap.parse_args()
     if args.huge:
         return huge(args)
@@ -495,14 +498,35 @@ def huge(args):
         "adjust": SAPGO + ["adjust", str(path), "--no-progress", "--quiet", "--keep-scratch",
                            "--json", str(report)],
     }
-    for name, cmd in cmds.items():
+    wanted = [x for x in args.huge_phases.split(",") if x]
+    if wanted not in (["generate", "order", "adjust"], ["generate", "order"]):
+        raise SystemExit("--huge-phases: generate,order,adjust or generate,order")
+    source = _source()
+    for name in wanted:
+        load_before = os.getloadavg()
         with DiskWatch(root) as disk:
-            wall, rss, _ = run(cmd)
-        phases[name] = {"wall_s": wall, "peak_rss_mb": rss, "disk_taken_gb": disk.used() / 1e9}
+            wall, rss, _ = run(cmds[name])
+        phases[name] = {"wall_s": wall, "peak_rss_mb": rss, "disk_taken_gb": disk.used() / 1e9,
+                        "load_before": load_before, "sapgo_source": source}
         print(f"{name}: {wall:.1f} s, peak RSS {rss:.0f} MB, disk taken at most "
               f"{disk.used() / 1e9:.2f} GB", file=sys.stderr)
         if name == "generate":
             project_bytes = du(path)
+    out = Path(__file__).parent / "results" / "scale.json"
+    whole = json.loads(out.read_text()) if out.exists() else {}
+    if "adjust" not in wanted:   # the phases measured again; the adjustment's kept
+        result = whole["huge"]
+        if result["photos"] != n:
+            raise SystemExit(f"results/scale.json holds {result['photos']:,} photos, not {n:,}")
+        result["phases"].update(phases)
+        result["project_bytes"] = project_bytes
+        for k, f_ in (("peak_rss_mb_any_phase", "peak_rss_mb"),
+                      ("disk_taken_gb_any_phase", "disk_taken_gb")):
+            result[k] = max(p[f_] for p in result["phases"].values())
+        path.unlink()
+        out.write_text(json.dumps(whole, indent=2) + "\n")
+        print(huge_markdown(result))
+        return
     work = path.with_name(path.name + ".work")
     project_after = du(path)
     rep = json.loads(report.read_text())
@@ -517,7 +541,7 @@ def huge(args):
                     "memory_gb": os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9,
                     "free_disk_before_gb": free_gb, "load_before": load,
                     "load_at_end": os.getloadavg()},
-        "sapgo_source": _source(),
+        "sapgo_source": source,
         "photos": n, "points": None, "observations": rep["n_observations"],
         "phases": phases,
         "project_bytes": project_bytes,
@@ -537,8 +561,6 @@ def huge(args):
     shutil.rmtree(work, ignore_errors=True)
     path.unlink()
     report.unlink()
-    out = Path(__file__).parent / "results" / "scale.json"
-    whole = json.loads(out.read_text()) if out.exists() else {}
     whole["huge"] = result
     out.write_text(json.dumps(whole, indent=2) + "\n")
     print(huge_markdown(result))
@@ -547,11 +569,12 @@ def huge(args):
 def huge_markdown(r):
     ph, a = r["phases"], r["adjustment"]
     per = a["seconds_per_iteration"]
-    out = ["| phase | wall s | peak RSS MB | disk taken at most GB |", "|---|---|---|---|"]
+    out = ["| phase | wall s | peak RSS MB | disk taken at most GB | sapgo |",
+           "|---|---|---|---|---|"]
     for name in ("generate", "order", "adjust"):
         p = ph[name]
         out.append(f"| {name} | {p['wall_s']:.0f} | {p['peak_rss_mb']:.0f} | "
-                   f"{p['disk_taken_gb']:.1f} |")
+                   f"{p['disk_taken_gb']:.1f} | {_code(p if 'sapgo_source' in p else r)} |")
     out += ["", f"{r['photos']:,} photos, {r['points']:,} points, {r['observations']:,} "
             f"observations, band width {a['band_width']}: {a['iterations']} iterations "
             f"(build {per['build']:.1f} s, solve {per['solve']:.1f} s, update "

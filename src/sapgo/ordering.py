@@ -789,20 +789,24 @@ def _window_tree_seconds(pos, active, edges, band_perm, leaf_stations, k):
     the whole block be partitioned."""
     from .solve.partition import best_tree
 
-    n_st = len(active)
     act = np.asarray(band_perm, np.int64)[:int(np.count_nonzero(active))]
     m = min(len(act), WINDOW_STATIONS)
     start = (len(act) - m) // 2
-    mask = np.zeros(n_st, bool)
-    mask[act[start:start + m]] = True
+    # the window as a problem of its own (stations 0 .. m-1 in the order of their record
+    # numbers): its arrays are the window's size, not the block's
+    win = np.sort(act[start:start + m])
     parts = []
     for a, b in paging.rows(len(edges[0])):   # (the window's edges, a chunk at a time)
         s, t = (np.asarray(x[a:b], np.int64) for x in edges)
-        keep = mask[s] & mask[t]
-        parts.append((s[keep], t[keep]))
+        ls = np.minimum(np.searchsorted(win, s), m - 1)
+        lt = np.minimum(np.searchsorted(win, t), m - 1)
+        keep = (win[ls] == s) & (win[lt] == t)
+        parts.append((ls[keep], lt[keep]))
     s = np.concatenate([q[0] for q in parts]) if parts else np.zeros(0, np.int64)
     t = np.concatenate([q[1] for q in parts]) if parts else np.zeros(0, np.int64)
-    tree, _, _ = best_tree(pos, mask, (s, t), leaf_stations, k=k)
+    tree, _, _ = best_tree(None if pos is None else np.asarray(pos[win], np.float64),
+                           np.ones(m, bool), (s, t),
+                           leaf_stations, k=k)
     f = tree.figures(k)
     scale = len(act) / m
     return scale * (f["flops"] / TREE_RATE + TREE_NODE_SECONDS * f["nodes"])
