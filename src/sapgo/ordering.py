@@ -145,33 +145,61 @@ def _spans(pos, s, t, reach):
     return widest
 
 
+#: Edges a numba pass over the station graph takes at a time (the edges may be mapped:
+#: :func:`sapgo.paging.rows` returns their pages between the chunks).
+EDGE_CHUNK = 1 << 22
+
+
+def _edge_spans(pos, edges, reach):
+    """:func:`_spans` over the edges a chunk at a time."""
+    s, t = edges
+    pos = np.asarray(pos, np.int64)
+    widest = 0
+    for a, b in paging.rows(len(s), EDGE_CHUNK):
+        widest = max(widest, int(_spans(pos, s[a:b], t[a:b], reach)))
+    return widest
+
+
 def band_width_of(pos, edges):
     """Band width (stations, diagonal included) of logical order ``pos`` over ``edges``."""
-    s, t = edges
-    if len(s) == 0:
+    if len(edges[0]) == 0:
         return 1
-    return int(1 + _spans(np.asarray(pos, np.int64), s, t, paging.zeros(len(pos), np.int64)))
+    return 1 + _edge_spans(pos, edges, paging.zeros(len(pos), np.int64))
 
 
 def profile_of(pos, edges):
     """Sum over stations of the distance to their farthest earlier neighbour (tie-breaker)."""
-    s, t = edges
-    if len(s) == 0:
+    if len(edges[0]) == 0:
         return 0
     reach = paging.zeros(len(pos), np.int64)
-    _spans(np.asarray(pos, np.int64), s, t, reach)
+    _edge_spans(pos, edges, reach)
     return sum(int(reach[a:b].sum()) for a, b in paging.rows(len(reach)))
 
 
-@njit(cache=True)
 def _adjacency(n, s, t, indptr, indices):
-    """Symmetric CSR adjacency of the edges ``(s, t)`` (``indptr`` holds the degrees + 1)."""
+    """Symmetric CSR adjacency of the edges ``(s, t)`` (``indptr`` zero on entry), the
+    edges a chunk at a time (:data:`EDGE_CHUNK`)."""
+    for a, b in paging.rows(len(s), EDGE_CHUNK):
+        _degrees(s[a:b], t[a:b], indptr)
+    carry = 0
+    for a, b in paging.rows(n + 1):   # (the prefix sums, a chunk at a time)
+        seg = np.cumsum(indptr[a:b], dtype=np.int64) + carry
+        indptr[a:b] = seg
+        carry = int(seg[-1])
+    fill = np.array(indptr[:-1])
+    for a, b in paging.rows(len(s), EDGE_CHUNK):
+        _fill_adjacency(s[a:b], t[a:b], fill, indices)
+
+
+@njit(cache=True)
+def _degrees(s, t, indptr):
     for e in range(s.shape[0]):
         indptr[s[e] + 1] += 1
         indptr[t[e] + 1] += 1
-    for i in range(n):
-        indptr[i + 1] += indptr[i]
-    fill = indptr[:-1].copy()
+
+
+@njit(cache=True)
+def _fill_adjacency(s, t, fill, indices):
     for e in range(s.shape[0]):
         indices[fill[s[e]]] = t[e]
         fill[s[e]] += 1
