@@ -275,7 +275,7 @@ def _check_station_spread(project):
             raise DataError(f"stations record {a + i} (id {sid}): X, Y, Z {_triple(pos[i])} "
                             f"are beyond {MAX_COORDINATE:.0e} m from the frame's origin: "
                             f"check the photo's units and columns")
-        sample.append(pos[(-a) % step::step])
+        sample.append(pos[(-a) % step::step].copy())   # (a view would keep the chunk)
     if n_st < 2:
         return
     sample = np.concatenate(sample)
