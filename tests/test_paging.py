@@ -202,3 +202,19 @@ def test_paged_order_is_the_in_core_order(block_cache, tmp_path, monkeypatch, so
             assert {a: str(v) for a, v in dm[k].items()} == {a: str(v) for a, v in dc[k].items()}
         else:
             np.testing.assert_array_equal(dm[k], dc[k], err_msg=k)
+
+
+def test_a_full_disk_is_an_error_naming_the_directory(tmp_path, monkeypatch):
+    """The scratch vector's blocks are allocated when it is made: a full disk is an
+    OSError there (one line from the command line), not a SIGBUS at a write."""
+    import errno
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    pager = paging.Pager(tmp_path, min_bytes=0)
+    with pytest.raises(OSError, match="No space left on device") as exc:
+        pager.zeros((1000, 6))
+    assert exc.value.filename == os.fspath(tmp_path) and "scratch vector" in str(exc.value)
+    assert list(tmp_path.iterdir()) == []

@@ -59,8 +59,9 @@ class Pager:
         self.released = 0   # janitor rounds (for the tests)
 
     def zeros(self, shape, dtype=np.float64):
-        """A zero-filled array of ``shape``, mapped from a sparse unlinked file (so that its
-        untouched pages cost neither memory nor disk)."""
+        """A zero-filled array of ``shape``, mapped from an unlinked file whose blocks are
+        allocated first (``posix_fallocate``): a full disk is an ``OSError`` naming the
+        directory here, never a SIGBUS at the first write through the map."""
         dtype = np.dtype(dtype)
         shape = tuple(int(s) for s in np.atleast_1d(shape)) if not isinstance(shape, int) \
             else (int(shape),)
@@ -68,7 +69,11 @@ class Pager:
         if nbytes < max(1, self.min_bytes):
             return np.zeros(shape, dtype)
         with tempfile.TemporaryFile(dir=self.directory, prefix="paged.") as f:
-            os.ftruncate(f.fileno(), nbytes)
+            try:
+                os.posix_fallocate(f.fileno(), 0, nbytes)
+            except OSError as exc:
+                raise OSError(exc.errno, f"{exc.strerror} (a {nbytes / 2**20:.0f} MiB scratch "
+                                         f"vector of the run)", self.directory) from None
             mm = mmap.mmap(f.fileno(), nbytes)   # (the map keeps the file; it may close)
         with self._lock:
             self._maps.add(mm)
