@@ -89,3 +89,12 @@ def test_an_adjustment_on_one_thread_equals_the_one_on_all(p1_block, tmp_path, m
     assert out[0][0] == out[1][0]
     for a, b in zip(out[0][1:], out[1][1:]):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("value", ["two", "0", "-1", "1.5"])
+def test_a_bad_sapgo_threads_is_refused_in_one_line(monkeypatch, value):
+    monkeypatch.setattr(threads, "_setting", value)
+    with pytest.raises(sapgo.errors.ParameterError, match="SAPGO_THREADS"):
+        threads.parts()
+    with pytest.raises(sapgo.errors.ParameterError, match="SAPGO_THREADS"):
+        sapgo.Options().check()

@@ -242,6 +242,8 @@ class Options:
         """Refuse, before any work, every option out of its range (one line each)."""
         from .ordering import ORDERINGS
 
+        _threads.parts()   # (SAPGO_THREADS: a number or "auto")
+
         def number(name, value, lo, hi, what, closed_hi=False):
             try:
                 v = float(value)

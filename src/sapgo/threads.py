@@ -6,8 +6,9 @@ millisecond) between two parallel regions before they sleep; the band factorisat
 meets at a barrier once a panel, thousands of times an iteration. On an idle machine the
 spinning saves a wake-up a region. With more runnable threads than cores, a spinning thread
 holds the core that the thread with the work needs, and every region waits for the
-scheduler: on 2 cores (benchmarks/contention.py, 10 000 photos) an adjustment took 3.8 s
-beside one busy process and 80 s beside another adjustment, against 1.6 s alone. Making the
+scheduler: on 2 cores (benchmarks/contention.py, 10 000 photos, every thread throughout) an
+adjustment took 3.7 s beside one busy process and 35 s beside another adjustment, against
+1.7 s alone. Making the
 threads sleep at once (``OMP_WAIT_POLICY=PASSIVE``) cures the contended case but costs the
 idle one 1.7 times (a sleeping virtual CPU is slow to wake).
 
@@ -21,8 +22,9 @@ keep their BLAS threads.)
 Results do not depend on it: every kernel splits its work by its own count of parts, not by
 the threads that run them.
 
-``SAPGO_THREADS``: "auto" (the default, the above), or a number of threads used throughout
-(no looking). Without ``/proc`` (not Linux) the kernels use numba's threads throughout.
+``SAPGO_THREADS``: "auto" (the default, the above), or a whole number of threads used
+throughout (no looking; more than numba's threads counts as numba's threads); anything else
+is refused with :class:`~sapgo.errors.ParameterError`. Without ``/proc`` (not Linux) the kernels use numba's threads throughout.
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ import threading
 import time
 
 import numba
+
+from .errors import ParameterError
 
 #: Seconds between two looks at the machine (a look costs about 50 microseconds).
 CHECK_SECONDS = 0.02
@@ -50,15 +54,25 @@ _local = threading.local()
 STATS = {"checks": 0, "busy": 0}
 
 
+def _fixed():
+    """``SAPGO_THREADS`` as a number of threads, or None for "auto"."""
+    if _setting == "auto":
+        return None
+    try:
+        n = int(_setting)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ParameterError(f"SAPGO_THREADS={_setting!r}: expected 'auto' or a whole "
+                             f"number of threads of at least 1")
+    return min(n, numba.config.NUMBA_NUM_THREADS)
+
+
 def parts():
     """How many parts a parallel kernel splits its work into: numba's thread count (or
     ``SAPGO_THREADS`` when it is a number), whatever number of threads then runs them."""
-    if _setting != "auto":
-        try:
-            return max(1, min(int(_setting), numba.config.NUMBA_NUM_THREADS))
-        except ValueError:
-            pass
-    return numba.config.NUMBA_NUM_THREADS
+    fixed = _fixed()
+    return numba.config.NUMBA_NUM_THREADS if fixed is None else fixed
 
 
 def _procs_running():
@@ -94,7 +108,7 @@ def adapt():
     """Before a parallel step: set numba's threads for kernels launched from this thread
     (one while other processes are running, else :func:`parts`). Returns the count."""
     full = parts()
-    if _setting != "auto" or full == 1:
+    if _fixed() is not None or full == 1:
         if numba.get_num_threads() != full:
             numba.set_num_threads(full)
         return full
