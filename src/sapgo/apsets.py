@@ -100,7 +100,7 @@ for _s in (EBNER, GRUEN):
     TERMS[_s, :N_TERMS[_s]] = set_terms(_n, _s == GRUEN)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def _poly(coef, x, val, der):
     """``P_i(x)`` and ``P_i'(x)`` of the 5 rows of ``coef`` into ``val`` and ``der``."""
     for i in range(5):
@@ -113,7 +113,7 @@ def _poly(coef, x, val, der):
         der[i] = d
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def ap_displacement(u, v, s, base, a):
     """The displacement of set ``s`` (base ``base`` mm, coefficients ``a``, mm) at ``(u, v)``
     (mm from the principal point): ``(dx, dy, dxdu, dxdv, dydu, dydv)``."""
@@ -144,7 +144,7 @@ def ap_displacement(u, v, s, base, a):
     return dx, dy, j00 / base, j01 / base, j10 / base, j11 / base
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, error_model="numpy", nogil=True)
 def ap_partials(u, v, s, base, sign, e, col):
     """The terms of set ``s`` at ``(u, v)`` times ``sign``: ``e[0, col + t]`` and
     ``e[1, col + t]`` the x and y displacement per unit of coefficient ``t`` of the set's

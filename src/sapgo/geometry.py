@@ -79,7 +79,7 @@ def plain_camera(f, x0=0.0, y0=0.0):
     return row
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def brown(u, v, c):
     """The distortion polynomial of camera row ``c`` at ``(u, v)`` (mm from the principal
     point), its additional-parameter set's displacement included (:mod:`sapgo.apsets`):
@@ -107,7 +107,7 @@ def brown(u, v, c):
     return dx, dy, j00, j01, j10, j11
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def distortion(xi, yi, c):
     """The distortion added at the ideal image point ``(xi, yi)`` (mm, from the principal
     point) by camera row ``c``: :func:`brown` for the forward model, none (``0, 0`` and the
@@ -118,7 +118,7 @@ def distortion(xi, yi, c):
     return brown(xi, yi, c)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def observed(x, y, c):
     """The image point the ideal projection of camera row ``c`` is fitted to, for a
     measurement ``(x, y)``: the measurement itself (forward model), or the measurement
@@ -129,7 +129,7 @@ def observed(x, y, c):
     return x + dx, y + dy
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def undistort(x, y, c):
     """The ideal image point ``(xi, yi)`` (from the principal point) that camera row ``c``
     images at ``(x, y)``: Newton's method on ``xi + dx(xi, yi) = x - x0`` (forward model),
@@ -160,7 +160,7 @@ def undistort(x, y, c):
     return xi, yi, False
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _elementary(omega, phi, kappa):
     cw, sw = np.cos(omega), np.sin(omega)
     cp, sp = np.cos(phi), np.sin(phi)
@@ -174,7 +174,7 @@ def _elementary(omega, phi, kappa):
     return r1, r2, r3, d1, d2, d3
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _mm3(a, b):
     c = np.zeros((3, 3))
     for i in range(3):
@@ -186,7 +186,7 @@ def _mm3(a, b):
     return c
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _rot9(omega, phi, kappa):
     """The nine elements of ``M = R3(kappa) R2(phi) R1(omega)``, row by row (no allocation)."""
     cw, sw = np.cos(omega), np.sin(omega)
@@ -197,7 +197,7 @@ def _rot9(omega, phi, kappa):
             sp, -cp * sw, cp * cw)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _opk9(m):
     """(omega, phi, kappa) of the nine elements of a rotation ``M = R3 R2 R1`` (row by
     row); at phi = +-90 degrees omega = 0 and kappa takes the rest (as
@@ -213,7 +213,7 @@ def _opk9(m):
     return np.arctan2(-m[7], m[8]), phi, np.arctan2(-m[3], m[0])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def turn(omega, phi, kappa, t0, t1, t2):
     """The angles of a photo turned by the rotation vector ``theta = (t0, t1, t2)`` (the
     adjustment's unknowns of a photo's attitude, in the object frame): ``M' = M R(-theta)``,
@@ -250,13 +250,13 @@ def turn(omega, phi, kappa, t0, t1, t2):
     return bw, bp, bk
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _near(a):
     """``a`` turned by a multiple of 2 pi into [-pi, pi)."""
     return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def turn_all(opk, theta, out):
     """:func:`turn` of rows of angles (n x 3) by rows of rotation vectors, into ``out``."""
     for i in range(opk.shape[0]):
@@ -301,7 +301,7 @@ def attitude_jacobians(opk):
     return j
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def rotation_matrix(omega, phi, kappa):
     """``M = R3(kappa) R2(phi) R1(omega)``, object to image."""
     r = _rot9(omega, phi, kappa)
@@ -312,7 +312,7 @@ def rotation_matrix(omega, phi, kappa):
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def rotation_and_derivatives(omega, phi, kappa):
     """``M`` and its derivatives with respect to omega, phi and kappa."""
     r1, r2, r3, d1, d2, d3 = _elementary(omega, phi, kappa)
@@ -324,7 +324,7 @@ def rotation_and_derivatives(omega, phi, kappa):
     return m, dm_w, dm_p, dm_k
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def project(eo, xyz, c):
     """Image coordinates (mm) of object point ``xyz`` seen from station ``eo`` with camera
     row ``c``."""
@@ -343,7 +343,7 @@ def project(eo, xyz, c):
     return c[1] + xi + dx, c[2] + yi + dy
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def linearize(eo, xyz, c, a, b):
     """Computed image coordinates and the partial derivatives of the collinearity equations.
 
@@ -449,7 +449,7 @@ CALIBRATION_POWERS = np.concatenate([np.array([0, 0, 0, 2, 4, 6, 1, 1, 0, 0], np
                                      np.zeros(MAX_TERMS, np.int64)])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def camera_partials(eo, xyz, c, e, ox, oy):
     """Partial derivatives of an observation's residual by the camera's border parameters.
 
@@ -525,7 +525,7 @@ def apply_calibration(c, dtheta):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _add_ray(eo, x, y, c, a, r):
     """Add the ray from station ``eo`` through image point (x, y) of camera row ``c`` to the
     normal system (the image point freed of distortion first); False (nothing added) when
@@ -548,7 +548,7 @@ def _add_ray(eo, x, y, c, a, r):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _solve_sym3(a, r, out):
     """Solve the 3x3 ray system by Cholesky; False when (nearly) singular (parallel rays).
 
@@ -580,7 +580,7 @@ def _solve_sym3(a, r, out):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def intersect(eo_rays, xy_rays, cam_rays):
     """Least-squares intersection of image rays: the point nearest to all of them.
 
@@ -600,7 +600,7 @@ def intersect(eo_rays, xy_rays, cam_rays):
     return out, True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def intersect_points(obs_start, n_obs, obs_station, obs_xy, eo, cam_of_station, cams, out,
                      ok):
     """Intersect every point from its rays (chunk kernel: indices relative to the chunk)."""
@@ -621,7 +621,7 @@ def intersect_points(obs_start, n_obs, obs_station, obs_xy, eo, cam_of_station, 
             out[j, k] = p[k] if good else 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def undistort_points(xy, cam_of_row, cams, out):
     """Ideal image coordinates (from the principal point) of the image points ``xy`` (n x 2)
     taken with cameras ``cams[cam_of_row]``, into ``out`` (nan where Newton fails)."""
@@ -631,7 +631,7 @@ def undistort_points(xy, cam_of_row, cams, out):
         out[i, 1] = yi if ok else np.nan
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def project_observations(station_of_obs, point_of_obs, eo, xyz, cam_of_station, cams, out):
     """Image coordinates of every (station, point) pair into ``out`` (n x 2, mm)."""
     for i in range(station_of_obs.shape[0]):

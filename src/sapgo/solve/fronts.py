@@ -53,7 +53,7 @@ from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_po
                        _point_system, _ray_terms, _solve3, _workspace)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                 pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                 ctrl_mask, front, upd, rhs, max_rays, npar, lam, behind_ok, cal, bord, cnn,
@@ -137,7 +137,7 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
     return OK, -1
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _schur_blocks(a, off, g, nbar, q, k, st_all, npar):
     """``a[s - off, t - off] -= G_q Nbar_t'`` for ray ``q``'s station (column) and the
     point's later rays' stations ``t`` (rows; a diagonal block in full, two rays of one

@@ -147,14 +147,33 @@ class _Fronts:
         return np.ascontiguousarray(np.where(obs_active, loc, -1))
 
 
+#: The top nodes' speed, factored one after the other with every thread in BLAS, against one
+#: worker's on its subtrees (flops a second): at 200 x 200 the top's 8.6 GFlop ran at 54-72
+#: GFlop/s, the workers' subtrees at about 49 GFlop/s a thread.
+TOP_SPEED = 1.2
+
+
+def _node_flops(tree, k):
+    """Each node's factorisation flops and a fixed cost (the plans' unit of work)."""
+    m = k * (tree.hi - tree.lo).astype(np.float64)
+    f = k * np.diff(tree.bptr).astype(np.float64)
+    return m ** 3 / 3 + m * m * f + m * f * f + 1e6
+
+
+def plan_flops(tree, k, per, top):
+    """The predicted length of a plan (:func:`parallel_plan`) in one worker's flops: the
+    busiest worker's subtrees, then the top nodes at :data:`TOP_SPEED`."""
+    fl = _node_flops(tree, k)
+    busiest = max(sum(float(fl[a:b].sum()) for a, b in ranges) for ranges in per)
+    return busiest + float(fl[np.asarray(top, np.int64)].sum()) / TOP_SPEED
+
+
 def parallel_plan(tree, k, workers, share=0.5):
     """Split the tree for ``workers`` threads: disjoint subtrees (as node ranges ``(first,
     last + 1)``) dealt to the workers largest first (by flops) and the *top* nodes above
     them, factored afterwards by all threads' BLAS. Subtrees are split until none holds more
     than ``share`` of a worker's share. Returns ``(per_worker, top)``."""
-    m = k * (tree.hi - tree.lo).astype(np.float64)
-    f = k * np.diff(tree.bptr).astype(np.float64)
-    sub = m ** 3 / 3 + m * m * f + m * f * f + 1e6   # (a node's fixed cost in flops)
+    sub = _node_flops(tree, k)
     size = np.ones(tree.n_nodes, np.int64)
     children = tree.children()
     for i in range(tree.n_nodes):
@@ -184,8 +203,9 @@ def parallel_plan(tree, k, workers, share=0.5):
 
 def work_plan(tree, k, opts, threads=None, held=0, n_stations=0, separate=False):
     """The plan of :func:`parallel_plan` for ``threads`` workers (default numba's thread
-    count) whose fronts fit the memory budget side by side (subtrees split smaller, the
-    large fronts near the root left to the top, until they do), else one worker, with the
+    count) whose fronts fit the memory budget side by side: of the subtree sizes tried
+    (``share``), the shortest predicted (:func:`plan_flops`) that fits (smaller subtrees
+    leave the large fronts near the root to the top), else one worker, with the
     large fronts tiled if they do not fit in core (:func:`tile_plan`). Returns
     ``(per_worker, top, bytes, tile)`` with the bytes of fronts and updates it holds at its
     peak (:meth:`~sapgo.solve.partition.Tree.peak_front_bytes`).
@@ -195,13 +215,18 @@ def work_plan(tree, k, opts, threads=None, held=0, n_stations=0, separate=False)
     (the least work left to the top, which the client does alone)."""
     budget = tree_budget(opts, held, n_stations)
     shares = (0.5, 0.25, 0.125, 0.0625)   # smaller subtrees, more nodes on top
-    for share in shares:
-        per, top = parallel_plan(tree, k, threads or _threads.parts(), share)
-        if len(per) < 2:
+    threads = threads or _threads.parts()
+    plans = [parallel_plan(tree, k, threads, share) for share in shares]
+    per, top = plans[-1]   # (the smallest subtrees: the one tiled below when none fits)
+    if not separate:   # (Dask: the top on the client alone; these shares in this order)
+        plans.append(parallel_plan(tree, k, threads, 1.0))
+        plans.sort(key=lambda plan: plan_flops(tree, k, *plan))   # (stable: ties by share)
+    for per_p, top_p in plans:
+        if len(per_p) < 2:
             break
-        need = tree.peak_front_bytes(k, (per, top), separate=separate)
+        need = tree.peak_front_bytes(k, (per_p, top_p), separate=separate)
         if need <= budget:
-            return per, top, need, None
+            return per_p, top_p, need, None
     if len(per) > 1:   # the workers' subtrees side by side with the large fronts tiled
         for share in shares if separate else ():
             per_s, top_s = parallel_plan(tree, k, threads, share)
