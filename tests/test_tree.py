@@ -191,6 +191,39 @@ def test_front_memory_model_is_what_the_solver_holds(tmp_path):
     assert tree.peak_front_bytes(k, parallel_plan(tree, k, 2)) >= peak
 
 
+def test_work_plan_takes_the_shortest_plan_that_fits():
+    """Of the subtree sizes tried, the plan of the smallest predicted length
+    (``plan_flops``: the busiest worker, then the top) among those whose fronts fit; on a
+    square grid's balanced tree that is one subtree a worker and the root alone on top. A
+    budget that only a smaller-fronted plan fits gets that plan (or one worker)."""
+    import sapgo
+    from sapgo.solve import tree as tree_mod
+
+    pos, edges = grid_graph(40, 40)
+    n = len(pos)
+    tree, _ = nested_dissection(pos, np.ones(n, bool), edges, leaf_stations=16)
+    k = 6
+    shares = (1.0, 0.5, 0.25, 0.125, 0.0625)
+    plans = [tree_mod.parallel_plan(tree, k, 2, s) for s in shares]
+    lengths = [tree_mod.plan_flops(tree, k, *pl) for pl in plans]
+    opts = sapgo.Options(memory="8G")
+    per, top, need, tile = tree_mod.work_plan(tree, k, opts, threads=2)
+    assert tile is None and len(per) == 2
+    assert tree_mod.plan_flops(tree, k, per, top) == min(lengths)
+    assert (per, top) == plans[int(np.argmin(lengths))]
+    # a brute-force check of plan_flops itself
+    fl = {i: (k * tree.own(i)) ** 3 / 3 + (k * tree.own(i)) ** 2 * k * len(tree.bnd(i))
+          + k * tree.own(i) * (k * len(tree.bnd(i))) ** 2 + 1e6 for i in range(tree.n_nodes)}
+    busiest = max(sum(fl[i] for a, b in w for i in range(a, b)) for w in per)
+    assert np.isclose(tree_mod.plan_flops(tree, k, per, top),
+                      busiest + sum(fl[i] for i in top) / tree_mod.TOP_SPEED)
+    # too small a budget for the chosen plan's fronts side by side: another one that fits
+    small = need - 1 + tree_mod.BASELINE + tree_mod.BASELINE_PER_STATION * 0
+    per2, top2, need2, tile2 = tree_mod.work_plan(
+        tree, k, sapgo.Options(memory=str(int(small))), threads=2)
+    assert need2 <= small - tree_mod.BASELINE and (per2, top2) != (per, top)
+
+
 def test_disconnected_block_is_a_forest(tmp_path):
     pos1, e1 = grid_graph(10, 3)
     n1 = len(pos1)
