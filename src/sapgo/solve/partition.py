@@ -104,12 +104,19 @@ class Tree:
                 d[i] = d[self.parent[i]] + 1
         return d
 
+    def node_flops(self, k=6):
+        """Each node's elimination flops, ``m^3/3 + m^2 f + m f^2`` (dpotrf, dtrsm, dsyrk)
+        for ``m`` own and ``f`` boundary unknowns, ``k`` parameters a station."""
+        m = k * (self.hi - self.lo).astype(np.float64)
+        f = k * np.diff(self.bptr).astype(np.float64)
+        return m ** 3 / 3 + m * m * f + m * f * f
+
     def figures(self, k=6):
         """Depth, leaves, largest front, factor bytes and flops for ``k`` parameters a
         station (the report's and the plan's tree figures)."""
         m = k * (self.hi - self.lo).astype(np.float64)
         f = k * np.diff(self.bptr).astype(np.float64)
-        flops = m ** 3 / 3 + m * m * f + m * f * f
+        flops = self.node_flops(k)
         doubles = m * (m + 1) / 2 + m * f
         front = (m + f)
         return {

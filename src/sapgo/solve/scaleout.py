@@ -238,7 +238,7 @@ def node_figures(tree, k):
     f = k * np.diff(tree.bptr).astype(np.float64)
     pts = (np.diff(tree.pt_start).astype(np.float64) if tree.pt_start is not None
            else np.zeros(tree.n_nodes))
-    return {"m": m, "f": f, "flops": m ** 3 / 3 + m * m * f + m * f * f,
+    return {"m": m, "f": f, "flops": tree.node_flops(k),
             "factor_bytes": 8 * (m * (m + 1) / 2 + m * f + m), "points": pts}
 
 

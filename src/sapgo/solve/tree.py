@@ -155,9 +155,7 @@ TOP_SPEED = 1.2
 
 def _node_flops(tree, k):
     """Each node's factorisation flops and a fixed cost (the plans' unit of work)."""
-    m = k * (tree.hi - tree.lo).astype(np.float64)
-    f = k * np.diff(tree.bptr).astype(np.float64)
-    return m ** 3 / 3 + m * m * f + m * f * f + 1e6
+    return tree.node_flops(k) + 1e6
 
 
 def plan_flops(tree, k, per, top):
