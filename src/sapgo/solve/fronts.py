@@ -232,6 +232,10 @@ class FactorFile:
         :meth:`write` without a copy. None when the factor is on file."""
         return self._cols(i) if self._buf is not None else None
 
+    def in_place(self, a):
+        """Whether ``a`` lies in the factor in core (:meth:`own`'s view of a record)."""
+        return self._buf is not None and np.may_share_memory(a, self._buf)
+
     def write(self, i, col, y1):
         """Node ``i``'s factor columns ``[L11; L21]`` ((m + f) x m, F order, e.g. the first
         columns of its front; the upper triangle of ``L11`` is not used) and ``y1`` (m, or
@@ -417,6 +421,7 @@ class TreeSolver:
         self.scratch = scratch
         self.pivot_tol = pivot_tol
         self.children = tree.children()
+        self.links = tree.links(npar)   # (None for a large tree: each node's worked out)
         self.n_border = n_border
         self.file = file if file is not None else FactorFile(
             factor_path, factor_layout(tree, npar), n_rhs=1 + n_border)
@@ -496,14 +501,19 @@ class TreeSolver:
         t, k = self.tree, self.k
         out = []
         if self.children[i]:
-            fr = t.front(i)
-            for c in self.children[i]:
+            if self.links is not None:
+                kids = self.links[i][1]
+            else:
+                fr = t.front(i)
+                kids = [(c, _scalar(np.searchsorted(fr, t.bnd(c)), k), None)
+                        for c in self.children[i] if c in self.updates]
+            for c, ix, cm in kids:
                 if c not in self.updates:  # a child not adjacent to its parent's front
                     continue
                 u, ub = self.updates.pop(c)
-                ix = _scalar(np.searchsorted(fr, t.bnd(c)), k)
                 b[ix] += ub
-                out.append((u, ix))
+                out.append((u, ix, int(np.searchsorted(ix, k * t.own(i))) if cm is None
+                            else cm))
         return out
 
     def _keep_update(self, i, upd, m, b):
@@ -523,8 +533,7 @@ class TreeSolver:
         t, k = self.tree, self.k
         m = k * t.own(i)
         own, upd = a
-        for u, ix in self._children_updates(i, b):
-            cm = int(np.searchsorted(ix, m))   # the child's columns in own / in upd
+        for u, ix, cm in self._children_updates(i, b):   # (cm: the child's columns in own)
             if isinstance(u, Panels):
                 for j in range(u.n_panels):
                     b0, b1 = int(u.b[j]), int(u.b[j + 1])
@@ -548,7 +557,10 @@ class TreeSolver:
         if fail:
             raise PivotError(int(t.lo[i]) + (fail - 1) // k, (fail - 1) % k)
         y1 = self._forward_done(i, b, m)
-        self.file.write(i, own, y1)
+        if self.file.in_place(own):   # (factored in its record already)
+            self.file.write_y(i, y1)
+        else:
+            self.file.write(i, own, y1)
         if f > 0 and t.parent[i] >= 0:
             self._keep_update(i, upd, m, b)
 
@@ -597,7 +609,7 @@ class TreeSolver:
                 w = c1 - c0
                 a = np.zeros((kf - c0, w), order="F")
                 assemble(c0, c1, a)
-                for u, ix in kids:
+                for u, ix, _ in kids:
                     ca, cb = (int(x) for x in np.searchsorted(ix, [c0, c1]))
                     if ca < cb:
                         if isinstance(u, Panels):
@@ -629,7 +641,7 @@ class TreeSolver:
                 upd.close()
             raise
         finally:
-            for u, _ in kids:
+            for u, _, _ in kids:
                 if isinstance(u, Panels):
                     u.close()
         y1 = self._forward_done(i, b, m)

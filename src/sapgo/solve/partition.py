@@ -43,6 +43,11 @@ from scipy.sparse.csgraph import connected_components
 #: A part of at most this many stations is a leaf.
 LEAF_STATIONS = 48
 
+#: Boundary stations (summed over the nodes) up to which :meth:`Tree.links` keeps each
+#: node's front and children's places from one factorisation to the next (about 64 bytes
+#: each: 45 MB at most; 100 x 100 photos: 20 000 of them).
+LINKS_MAX_BOUNDARY = 700_000
+
 #: Cuts tried around the median of a part's stations along its principal axis (fractions).
 CUT_FRACTIONS = (0.5, 0.45, 0.55, 0.4, 0.6)
 
@@ -195,6 +200,33 @@ class Tree:
             left += stack
             largest = max(largest, peak)
         return int(max(largest if separate else total, run(sorted(top), left)[0]))
+
+    def links(self, k=6):
+        """Per node, its front's stations and, for each child with a boundary, ``(child,
+        ix, cm)``: the scalar places ``ix`` of the child's boundary in the node's front
+        (``k`` unknowns a station) and how many of them fall in its own columns. Computed
+        once and kept with the tree for the factorisations that follow (one a step), when
+        the tree's boundaries are small enough (:data:`LINKS_MAX_BOUNDARY`); else None."""
+        got = self.__dict__.get("_links")
+        if got is not None and got[0] == k:
+            return got[1]
+        if len(self.boundary) > LINKS_MAX_BOUNDARY:
+            return None
+        fronts = [self.front(i) for i in range(self.n_nodes)]
+        kids = [[] for _ in range(self.n_nodes)]
+        for c, q in enumerate(self.parent):
+            if q >= 0 and self.bptr[c + 1] > self.bptr[c]:
+                places = np.searchsorted(fronts[q], self.bnd(c))
+                ix = (k * places[:, None] + np.arange(k)).ravel()
+                kids[q].append((c, ix, int(np.searchsorted(ix, k * self.own(q)))))
+        links = list(zip(fronts, kids))
+        self.__dict__["_links"] = (k, links)
+        return links
+
+    def __getstate__(self):   # (pickled for Dask's workers: without the links)
+        state = dict(self.__dict__)
+        state.pop("_links", None)
+        return state
 
     # -- storage in the project ------------------------------------------------------
     def to_arrays(self):

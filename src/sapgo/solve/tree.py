@@ -118,10 +118,11 @@ class _Fronts:
     def __init__(self, tree, blk, k):
         self.tree, self.blk, self.k = tree, blk, k
         self.loc = np.full(len(blk.station_ids), -1, np.int64)
+        self.links = tree.links(k)
 
     def enter(self, i):
         """Number the stations of node ``i``'s front by their place in it."""
-        fr = self.tree.front(i)
+        fr = self.tree.front(i) if self.links is None else self.links[i][0]
         self.loc[fr] = np.arange(len(fr))
         self.stations = fr
         self.eo = np.ascontiguousarray(self.blk.eo[fr])
