@@ -1963,6 +1963,10 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
         if work is None:
             work = Work(wpath, p, _work_band(blk), create=True, block=blk.npar,
                         n_border=blk.n_border, replay=blk.replay)
+        if blk.tree is not None:   # (the factor's pages mapped meanwhile, when in core)
+            from .solve.tree import start_arena
+
+            start_arena(work, blk, opts)
         try:
             if checkpoint is None:
                 run = {"run": uuid.uuid4().hex, "identity": ident}

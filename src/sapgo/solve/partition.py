@@ -623,23 +623,58 @@ def set_boundaries(tree, s, t):
     """Each node's boundary from the logical edges ``(s, t)``: the stations after its
     subtree adjacent to its own stations or in a child's boundary (bottom-up)."""
     n = max(int(tree.n_active), int(max(s.max(), t.max()) + 1) if len(s) else 0)
-    a = np.concatenate([s, t])
-    b = np.concatenate([t, s])
+    a = np.concatenate([s, t]).astype(np.int64)
+    b = np.concatenate([t, s]).astype(np.int64)
     order = np.argsort(a, kind="stable")
     a, b = a[order], b[order]
     ptr = np.searchsorted(a, np.arange(n + 1))
-    children = tree.children()
-    bnd = [None] * tree.n_nodes
-    for i in range(tree.n_nodes):
-        lo, hi = int(tree.lo[i]), int(tree.hi[i])
-        parts = [b[ptr[lo]:ptr[hi]]] + [bnd[c] for c in children[i]]
-        x = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
-        x = x[x >= hi]
-        bnd[i] = x
-        for c in children[i]:
-            bnd[c] = bnd[c]  # children keep theirs (already final)
-    tree.bptr = np.concatenate([[0], np.cumsum([len(x) for x in bnd])]).astype(np.int64)
-    tree.boundary = (np.concatenate(bnd).astype(np.int64) if bnd else np.zeros(0, np.int64))
+    par = np.asarray(tree.parent, np.int64)
+    kids = np.flatnonzero(par >= 0)
+    corder = kids[np.argsort(par[kids], kind="stable")]   # children by parent, in order
+    cptr = np.searchsorted(par[corder], np.arange(tree.n_nodes + 1))
+    tree.bptr, tree.boundary = _boundaries(np.asarray(tree.lo, np.int64),
+                                           np.asarray(tree.hi, np.int64), ptr, b, cptr,
+                                           corder, n)
+
+
+@njit(cache=True)
+def _boundaries(lo, hi, ptr, b, cptr, corder, n):
+    """:func:`set_boundaries`' sweep: nodes in post-order, each node's boundary the
+    distinct stations ``>= hi`` among its own stations' neighbours (``b[ptr[s]:ptr[s+1]]``)
+    and its children's boundaries (``corder[cptr[i]:cptr[i+1]]``), ascending."""
+    nn = lo.shape[0]
+    mark = np.full(n, -1, np.int64)
+    bptr = np.zeros(nn + 1, np.int64)
+    out = np.empty(max(16, 2 * b.shape[0]), np.int64)
+    m = 0
+    for i in range(nn):
+        start = m
+        h = hi[i]
+        for e in range(ptr[lo[i]], ptr[h]):
+            y = b[e]
+            if y >= h and mark[y] != i:
+                mark[y] = i
+                if m == out.shape[0]:
+                    grown = np.empty(2 * m, np.int64)
+                    grown[:m] = out[:m]
+                    out = grown
+                out[m] = y
+                m += 1
+        for q in range(cptr[i], cptr[i + 1]):
+            c = corder[q]
+            for e in range(bptr[c], bptr[c + 1]):
+                y = out[e]
+                if y >= h and mark[y] != i:
+                    mark[y] = i
+                    if m == out.shape[0]:
+                        grown = np.empty(2 * m, np.int64)
+                        grown[:m] = out[:m]
+                        out = grown
+                    out[m] = y
+                    m += 1
+        out[start:m] = np.sort(out[start:m])
+        bptr[i + 1] = m
+    return bptr, out[:m].copy()
 
 
 def check_separators(tree, s, t):
