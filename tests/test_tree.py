@@ -315,6 +315,56 @@ def test_konig_cover_is_a_minimum_vertex_cover():
         assert len(cover) == matching
 
 
+def test_boundaries_sweep_against_the_definition():
+    """:func:`set_boundaries`' numba sweep against the definition node by node: a node's
+    boundary is the distinct stations after its own among its own stations' neighbours and
+    its children's boundaries; both methods' trees of grids and of random graphs, and the
+    tree links (each child's boundary places in its parent's front)."""
+    from sapgo.solve.partition import set_boundaries
+
+    def by_definition(tree, s, t):
+        nbr = {}
+        for a, b in zip(s.tolist(), t.tolist()):
+            nbr.setdefault(a, set()).add(b)
+            nbr.setdefault(b, set()).add(a)
+        children = tree.children()
+        bnd = []
+        for i in range(tree.n_nodes):
+            lo, hi = int(tree.lo[i]), int(tree.hi[i])
+            x = set()
+            for st in range(lo, hi):
+                x |= nbr.get(st, set())
+            for c in children[i]:
+                x |= set(bnd[c].tolist())
+            bnd.append(np.array(sorted(y for y in x if y >= hi), np.int64))
+        return bnd
+
+    rng = np.random.default_rng(3)
+    cases = [grid_graph(12, 9), grid_graph(30, 3)]
+    for n in (40, 90):
+        e = rng.integers(0, n, size=(2, 3 * n))
+        e = e[:, e[0] != e[1]]
+        cases.append((rng.normal(size=(n, 3)), (e.min(axis=0), e.max(axis=0))))
+    for pos, edges in cases:
+        n = len(pos)
+        for tree, perm in (nested_dissection(pos, np.ones(n, bool), edges, leaf_stations=6),
+                           supernodal_tree(np.ones(n, bool), edges)):
+            where = np.empty(n, np.int64)
+            where[perm] = np.arange(n)
+            s, t = where[edges[0]], where[edges[1]]
+            set_boundaries(tree, s, t)
+            want = by_definition(tree, s, t)
+            for i in range(tree.n_nodes):
+                assert np.array_equal(tree.bnd(i), want[i])
+            for i, (front, kids) in enumerate(tree.links(6)):
+                assert np.array_equal(front, tree.front(i))
+                for c, ix, cm in kids:
+                    places = np.searchsorted(front, tree.bnd(c))
+                    assert np.array_equal(front[places], tree.bnd(c))
+                    assert np.array_equal(ix, (6 * places[:, None] + np.arange(6)).ravel())
+                    assert cm == int((ix < 6 * tree.own(i)).sum())
+
+
 @pytest.mark.parametrize("shape", [(15, 12), (60, 4)])
 def test_metis_supernodal_tree_solves_exactly(tmp_path, shape):
     from sapgo.solve.partition import supernodal_tree

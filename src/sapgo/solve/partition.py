@@ -632,6 +632,7 @@ def set_boundaries(tree, s, t):
     kids = np.flatnonzero(par >= 0)
     corder = kids[np.argsort(par[kids], kind="stable")]   # children by parent, in order
     cptr = np.searchsorted(par[corder], np.arange(tree.n_nodes + 1))
+    tree.__dict__.pop("_links", None)   # (places worked out for the old boundaries)
     tree.bptr, tree.boundary = _boundaries(np.asarray(tree.lo, np.int64),
                                            np.asarray(tree.hi, np.int64), ptr, b, cptr,
                                            corder, n)
