@@ -299,3 +299,30 @@ def test_the_fold_kernel_finds_the_first_fold_the_plain_loop_finds():
             assert _fold_at(xs, ys, row, backward) == want
             found += want >= 0
     assert 0 < found < 12
+
+
+def test_in_angles_kernel_against_the_matrix_products():
+    """sapgo.quality.in_angles (one numba kernel) against ``T Q T'`` with numpy's products
+    and :func:`attitude_jacobians`, for 6 and 9 parameters a station, with fixed parameters'
+    rows and columns zeroed."""
+    from sapgo.geometry import attitude_jacobians
+    from sapgo.quality import in_angles
+
+    rng = np.random.default_rng(11)
+    for k in (6, 9):
+        n = 40
+        a = rng.normal(size=(n, k, k))
+        q = a @ np.transpose(a, (0, 2, 1))
+        eo = np.column_stack([rng.uniform(-1.2, 1.2, (n, 3)), rng.normal(size=(n, 3))])
+        fixed = rng.integers(0, 64, n) * (rng.random(n) < 0.3)
+        t = np.zeros((n, k, k))
+        t[:, :3, :3] = attitude_jacobians(eo[:, :3])
+        t[:, 3:, 3:] = np.eye(k - 3)
+        want = t @ q @ np.transpose(t, (0, 2, 1))
+        held = ((fixed[:, None] >> np.arange(6)) & 1) == 1
+        keep = np.ones((n, k))
+        keep[:, :6][held] = 0.0
+        want *= keep[:, :, None] * keep[:, None, :]
+        got = in_angles(q, eo, fixed)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+        assert (got[held.nonzero()[0], held.nonzero()[1], :] == 0).all()

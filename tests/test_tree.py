@@ -365,6 +365,54 @@ def test_boundaries_sweep_against_the_definition():
                     assert cm == int((ix < 6 * tree.own(i)).sum())
 
 
+def test_amalgamation_kernel_against_the_loop_in_words():
+    """The relaxed amalgamation (numba) against its statement in plain Python: each
+    supernode that is its parent's last child joins it when some (stations, zeros) rule
+    allows, its children passing to the node it joined."""
+    from sapgo.solve.partition import RELAX, _amalgamate
+
+    def in_words(lo, hi, sp, bnd, csum, relax):
+        lo, sp = lo.copy(), sp.copy()
+        zeros = np.zeros(len(lo))
+        alive = np.ones(len(lo), bool)
+        for a in range(len(lo)):
+            q = sp[a]
+            if q < 0 or hi[a] != lo[q]:
+                continue
+            cols = hi[q] - lo[a]
+            span = np.arange(lo[a], hi[a])
+            z = float((hi[q] - span + bnd[q]).sum() - (csum[hi[a]] - csum[lo[a]]))
+            total = zeros[a] + zeros[q] + z
+            entries = cols * (cols + 1) / 2 + cols * bnd[q]
+            if any(cols <= nr and total <= zr * entries for nr, zr in relax):
+                lo[q] = lo[a]
+                zeros[q] = total
+                alive[a] = False
+                sp[sp == a] = q
+        return lo, sp, alive
+
+    rng = np.random.default_rng(9)
+    for trial in range(40):
+        m = int(rng.integers(2, 60))
+        sizes = rng.integers(1, 6, m)
+        hi = np.cumsum(sizes)
+        lo = hi - sizes
+        sp = np.array([int(rng.integers(a + 1, m)) if a < m - 1 and rng.random() < 0.9
+                       else -1 for a in range(m)], np.int64)
+        bnd = rng.integers(0, 30, m)
+        cnt = rng.integers(1, 40, int(hi[-1]))
+        csum = np.concatenate([[0], np.cumsum(cnt)])
+        for relax in (RELAX, ((4, 0.3),)):
+            want = in_words(lo, hi, sp, bnd, csum, relax)
+            got_lo, got_sp = lo.copy(), sp.copy()
+            alive = _amalgamate(got_lo, hi, got_sp, bnd, csum,
+                                np.array([r[0] for r in relax]),
+                                np.array([r[1] for r in relax], float))
+            assert np.array_equal(alive, want[2])
+            assert np.array_equal(got_lo[alive], want[0][alive])
+            assert np.array_equal(got_sp[alive], want[1][alive])
+
+
 @pytest.mark.parametrize("shape", [(15, 12), (60, 4)])
 def test_metis_supernodal_tree_solves_exactly(tmp_path, shape):
     from sapgo.solve.partition import supernodal_tree

@@ -137,7 +137,11 @@ class StripComparison:
             r, _ = self.frame._frame_rotation()
             rot = self.frame._station_rotations(pos[:m]) @ r.T
             diff[:m] = np.einsum("nij,nj->ni", rot, diff[:m])
-        key, inv = np.unique(pair[:m], axis=0, return_inverse=True)
+        # the pairs of strips as one key each (np.unique by rows sorts them as records,
+        # ten times slower than a sort of integers)
+        base = int(pair[:m].max()) + 1
+        code, inv = np.unique(pair[:m, 0] * base + pair[:m, 1], return_inverse=True)
+        key = np.column_stack([code // base, code % base])
         n = np.bincount(inv.ravel(), minlength=len(key))
         sq = np.zeros((len(key), 3))
         np.add.at(sq, inv.ravel(), diff[:m] ** 2)
@@ -180,8 +184,11 @@ def _distinct_upper(chunk, st_strip):
         return np.zeros(n, np.int64)
     point = np.repeat(np.arange(n), chunk.nobs)
     ok = st_strip >= 0
-    pairs = np.unique(np.stack([point[ok], st_strip[ok]], axis=1), axis=0)
-    return np.bincount(pairs[:, 0], minlength=n) if len(pairs) else np.zeros(n, np.int64)
+    if not ok.any():
+        return np.zeros(n, np.int64)
+    base = int(st_strip.max()) + 1   # (point, strip) as one key: a sort of integers
+    pairs = np.unique(point[ok] * base + st_strip[ok])
+    return np.bincount(pairs // base, minlength=n)
 
 
 def format_strip_comparison(sc):

@@ -576,24 +576,11 @@ def supernodal_tree(active, edges, k=6, relax=RELAX):
     sp = np.where(par[c1 - 1] >= 0, sn_of[np.maximum(par[c1 - 1], 0)], -1)
     bnd = cnt[c0] - (c1 - c0)               # boundary stations of each supernode
     csum = np.concatenate([[0], np.cumsum(cnt)])
-    zeros = np.zeros(m)
-    alive = np.ones(m, bool)
-    lo, hi = c0.copy(), c1.copy()
-    for a in range(m):                       # children before parents
-        q = sp[a]
-        if q < 0 or hi[a] != lo[q]:
-            continue                         # not the last child: its stations are not adjacent
-        cols = hi[q] - lo[a]
-        # the child's columns take the parent's structure: the zeros that brings
-        span = np.arange(lo[a], hi[a])
-        z = float((hi[q] - span + bnd[q]).sum() - (csum[hi[a]] - csum[lo[a]]))
-        total_z = zeros[a] + zeros[q] + z
-        entries = cols * (cols + 1) / 2 + cols * bnd[q]
-        if any(cols <= nr and total_z <= zr * entries for nr, zr in relax):
-            lo[q] = lo[a]
-            zeros[q] = total_z
-            alive[a] = False
-            sp[sp == a] = q   # (children of a: now children of q)
+    lo, hi = c0.astype(np.int64), c1.astype(np.int64)
+    sp = sp.astype(np.int64)
+    alive = _amalgamate(lo, hi, sp, bnd.astype(np.int64), csum.astype(np.int64),
+                        np.array([nr for nr, _ in relax], np.int64),
+                        np.array([zr for _, zr in relax], np.float64))
     live = np.flatnonzero(alive)
     new_id = np.full(m, -1, np.int64)
     new_id[live] = np.arange(len(live))
@@ -617,6 +604,46 @@ def supernodal_tree(active, edges, k=6, relax=RELAX):
     pos[full] = np.arange(n_st)
     set_boundaries(tree, pos[s], pos[t])
     return tree, full
+
+
+@njit(cache=True)
+def _amalgamate(lo, hi, sp, bnd, csum, nrelax, zrelax):
+    """:func:`supernodal_tree`'s relaxed amalgamation, children before parents: a supernode
+    ``a`` that is its parent's last child (their stations adjacent) joins it when together
+    they have at most ``nrelax[r]`` own stations and the explicit zeros (the child's columns
+    taking the parent's structure, counted from the column counts' sums ``csum``) are at
+    most ``zrelax[r]`` of the merged front's entries, for some ``r``. Updates ``lo`` and
+    ``sp`` (parents: a merged node's children go to the node it joined) in place; returns
+    which supernodes remain."""
+    m = lo.shape[0]
+    zeros = np.zeros(m)
+    alive = np.ones(m, np.bool_)
+    into = np.full(m, -1, np.int64)
+    for a in range(m):
+        q = sp[a]
+        if q < 0 or hi[a] != lo[q]:
+            continue                         # not the last child: its stations are not adjacent
+        cols = hi[q] - lo[a]
+        # the child's columns take the parent's structure: the zeros that brings
+        z = 0.0
+        for col in range(lo[a], hi[a]):
+            z += hi[q] - col + bnd[q]
+        z -= csum[hi[a]] - csum[lo[a]]
+        total_z = zeros[a] + zeros[q] + z
+        entries = cols * (cols + 1) / 2 + cols * bnd[q]
+        for r in range(nrelax.shape[0]):
+            if cols <= nrelax[r] and total_z <= zrelax[r] * entries:
+                lo[q] = lo[a]
+                zeros[q] = total_z
+                alive[a] = False
+                into[a] = q
+                break
+    for c in range(m):   # the children of merged supernodes: of the supernode they joined
+        q = sp[c]
+        while q >= 0 and not alive[q]:
+            q = into[q]
+        sp[c] = q
+    return alive
 
 
 def set_boundaries(tree, s, t):
