@@ -10,7 +10,11 @@ Blocks: ``sapgo generate --strips S --photos-per-strip P`` (9-point pattern, 60/
 one *fixed* control point per 25 photos, all other points check points (unknown to both
 tools). Every run is a process of its own (peak RSS: its ``ru_maxrss`` from ``wait4``,
 started from a bare interpreter as in scale.py), on a fresh copy of the unordered generated
-file; the rounds are interleaved (tree, COLMAP best, COLMAP default,
+file; before its timed run each process adjusts a small block (12 x 12 photos) with the
+same tool and configuration, untimed but recorded (``warmup_s``), as colmap.py does: numba
+loads sapgo's cached kernels at their first call (0.3-0.6 s a process, most of it LLVM's
+start-up), pycolmap its library at import, before COLMAP's timer, and both have first-call
+costs; the rounds are interleaved (tree, COLMAP best, COLMAP default,
 band, CHOLMOD, then again), and each run records the machine's load average and the CPU time
 other processes took meanwhile. Reported: medians over the rounds and the spread (min, max).
 

@@ -666,6 +666,17 @@ def set_boundaries(tree, s, t):
 
 
 @njit(cache=True)
+def _append(out, m, y):
+    """``out[m] = y``, ``out`` doubled first when full; returns ``out``."""
+    if m == out.shape[0]:
+        grown = np.empty(2 * m, out.dtype)
+        grown[:m] = out[:m]
+        out = grown
+    out[m] = y
+    return out
+
+
+@njit(cache=True)
 def _boundaries(lo, hi, ptr, b, cptr, corder, n):
     """:func:`set_boundaries`' sweep: nodes in post-order, each node's boundary the
     distinct stations ``>= hi`` among its own stations' neighbours (``b[ptr[s]:ptr[s+1]]``)
@@ -682,11 +693,7 @@ def _boundaries(lo, hi, ptr, b, cptr, corder, n):
             y = b[e]
             if y >= h and mark[y] != i:
                 mark[y] = i
-                if m == out.shape[0]:
-                    grown = np.empty(2 * m, np.int64)
-                    grown[:m] = out[:m]
-                    out = grown
-                out[m] = y
+                out = _append(out, m, y)
                 m += 1
         for q in range(cptr[i], cptr[i + 1]):
             c = corder[q]
@@ -694,11 +701,7 @@ def _boundaries(lo, hi, ptr, b, cptr, corder, n):
                 y = out[e]
                 if y >= h and mark[y] != i:
                     mark[y] = i
-                    if m == out.shape[0]:
-                        grown = np.empty(2 * m, np.int64)
-                        grown[:m] = out[:m]
-                        out = grown
-                    out[m] = y
+                    out = _append(out, m, y)
                     m += 1
         out[start:m] = np.sort(out[start:m])
         bptr[i + 1] = m
