@@ -162,6 +162,27 @@ def test_tree_solve_equals_dense(tmp_path, method, shape, tile, where):
     sol.close()
 
 
+@pytest.mark.parametrize("method", ["geometric", "graph"])
+def test_tree_solve_without_the_links_equals_dense(tmp_path, monkeypatch, method):
+    """A tree too large to keep its links (each node's places worked out node by node)
+    solves as the dense reference."""
+    from sapgo.solve import partition
+
+    monkeypatch.setattr(partition, "LINKS_MAX_BOUNDARY", 0)
+    pos, edges = grid_graph(12, 9)
+    n = len(pos)
+    active = np.ones(n, bool)
+    tree, perm = (nested_dissection(pos, active, edges, leaf_stations=6) if method == "geometric"
+                  else supernodal_tree(active, edges, relax=((6, 1.0),)))
+    assert tree.links(6) is None
+    m = spd_on_graph(n, edges, 6, 1)
+    rhs = np.random.default_rng(2).normal(size=6 * n)
+    sol, ml, bl, x = _solve_tree(tree, perm, m, rhs, 6, tmp_path, None, "core")
+    assert sol.links is None
+    np.testing.assert_allclose(x, np.linalg.solve(ml, bl), rtol=1e-9, atol=1e-12)
+    sol.close()
+
+
 def test_front_memory_model_is_what_the_solver_holds(tmp_path):
     """The fronts' peak of ``Tree.peak_front_bytes`` is, to the byte, the most the solver
     holds at once (the front being built, its own columns and its update block, plus the

@@ -98,6 +98,24 @@ def test_tree_equals_band_on_a_square_block(square, tmp_path):
     assert d["solver"] == "tree" and d["tree"]["leaves"] >= 2
 
 
+def test_the_factor_buffer_made_at_the_start_serves_every_step(square, tmp_path,
+                                                               monkeypatch):
+    """The in-core factor's buffer is made once, beside the run's start (start_arena), and
+    every factorisation and the precision pass use it: no other is mapped."""
+    from sapgo.solve import fronts
+    from sapgo.solve import tree as tree_mod
+
+    steps, made = [], []
+    real_step, real_map = tree_mod.tree_step, fronts._anonymous
+    monkeypatch.setattr(tree_mod, "tree_step",
+                        lambda *a, **k: steps.append(1) or real_step(*a, **k))
+    monkeypatch.setattr(fronts, "_anonymous", lambda n: made.append(len(steps)) or real_map(n))
+    _, tree = ordered_pair(square, tmp_path)
+    s = sapgo.adjust(tree, TIGHT)
+    assert s.solver == "tree" and s.iterations >= 2 and s.converged
+    assert made == [0]   # one buffer, asked for before the first factorisation
+
+
 def test_tree_equals_the_dense_least_squares(square, tmp_path):
     eo_ref, xyz_ref, sigma0_ref, _ = dense_reference(square)   # (records in id order)
     path = tmp_path / "t.h5"

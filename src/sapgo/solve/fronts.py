@@ -503,17 +503,19 @@ class TreeSolver:
         if self.children[i]:
             if self.links is not None:
                 kids = self.links[i][1]
-            else:
+            else:   # (a large tree: worked out node by node)
                 fr = t.front(i)
-                kids = [(c, _scalar(np.searchsorted(fr, t.bnd(c)), k), None)
-                        for c in self.children[i] if c in self.updates]
+                kids = []
+                for c in self.children[i]:
+                    if c in self.updates:
+                        ix = _scalar(np.searchsorted(fr, t.bnd(c)), k)
+                        kids.append((c, ix, int(np.searchsorted(ix, k * t.own(i)))))
             for c, ix, cm in kids:
                 if c not in self.updates:  # a child not adjacent to its parent's front
                     continue
                 u, ub = self.updates.pop(c)
                 b[ix] += ub
-                out.append((u, ix, int(np.searchsorted(ix, k * t.own(i))) if cm is None
-                            else cm))
+                out.append((u, ix, cm))
         return out
 
     def _keep_update(self, i, upd, m, b):

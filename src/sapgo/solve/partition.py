@@ -44,9 +44,11 @@ from scipy.sparse.csgraph import connected_components
 LEAF_STATIONS = 48
 
 #: Boundary stations (summed over the nodes) up to which :meth:`Tree.links` keeps each
-#: node's front and children's places from one factorisation to the next (about 64 bytes
-#: each: 45 MB at most; 100 x 100 photos: 20 000 of them).
-LINKS_MAX_BOUNDARY = 700_000
+#: node's front and children's places from one factorisation to the next (about 60 bytes
+#: each, outside the memory budget: 13 MB at most). 100 x 100 photos have 24 000 of them
+#: and 200 x 200 109 000, where the per-node work matters; 500 x 500 655 000, where the
+#: fronts' flops dwarf it and the memory is better left to them.
+LINKS_MAX_BOUNDARY = 200_000
 
 #: Cuts tried around the median of a part's stations along its principal axis (fractions).
 CUT_FRACTIONS = (0.5, 0.45, 0.55, 0.4, 0.6)
@@ -684,7 +686,7 @@ def _boundaries(lo, hi, ptr, b, cptr, corder, n):
     nn = lo.shape[0]
     mark = np.full(n, -1, np.int64)
     bptr = np.zeros(nn + 1, np.int64)
-    out = np.empty(max(16, 2 * b.shape[0]), np.int64)
+    out = np.empty(max(16, b.shape[0] // 2), np.int64)   # (doubled when full)
     m = 0
     for i in range(nn):
         start = m
