@@ -183,6 +183,47 @@ def test_tree_solve_without_the_links_equals_dense(tmp_path, monkeypatch, method
     sol.close()
 
 
+@pytest.mark.parametrize("where", ["file", "core"])
+def test_many_children_and_damping_equal_dense(tmp_path, where):
+    """A hub station joined to five separate chains: METIS' tree gives the hub's node five
+    children (the one-call elimination takes two, the others are added before it); with
+    damping on every node's own diagonal, the solve and y'y equal dense numpy's of the
+    damped matrix."""
+    from sapgo.solve.fronts import FactorFile, factor_layout
+
+    arms, length = 5, 4
+    s, t = [], []
+    for a in range(arms):
+        first = 1 + a * length
+        s += [0] + list(range(first, first + length - 1))
+        t += [first] + list(range(first + 1, first + length))
+    edges = (np.array(s), np.array(t))
+    n = 1 + arms * length
+    active = np.ones(n, bool)
+    tree, perm = supernodal_tree(active, edges, relax=((1, 0.0),))
+    assert max(len(c) for c in tree.children()) >= 3
+    k = 6
+    m = spd_on_graph(n, edges, k, 3)
+    rhs = np.random.default_rng(4).normal(size=k * n)
+    sc = (k * perm[:, None] + np.arange(k)).ravel()
+    ml, bl = m[np.ix_(sc, sc)], rhs[sc]
+    damping = np.random.default_rng(5).uniform(0.5, 2.0, k * n)
+    file = (FactorFile(None, factor_layout(tree, k)) if where == "core" else None)
+    sol = TreeSolver(tree, k, tmp_path / "factor.bin", file=file)
+    for i in range(tree.n_nodes):
+        fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
+        own = k * tree.own(i)
+        a, b = sol.open(i)
+        b[:own] = bl[fs[:own]]
+        a[0][:] = np.tril(ml[np.ix_(fs, fs[:own])])
+        sol.eliminate(i, a, b, damping[fs[:own]])
+    x = sol.solve(n).ravel()
+    md = ml + np.diag(damping)
+    np.testing.assert_allclose(x, np.linalg.solve(md, bl), rtol=1e-9, atol=1e-12)
+    assert sol.y_norm2 == pytest.approx(bl @ np.linalg.solve(md, bl), rel=1e-10)
+    sol.close()
+
+
 def test_front_memory_model_is_what_the_solver_holds(tmp_path):
     """The fronts' peak of ``Tree.peak_front_bytes`` is, to the byte, the most the solver
     holds at once (the front being built, its own columns and its update block, plus the

@@ -178,6 +178,8 @@ class FactorFile:
         self.offset = np.zeros(len(size), np.int64)
         self.offset[1:] = np.cumsum(size)[:-1]
         self.nbytes = int(size.sum())
+        self._at = [(o // 8, m, f) for o, (m, f) in zip(self.offset.tolist(),
+                                                        self.shape.tolist())]
         self._buf = None
         self._fd = None
         self.arena = None
@@ -216,15 +218,19 @@ class FactorFile:
         return self._buf is not None
 
     def _cols(self, i):
-        m, f = (int(x) for x in self.shape[i])
-        o = int(self.offset[i]) // 8
+        o, m, f = self._at[i]
         return self._buf[o:o + (m + f) * m].reshape((m + f, m), order="F")
 
     def _y(self, i):
-        m, f = (int(x) for x in self.shape[i])
-        o = int(self.offset[i]) // 8 + (m + f) * m
-        y = self._buf[o:o + m * self.n_rhs]
-        return y if self.n_rhs == 1 else y.reshape((m, self.n_rhs), order="F")
+        y = self.y_slot(i)
+        return y if self.n_rhs == 1 else y.reshape((len(y) // self.n_rhs, self.n_rhs),
+                                                   order="F")
+
+    def y_slot(self, i):
+        """In core, the place of node ``i``'s ``y1`` (flat, m x n_rhs in F order)."""
+        o, m, f = self._at[i]
+        o += (m + f) * m
+        return self._buf[o:o + m * self.n_rhs]
 
     def own(self, i):
         """In core, the place of node ``i``'s factor columns ((m + f) x m, F order, not
@@ -421,6 +427,7 @@ class TreeSolver:
         self.scratch = scratch
         self.pivot_tol = pivot_tol
         self.children = tree.children()
+        self._mf = factor_layout(tree, npar).tolist()   # (each node's m, f)
         self.links = tree.links(npar)   # (None for a large tree: each node's worked out)
         self.n_border = n_border
         self.file = file if file is not None else FactorFile(
@@ -469,17 +476,14 @@ class TreeSolver:
         ``[A11; A21]`` (kf x m) and its update block ``A22`` (f x f), both F order and
         zeroed on their block lower triangles (None when ``tiled``: its panels come one at
         a time, :meth:`eliminate_tiled`), and the right-hand side(s)."""
-        t, k = self.tree, self.k
-        m = k * t.own(i)
-        f = k * len(t.bnd(i))
+        m, f = self._mf[i]
         a = None
         if not tiled:   # (numpy's allocation: huge pages where large)
             own = self.file.own(i)
             if own is None:
                 own = np.empty((m + f, m), order="F")
             upd = np.empty((f, f), order="F")
-            _zero_block_lower(own, k)
-            _zero_block_lower(upd, k)
+            _zero_front(own, upd, self.k)
             a = (own, upd)
         return a, (np.zeros(m + f) if not self.n_border else
                    np.zeros((m + f, 1 + self.n_border), order="F"))
@@ -494,10 +498,10 @@ class TreeSolver:
         """Whether an f x f update or inverse's part goes to a scratch file."""
         return self.tile is not None and 8 * f * f > self.panel_bytes
 
-    def _children_updates(self, i, b):
-        """The children's updates for node ``i`` as ``(u, ix)`` (``u`` in core or
-        :class:`~sapgo.solve.tiles.Panels`, ``ix`` its places in the front), their
-        right-hand sides added into ``b``."""
+    def _children_updates(self, i):
+        """The children's updates for node ``i`` as ``(u, ub, ix, cm)``: ``u`` in core or
+        :class:`~sapgo.solve.tiles.Panels`, ``ub`` its right-hand side(s), ``ix`` its
+        places in the front, ``cm`` how many of them fall in the own columns."""
         t, k = self.tree, self.k
         out = []
         if self.children[i]:
@@ -514,29 +518,33 @@ class TreeSolver:
                 if c not in self.updates:  # a child not adjacent to its parent's front
                     continue
                 u, ub = self.updates.pop(c)
-                b[ix] += ub
-                out.append((u, ix, cm))
+                out.append((u, ub, ix, cm))
         return out
 
     def _keep_update(self, i, upd, m, b):
         """Keep node ``i``'s update ``upd`` for its parent: in core, or in a scratch file
-        when larger than a panel."""
+        when larger than a panel; with its right-hand side(s) ``b[m:]`` (a view of the
+        node's own ``b`` with one right-hand side)."""
         f = upd.shape[0]
         if self._big(f):
             upd = write_dense_panels(upd, update_bounds(m, f, self.k, self.panel_bytes),
                                      self.scratch)
-        self.updates[i] = (upd, b[m:].copy(order="F"))
+        self.updates[i] = (upd, b[m:] if b.ndim == 1 else b[m:].copy(order="F"))
 
     def eliminate(self, i, a, b, damping=None):
         """Extend-add the children's updates into front ``a = (own, upd)`` (:meth:`open`)
         and ``b``, add ``damping`` (own scalar unknowns) to the own diagonal, factor the
         own columns (they are the factor's record, kept as they are) and keep the update
-        block for the parent."""
-        t, k = self.tree, self.k
-        m = k * t.own(i)
+        block for the parent: in one kernel call (:func:`_eliminate_front`) for up to two
+        children in core, the others' added first."""
+        t = self.tree
         own, upd = a
-        for u, ix, cm in self._children_updates(i, b):   # (cm: the child's columns in own)
+        m, f = own.shape[1], upd.shape[0]
+        nr = 1 + self.n_border
+        quick = []
+        for u, ub, ix, cm in self._children_updates(i):
             if isinstance(u, Panels):
+                b[ix] += ub
                 for j in range(u.n_panels):
                     b0, b1 = int(u.b[j]), int(u.b[j + 1])
                     s = u.panel(j)
@@ -545,23 +553,27 @@ class TreeSolver:
                     if b1 > cm:
                         extend_add(upd, m, s, b0, ix, max(b0, cm), b1)
                 u.close()
-            else:
+            elif len(quick) == 2:   # (a third child in core: more than bisection gives)
+                b[ix] += ub
                 extend_add(own, 0, u, 0, ix, 0, cm)
                 extend_add(upd, m, u, 0, ix, cm, len(ix))
-        if damping is not None:
-            idx = np.arange(m)
-            own[idx, idx] += damping
-        nr = 1 + self.n_border
-        f = upd.shape[0]
-        fail = _factor_front(FNS, own.reshape(-1, order="F"), m + f, m,
-                             upd.reshape(-1, order="F"), b.reshape(-1, order="F"), nr,
-                             self.pivot_tol)
+            else:
+                quick.append((u, ub.reshape(-1, order="F"), ix, cm))
+        while len(quick) < 2:
+            quick.append((_NO_UPDATE, _NO_X, _NO_IX, 0))
+        in_place = self.file.in_place(own)   # (factored in its record already)
+        y = self.file.y_slot(i) if in_place else np.empty(m * nr)
+        fail, yy = _eliminate_front(
+            FNS, own, upd if f else _NO_UPDATE, f, b.reshape(-1, order="F"), nr,
+            self.pivot_tol, _NO_X if damping is None else damping, *quick[0], *quick[1], y)
         if fail:
-            raise PivotError(int(t.lo[i]) + (fail - 1) // k, (fail - 1) % k)
-        y1 = self._forward_done(i, b, m)
-        if self.file.in_place(own):   # (factored in its record already)
-            self.file.write_y(i, y1)
+            raise PivotError(int(t.lo[i]) + (fail - 1) // self.k, (fail - 1) % self.k)
+        y1 = y if nr == 1 else y.reshape((m, nr), order="F")
+        if nr == 1:
+            self.yy[i] = yy
         else:
+            self.note_y(i, y1)
+        if not in_place:
             self.file.write(i, own, y1)
         if f > 0 and t.parent[i] >= 0:
             self._keep_update(i, upd, m, b)
@@ -598,7 +610,9 @@ class TreeSolver:
         kf = k * (t.own(i) + len(t.bnd(i)))
         bounds = self.bounds(i)
         n_own = int(np.searchsorted(bounds, m))
-        kids = self._children_updates(i, b)
+        kids = self._children_updates(i)
+        for _, ub, ix, _ in kids:
+            b[ix] += ub
         nr = 1 + self.n_border
         b2 = b if b.ndim == 2 else b[:, None]
         bflat = b2.reshape(-1, order="F")
@@ -611,7 +625,7 @@ class TreeSolver:
                 w = c1 - c0
                 a = np.zeros((kf - c0, w), order="F")
                 assemble(c0, c1, a)
-                for u, ix, _ in kids:
+                for u, _, ix, _ in kids:
                     ca, cb = (int(x) for x in np.searchsorted(ix, [c0, c1]))
                     if ca < cb:
                         if isinstance(u, Panels):
@@ -643,7 +657,7 @@ class TreeSolver:
                 upd.close()
             raise
         finally:
-            for u, _, _ in kids:
+            for u, _, _, _ in kids:
                 if isinstance(u, Panels):
                     u.close()
         y1 = self._forward_done(i, b, m)
@@ -886,6 +900,53 @@ def _factor_front(fns, a, kf, m, a22, b, nr, tol):
     return 0
 
 
+#: A front's update block when it has none (a root's): F order, as the others, so that
+#: :func:`_eliminate_front` is compiled for one type.
+_NO_UPDATE = np.zeros((2, 2), order="F")
+_NO_IX = np.zeros(0, np.int64)
+_NO_X = np.zeros(0)
+
+
+@njit(cache=True, nogil=True)
+def _add_child(own, upd, f, b, kf, nr, u, ub, ix, cm):
+    """A child's update ``u`` and right-hand side(s) ``ub`` (flat, len(ix) x nr, F order)
+    added into the front (``own``, ``upd`` with ``f`` rows) and ``b`` (flat, kf x nr)."""
+    n = ix.shape[0]
+    for c in range(nr):
+        for r in range(n):
+            b[c * kf + ix[r]] += ub[c * n + r]
+    extend_add(own, 0, u, 0, ix, 0, cm)
+    if f > 0:
+        extend_add(upd, kf - f, u, 0, ix, cm, n)
+
+
+@njit(cache=True, nogil=True)
+def _eliminate_front(fns, own, upd, f, b, nr, tol, damping, u1, ub1, ix1, cm1, u2, ub2, ix2,
+                     cm2, y):
+    """A front's elimination in one call (:meth:`TreeSolver.eliminate`): up to two
+    children's updates added (``ix`` empty: none), ``damping`` on the own diagonal (empty:
+    none), the partial Cholesky (:func:`_factor_front`) and ``y1`` (m x nr, flat, F order)
+    copied into ``y``. ``own`` (kf x m) and ``upd`` (f x f; :data:`_NO_UPDATE` for none)
+    F order, ``b`` flat (kf x nr). Returns ``(fail, y1'y1)`` of the first column."""
+    kf, m = own.shape
+    if ix1.shape[0]:
+        _add_child(own, upd, f, b, kf, nr, u1, ub1, ix1, cm1)
+    if ix2.shape[0]:
+        _add_child(own, upd, f, b, kf, nr, u2, ub2, ix2, cm2)
+    for j in range(damping.shape[0]):
+        own[j, j] += damping[j]
+    a22 = upd.T.reshape(upd.size) if f > 0 else np.empty(0)
+    fail = _factor_front(fns, own.T.reshape(kf * m), kf, m, a22, b, nr, tol)
+    yy = 0.0
+    if fail == 0:
+        for c in range(nr):
+            for j in range(m):
+                y[c * m + j] = b[c * kf + j]
+        for j in range(m):
+            yy += b[j] * b[j]
+    return fail, yy
+
+
 #: Bytes of factor records read at once by the back substitution (from the factor file).
 BACK_BYTES = 32 << 20
 
@@ -975,6 +1036,13 @@ def _gather(zp, ix):
         for r in range(n):
             out[r, c] = zp[ix[r], jc]
     return out
+
+
+@njit(cache=True, nogil=True)
+def _zero_front(own, upd, k):
+    """:func:`_zero_block_lower` of a front's own columns and its update block."""
+    _zero_block_lower(own, k)
+    _zero_block_lower(upd, k)
 
 
 @njit(cache=True, nogil=True)

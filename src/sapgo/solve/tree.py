@@ -17,6 +17,7 @@ import threading
 import time
 
 import numpy as np
+from numba import njit
 
 from .. import threads as _threads
 from ..geometry import N_CALIBRATION
@@ -123,11 +124,10 @@ class _Fronts:
     def enter(self, i):
         """Number the stations of node ``i``'s front by their place in it."""
         fr = self.tree.front(i) if self.links is None else self.links[i][0]
-        self.loc[fr] = np.arange(len(fr))
         self.stations = fr
-        self.eo = np.ascontiguousarray(self.blk.eo[fr])
-        self.camera = np.ascontiguousarray(self.blk.camera[fr])
-        self.fixed = np.ascontiguousarray(self.blk.fixed[fr])
+        self.eo, self.camera, self.fixed = _enter(fr, self.loc, np.asarray(self.blk.eo),
+                                                  np.asarray(self.blk.camera),
+                                                  np.asarray(self.blk.fixed))
         return fr
 
     def leave(self):
@@ -144,8 +144,33 @@ class _Fronts:
     def local(self, obs_station, obs_active):
         """The observations' stations as places in the current front (-1: outside, or an
         inactive observation)."""
-        loc = self.loc[obs_station]
-        return np.ascontiguousarray(np.where(obs_active, loc, -1))
+        return _local(self.loc, obs_station, obs_active)
+
+
+@njit(cache=True, nogil=True)
+def _enter(fr, loc, eo, camera, fixed):
+    """``loc[fr] = 0, 1, ..`` and the front's stations' orientations, cameras and fixed
+    parameters (:meth:`_Fronts.enter`)."""
+    n = fr.shape[0]
+    eo_f = np.empty((n, eo.shape[1]))
+    cam_f = np.empty(n, camera.dtype)
+    fix_f = np.empty(n, fixed.dtype)
+    for j in range(n):
+        s = fr[j]
+        loc[s] = j
+        eo_f[j] = eo[s]
+        cam_f[j] = camera[s]
+        fix_f[j] = fixed[s]
+    return eo_f, cam_f, fix_f
+
+
+@njit(cache=True, nogil=True)
+def _local(loc, obs_station, obs_active):
+    """:meth:`_Fronts.local`."""
+    out = np.empty(obs_station.shape[0], np.int64)
+    for j in range(obs_station.shape[0]):
+        out[j] = loc[obs_station[j]] if obs_active[j] else -1
+    return out
 
 
 #: The top nodes' speed, factored one after the other with every thread in BLAS, against one
