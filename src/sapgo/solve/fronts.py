@@ -541,6 +541,7 @@ class TreeSolver:
         own, upd = a
         m, f = own.shape[1], upd.shape[0]
         nr = 1 + self.n_border
+        bflat = b.reshape(-1, order="F")
         quick = []
         for u, ub, ix, cm in self._children_updates(i):
             if isinstance(u, Panels):
@@ -554,9 +555,8 @@ class TreeSolver:
                         extend_add(upd, m, s, b0, ix, max(b0, cm), b1)
                 u.close()
             elif len(quick) == 2:   # (a third child in core: more than bisection gives)
-                b[ix] += ub
-                extend_add(own, 0, u, 0, ix, 0, cm)
-                extend_add(upd, m, u, 0, ix, cm, len(ix))
+                _add_child(own, upd if f else _NO_UPDATE, f, bflat, m + f, nr, u,
+                           ub.reshape(-1, order="F"), ix, cm)
             else:
                 quick.append((u, ub.reshape(-1, order="F"), ix, cm))
         while len(quick) < 2:
@@ -564,7 +564,7 @@ class TreeSolver:
         in_place = self.file.in_place(own)   # (factored in its record already)
         y = self.file.y_slot(i) if in_place else np.empty(m * nr)
         fail, yy = _eliminate_front(
-            FNS, own, upd if f else _NO_UPDATE, f, b.reshape(-1, order="F"), nr,
+            FNS, own, upd if f else _NO_UPDATE, f, bflat, nr,
             self.pivot_tol, _NO_X if damping is None else damping, *quick[0], *quick[1], y)
         if fail:
             raise PivotError(int(t.lo[i]) + (fail - 1) // self.k, (fail - 1) % self.k)
