@@ -224,6 +224,68 @@ def test_many_children_and_damping_equal_dense(tmp_path, where):
     sol.close()
 
 
+@pytest.mark.parametrize("n_border", [0, 2])
+def test_split_elimination_equals_one_thread(monkeypatch, n_border):
+    """Fronts eliminated on two threads (:meth:`TreeSolver._eliminate_split`: every front,
+    panels of 7 columns, not a multiple of k, so that a station's unknowns straddle two) give
+    the same solution, y'y and border sums as the one-call elimination, and the dense
+    solution of the damped matrix; a matrix that is not positive definite fails at the same
+    station and parameter both ways."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from sapgo.solve import fronts
+
+    pos, edges = grid_graph(12, 6)
+    n = len(pos)
+    tree, perm = nested_dissection(pos, np.ones(n, bool), edges, leaf_stations=6)
+    k = 6
+    m = spd_on_graph(n, edges, k, 8)
+    sc = (k * perm[:, None] + np.arange(k)).ravel()
+    ml = m[np.ix_(sc, sc)]
+    rng = np.random.default_rng(9)
+    bl = rng.normal(size=(k * n, 1 + n_border))
+    damping = rng.uniform(0.5, 2.0, k * n)
+    theta = rng.normal(size=n_border)
+
+    def run(split, matrix):
+        sol = TreeSolver(tree, k, None, file=fronts.FactorFile(None, fronts.factor_layout(
+            tree, k), n_rhs=1 + n_border), n_border=n_border)
+        with ThreadPoolExecutor(1) as pool:
+            sol.pool = pool if split else None
+            for i in range(tree.n_nodes):
+                fs = (k * tree.front(i)[:, None] + np.arange(k)).ravel()
+                own = k * tree.own(i)
+                a, b = sol.open(i)
+                b.reshape(len(fs), -1)[:own] = bl[fs[:own]]
+                a[0][:] = np.tril(matrix[np.ix_(fs, fs[:own])])
+                sol.eliminate(i, a, b, damping[fs[:own]])
+        return sol
+
+    monkeypatch.setattr(fronts, "SPLIT_ROWS", 0)
+    monkeypatch.setattr(fronts, "SPLIT_PANEL", 7)
+    one, two = run(False, ml), run(True, ml)
+    x1 = one.solve(n, theta if n_border else None)
+    x2 = two.solve(n, theta if n_border else None)
+    np.testing.assert_allclose(x2, x1, rtol=1e-10, atol=1e-12)
+    assert two.y_norm2 == pytest.approx(one.y_norm2, rel=1e-12)
+    np.testing.assert_allclose(two.ww, one.ww, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(two.wy, one.wy, rtol=1e-10, atol=1e-12)
+    md = ml + np.diag(damping)
+    r = bl[:, 0] - bl[:, 1:] @ theta if n_border else bl[:, 0]
+    np.testing.assert_allclose(x2.ravel(), np.linalg.solve(md, r), rtol=1e-9, atol=1e-12)
+    bad = ml.copy()   # (an unknown of the last station made dependent: fails in the root)
+    j = k * (n - 1) + 4
+    bad[j, :] = 0.0
+    bad[:, j] = 0.0
+    damping[j] = 0.0
+    fails = []
+    for split in (False, True):
+        with pytest.raises(PivotError) as err:
+            run(split, bad)
+        fails.append((err.value.row, err.value.parameter))
+    assert fails[0] == fails[1] == (n - 1, 4)
+
+
 def test_front_memory_model_is_what_the_solver_holds(tmp_path):
     """The fronts' peak of ``Tree.peak_front_bytes`` is, to the byte, the most the solver
     holds at once (the front being built, its own columns and its update block, plus the

@@ -282,6 +282,33 @@ def test_self_calibration_on_the_tree_equals_the_band(miscalibrated_square, tmp_
         assert a["sigma"] == pytest.approx(b["sigma"], rel=1e-8)
 
 
+@pytest.mark.parametrize("method", ["gauss-newton", "levenberg-marquardt"])
+def test_top_fronts_split_between_threads_equal_the_band(miscalibrated_square, tmp_path,
+                                                         monkeypatch, method):
+    """The top nodes' fronts eliminated on two threads (every one of them, in panels of 7
+    columns; on the real blocks only fronts of SPLIT_ROWS rows and more) with
+    self-calibration's border and with damping: the same result as the band."""
+    from sapgo.solve import fronts
+
+    monkeypatch.setattr(fronts, "SPLIT_ROWS", 0)
+    monkeypatch.setattr(fronts, "SPLIT_PANEL", 7)
+    split = []
+    real = fronts.TreeSolver._eliminate_split
+    monkeypatch.setattr(fronts.TreeSolver, "_eliminate_split",
+                        lambda self, *a: split.append(1) or real(self, *a))
+    band, tree = ordered_pair(miscalibrated_square, tmp_path)
+    opts = dataclasses.replace(TIGHT, method=method,
+                               calibrate=("f", "x0", "y0", "k1", "k2", "p1", "p2"))
+    sb = sapgo.adjust(band, opts)
+    st = sapgo.adjust(tree, opts)
+    assert split, "no front was split between threads"
+    assert st.solver == "tree" and st.converged and st.iterations == sb.iterations
+    assert st.sigma0 == pytest.approx(sb.sigma0, rel=1e-10)
+    assert_same_solution(tree, band)
+    for a, b in zip(st.calibration, sb.calibration):
+        assert a["sigma"] == pytest.approx(b["sigma"], rel=1e-8)
+
+
 @pytest.mark.parametrize("case", ["gauss-newton", "levenberg-marquardt", "calibration"])
 def test_tiled_fronts_give_the_in_core_result(miscalibrated_square, tmp_path, monkeypatch,
                                               case):

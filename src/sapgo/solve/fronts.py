@@ -395,6 +395,26 @@ def _scalar(idx, k):
     return (k * np.asarray(idx, np.int64)[:, None] + np.arange(k)).ravel()
 
 
+#: Fronts of at least this many rows (m + f) among the top nodes are eliminated by two
+#: threads (:meth:`TreeSolver._eliminate_split`) ...
+SPLIT_ROWS = 384
+#: ... in panels of about this many own columns (the diagonal block's Cholesky on one thread).
+SPLIT_PANEL = 512
+
+
+def _equal_work_column(kids, kf):
+    """The front column splitting the children's extend-add (``kids``: ``(u, ub, ix, cm)``)
+    into two halves of equal work: column ``c`` of a child's update has ``n - c`` entries
+    (its lower triangle)."""
+    cols = np.arange(kf + 1)
+    work = np.zeros(kf + 1)
+    for _, _, ix, _ in kids:
+        n = len(ix)
+        a = np.searchsorted(ix, cols).astype(np.float64)
+        work += a * n - a * (a - 1.0) / 2.0
+    return int(np.searchsorted(work, work[-1] / 2.0))
+
+
 class TreeSolver:
     """The numeric multifrontal factorisation, solve and selected inversion on a tree.
 
@@ -402,8 +422,8 @@ class TreeSolver:
     stations, then boundary; scalar order ``k`` parameters a station) as ``A = (own,
     upd)``, its own columns and its update block; the caller adds the node's own
     contributions into their lower triangles and ``b``, then ``solver.eliminate(i, A, b,
-    damping)`` (a tiled front: :meth:`eliminate_tiled`). After the last node, ``solve()`` returns ``delta`` (stations x k) and
-    ``y_norm2`` is ``y'y``. ``inverse(on_node)`` runs the selected inversion afterwards.
+    damping)`` (a tiled front: :meth:`eliminate_tiled`). After the last node, ``solve()``
+    returns ``delta`` (stations x k) and ``y_norm2`` is ``y'y``. ``inverse(on_node)`` runs the selected inversion afterwards.
 
     Self-calibration (``n_border`` columns ``B`` of the stations against the border's
     unknowns): ``b`` is ``kf x (1 + n_border)``, the right-hand side and then the front's
@@ -443,6 +463,9 @@ class TreeSolver:
         # node -> (seconds from opening the front to its elimination's end, seconds of the
         # elimination) when a dict (benchmarks/distributed.py: the scale-out replay's input)
         self.trace = None
+        # a thread pool of at least one thread while the top nodes are eliminated: large
+        # fronts then split between it and the caller (:meth:`_eliminate_split`)
+        self.pool = None
         tune_malloc()
 
     def set_parts(self, per, top):
@@ -536,36 +559,43 @@ class TreeSolver:
         and ``b``, add ``damping`` (own scalar unknowns) to the own diagonal, factor the
         own columns (they are the factor's record, kept as they are) and keep the update
         block for the parent: in one kernel call (:func:`_eliminate_front`) for up to two
-        children in core, the others' added first."""
+        children in core, the others' added first; split between two threads
+        (:meth:`_eliminate_split`) when :attr:`pool` is set and the front is large."""
         t = self.tree
         own, upd = a
         m, f = own.shape[1], upd.shape[0]
         nr = 1 + self.n_border
         bflat = b.reshape(-1, order="F")
-        quick = []
-        for u, ub, ix, cm in self._children_updates(i):
-            if isinstance(u, Panels):
-                b[ix] += ub
-                for j in range(u.n_panels):
-                    b0, b1 = int(u.b[j]), int(u.b[j + 1])
-                    s = u.panel(j)
-                    if b0 < cm:
-                        extend_add(own, 0, s, b0, ix, b0, min(b1, cm))
-                    if b1 > cm:
-                        extend_add(upd, m, s, b0, ix, max(b0, cm), b1)
-                u.close()
-            elif len(quick) == 2:   # (a third child in core: more than bisection gives)
-                _add_child(own, upd if f else _NO_UPDATE, f, bflat, m + f, nr, u,
-                           ub.reshape(-1, order="F"), ix, cm)
-            else:
-                quick.append((u, ub.reshape(-1, order="F"), ix, cm))
-        while len(quick) < 2:
-            quick.append((_NO_UPDATE, _NO_X, _NO_IX, 0))
+        kids = self._children_updates(i)
         in_place = self.file.in_place(own)   # (factored in its record already)
         y = self.file.y_slot(i) if in_place else np.empty(m * nr)
-        fail, yy = _eliminate_front(
-            FNS, own, upd if f else _NO_UPDATE, f, bflat, nr,
-            self.pivot_tol, _NO_X if damping is None else damping, *quick[0], *quick[1], y)
+        if (self.pool is not None and m + f >= SPLIT_ROWS
+                and not any(isinstance(u, Panels) for u, _, _, _ in kids)):
+            fail, yy = self._eliminate_split(own, upd if f else _NO_UPDATE, f, b, bflat, nr,
+                                             kids, damping, y)
+        else:
+            quick = []
+            for u, ub, ix, cm in kids:
+                if isinstance(u, Panels):
+                    b[ix] += ub
+                    for j in range(u.n_panels):
+                        b0, b1 = int(u.b[j]), int(u.b[j + 1])
+                        s = u.panel(j)
+                        if b0 < cm:
+                            extend_add(own, 0, s, b0, ix, b0, min(b1, cm))
+                        if b1 > cm:
+                            extend_add(upd, m, s, b0, ix, max(b0, cm), b1)
+                    u.close()
+                elif len(quick) == 2:   # (a third child in core: more than bisection gives)
+                    _add_child(own, upd if f else _NO_UPDATE, f, bflat, m + f, nr, u,
+                               ub.reshape(-1, order="F"), ix, cm)
+                else:
+                    quick.append((u, ub.reshape(-1, order="F"), ix, cm))
+            while len(quick) < 2:
+                quick.append((_NO_UPDATE, _NO_X, _NO_IX, 0))
+            fail, yy = _eliminate_front(
+                FNS, own, upd if f else _NO_UPDATE, f, bflat, nr,
+                self.pivot_tol, _NO_X if damping is None else damping, *quick[0], *quick[1], y)
         if fail:
             raise PivotError(int(t.lo[i]) + (fail - 1) // self.k, (fail - 1) % self.k)
         y1 = y if nr == 1 else y.reshape((m, nr), order="F")
@@ -577,6 +607,56 @@ class TreeSolver:
             self.file.write(i, own, y1)
         if f > 0 and t.parent[i] >= 0:
             self._keep_update(i, upd, m, b)
+
+    def _pair(self, fn, first, second):
+        """``fn(*first)`` on this thread and ``fn(*second)`` on :attr:`pool`'s at once."""
+        job = self.pool.submit(fn, *second)
+        try:
+            fn(*first)
+        finally:
+            job.result()
+
+    def _eliminate_split(self, own, upd, f, b, bflat, nr, kids, damping, y):
+        """:func:`_eliminate_front`'s work on two threads, each with single-threaded BLAS
+        (:func:`_split_part`): the children's updates split by front columns of equal work,
+        then a right-looking blocked Cholesky of the own columns in panels of about
+        :data:`SPLIT_PANEL` columns: the panel's diagonal block on one thread, the rows
+        below it (``dtrsm``) and the trailing lower triangle (``dsyrk``, ``dgemm``) split in
+        two. (OpenBLAS's own two threads took 1.5-3 times as long on the 100 x 100 block's
+        top fronts, and varied 5x: many small calls, each waking the other virtual CPU.)
+        Returns ``(fail, y1'y1)`` as :func:`_eliminate_front`."""
+        m = own.shape[1]
+        kf = m + f
+        for u, ub, ix, cm in kids:
+            b[ix] += ub
+        tol = self.pivot_tol
+
+        def part(op, c0, c1, p0=0, p1=0, child=(_NO_UPDATE, None, _NO_IX, 0), orig=_NO_X):
+            u, _, ix, cm = child
+            return _split_part(FNS, op, own, upd, f, u, ix, cm, p0, p1, c0, c1, tol, orig,
+                               bflat, nr, y)
+
+        if kids:
+            def add(c0, c1):
+                for child in kids:
+                    part(ADD, c0, c1, child=child)
+            c = _equal_work_column(kids, kf)
+            self._pair(add, (0, c), (c, kf))
+        if damping is not None:
+            own[np.arange(m), np.arange(m)] += damping
+        orig = own.diagonal().copy()
+        panels = max(1, int(round(m / SPLIT_PANEL)))
+        width = -(-m // panels)
+        for p0 in range(0, m, width):
+            p1 = min(m, p0 + width)
+            fail, _ = part(CHOL, 0, 0, p0, p1, orig=orig)
+            if fail:
+                return fail, 0.0
+            h = (p1 + kf) // 2
+            self._pair(part, (TRSM, p1, h, p0, p1), (TRSM, h, kf, p0, p1))
+            c = p1 + int(round((kf - p1) * (1.0 - 0.5 ** 0.5)))   # (equal halves of work)
+            self._pair(part, (UPDATE, p1, c, p0, p1), (UPDATE, c, kf, p0, p1))
+        return part(FORWARD, 0, 0)
 
     def _forward_done(self, i, b, m):
         """``y1`` of node ``i`` from its forward-substituted ``b``; ``y'y`` and the
@@ -889,6 +969,15 @@ def _factor_front(fns, a, kf, m, a22, b, nr, tol):
         return fail
     if f > 0:
         syrk(fns.dsyrk, L, N, f, m, -1.0, a[m:], kf, 1.0, a22, f)
+    _forward_front(fns, a, kf, m, b, nr)
+    return 0
+
+
+@njit(cache=True, nogil=True)
+def _forward_front(fns, a, kf, m, b, nr):
+    """The forward substitution through a factored front (``a``: its own columns, kf x m,
+    flat F order): ``b1 = L11^-1 b1``, ``b2 -= L21 b1`` (``b`` kf x nr, flat F order)."""
+    f = kf - m
     if nr == 1:
         trsv(fns.dtrsv, L, N, N, m, a, kf, b)
         if f > 0:
@@ -897,7 +986,19 @@ def _factor_front(fns, a, kf, m, a22, b, nr, tol):
         trsm(fns.dtrsm, L, L, N, N, m, nr, 1.0, a, kf, b, kf)
         if f > 0:
             gemm(fns.dgemm, N, N, f, nr, m, -1.0, a[m:], kf, b, kf, 1.0, b[m:], kf)
-    return 0
+
+
+@njit(cache=True, nogil=True)
+def _take_y(b, kf, m, nr, y):
+    """``y1`` (the first m rows of ``b``, kf x nr flat F order) copied into ``y`` (m x nr
+    flat); returns ``y1'y1`` of the first column."""
+    for c in range(nr):
+        for j in range(m):
+            y[c * m + j] = b[c * kf + j]
+    yy = 0.0
+    for j in range(m):
+        yy += b[j] * b[j]
+    return yy
 
 
 #: A front's update block when it has none (a root's): F order, as the others, so that
@@ -939,12 +1040,76 @@ def _eliminate_front(fns, own, upd, f, b, nr, tol, damping, u1, ub1, ix1, cm1, u
     fail = _factor_front(fns, own.T.reshape(kf * m), kf, m, a22, b, nr, tol)
     yy = 0.0
     if fail == 0:
-        for c in range(nr):
-            for j in range(m):
-                y[c * m + j] = b[c * kf + j]
-        for j in range(m):
-            yy += b[j] * b[j]
+        yy = _take_y(b, kf, m, nr, y)
     return fail, yy
+
+
+#: The phases of :func:`_split_part`.
+ADD, CHOL, TRSM, UPDATE, FORWARD = range(5)
+
+
+@njit(cache=True, nogil=True)
+def _split_part(fns, op, own, upd, f, u, ix, cm, p0, p1, c0, c1, tol, orig, b, nr, y):
+    """One thread's part of a phase of a top node's elimination on two threads
+    (:meth:`TreeSolver._eliminate_split`; one kernel for all the phases, loaded once).
+    ``own`` (kf x m) and ``upd`` (f x f) F order as :func:`_eliminate_front`'s. ``op``:
+
+    - ``ADD``: the front's columns ``c0 .. c1`` of a child's update ``u`` (its places
+      ``ix``, ``cm`` of them in the own columns): the child's columns that land there (a run
+      of them, ``ix`` ascending), so that threads given apart column ranges never add into
+      the same place;
+    - ``CHOL``: the Cholesky factor of the panel ``p0 .. p1``'s diagonal block (updated by
+      the panels before it) in place, pivots tested against ``orig`` as
+      :func:`_factor_front`'s; returns ``(0 or 1 + the failing own column, 0)``;
+    - ``TRSM``: rows ``c0 .. c1`` (below the panel) of the panel's columns,
+      ``L_r = A_r L_pp'^-1``;
+    - ``UPDATE``: the front's columns ``c0 .. c1`` (right of the panel; the own ones in
+      ``own``, the boundary's in ``upd``) less the panel's ``L L'``: each range's diagonal
+      block by ``dsyrk``, the rows below it by ``dgemm``;
+    - ``FORWARD``: the forward substitution through the factored own columns
+      (:func:`_forward_front`, ``b`` flat kf x nr) and ``y1`` into ``y``; returns
+      ``(0, y1'y1)``.
+    """
+    kf, m = own.shape
+    a = own.T.reshape(kf * m)
+    if op == ADD:
+        lo = np.searchsorted(ix, c0)
+        hi = np.searchsorted(ix, c1)
+        e = min(hi, cm)
+        if lo < e:
+            extend_add(own, 0, u, 0, ix, lo, e)
+        s = max(lo, cm)
+        if f > 0 and s < hi:
+            extend_add(upd, m, u, 0, ix, s, hi)
+    elif op == CHOL:
+        w = p1 - p0
+        fail = chol_columns(fns, a[p0 * kf + p0:], kf, w, w, tol, orig[p0:p1])
+        return (fail + p0 if fail else 0), 0.0
+    elif op == TRSM:
+        if c1 > c0:
+            trsm(fns.dtrsm, R, L, T, N, c1 - c0, p1 - p0, 1.0, a[p0 * kf + p0:], kf,
+                 a[p0 * kf + c0:], kf)
+    elif op == UPDATE:
+        w = p1 - p0
+        lp = p0 * kf   # (the panel's column p0, row 0)
+        e = min(c1, m)
+        if c0 < e:
+            syrk(fns.dsyrk, L, N, e - c0, w, -1.0, a[lp + c0:], kf, 1.0, a[c0 * kf + c0:], kf)
+            if kf > e:
+                gemm(fns.dgemm, N, T, kf - e, e - c0, w, -1.0, a[lp + e:], kf, a[lp + c0:],
+                     kf, 1.0, a[c0 * kf + e:], kf)
+        s = max(c0, m)
+        if s < c1:
+            a22 = upd.T.reshape(f * f)
+            q = s - m
+            syrk(fns.dsyrk, L, N, c1 - s, w, -1.0, a[lp + s:], kf, 1.0, a22[q * f + q:], f)
+            if kf > c1:
+                gemm(fns.dgemm, N, T, kf - c1, c1 - s, w, -1.0, a[lp + c1:], kf, a[lp + s:],
+                     kf, 1.0, a22[q * f + c1 - m:], f)
+    elif op == FORWARD:
+        _forward_front(fns, a, kf, m, b, nr)
+        return 0, _take_y(b, kf, m, nr, y)
+    return 0, 0.0
 
 
 #: Bytes of factor records read at once by the back substitution (from the factor file).

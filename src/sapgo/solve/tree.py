@@ -306,11 +306,14 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     """Build and factor the reduced normals on the tree and solve them.
 
     Independent subtrees are built and factored on ``threads`` threads (default: numba's
-    thread count) with single-threaded BLAS each, the nodes above them afterwards with all
-    threads in BLAS (:func:`parallel_plan`; one worker when the subtrees' fronts side by
-    side would not fit the memory budget, :func:`work_plan`). The factor is kept in core when it fits the
-    memory budget beside the fronts (:func:`tree_budget`), else in ``tree_factor.bin``;
-    either way it stays with ``work.tree_factor`` for the precision pass.
+    thread count) with single-threaded BLAS each, the nodes above them afterwards on the
+    same threads, a large front split between them
+    (:meth:`~sapgo.solve.fronts.TreeSolver._eliminate_split`) (:func:`parallel_plan`; one
+    worker, the top with all threads in BLAS, when the subtrees' fronts side by side would
+    not fit the memory budget, :func:`work_plan`). The factor is kept in core when it fits
+    the memory budget beside the fronts (:func:`tree_budget`), else in
+    ``tree_factor.bin``; either way it stays with ``work.tree_factor`` for the precision
+    pass.
 
     Self-calibration (``blk.n_border`` columns): the border's columns are built into each
     front beside its right-hand side and forward-substituted with it
@@ -325,8 +328,8 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     share, for the Levenberg-Marquardt gain ratio) and ``seconds`` spent factoring and
     solving (the rest is the build). Raises :class:`~sapgo.solve.band.PivotError` (logical
     station, parameter) when the normals are not positive definite and
-    :class:`~sapgo.solve.band.BorderPivotError` when the border's are not. ``capture(i, front, rhs)``
-    (benchmarks) sees each node's front with its own points, priors and damping, before the
+    :class:`~sapgo.solve.band.BorderPivotError` when the border's are not.
+    ``capture(i, front, rhs)`` (benchmarks) sees each node's front with its own points, priors and damping, before the
     children's updates are added: their sum over the nodes is the reduced normal matrix.
     """
     from concurrent.futures import ThreadPoolExecutor
@@ -371,6 +374,7 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     # the border's block, right-hand side and undamped diagonal, a set per thread
     cb = [(np.zeros((ng, ng)), np.zeros(ng), np.zeros(ng)) for _ in range(len(per) + 1)]
     seconds = np.zeros(len(per) + 1)
+    top_done = False   # (the top nodes with the parts' threads)
     with _progress(opts.progress, p.n_points, "build") as bar:
         if client is not None:
             from .distributed import distributed_step
@@ -388,14 +392,21 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
                         for w, ranges in enumerate(per)]
                 for j in jobs:
                     j.result()
+                diag = _summed(diags, lam)
+                if top:   # each large front split between this thread and the pool's
+                    solver.pool = pool
+                    try:
+                        _run_nodes(p, work, blk, opts, tree, solver, [(j, j + 1) for j in top],
+                                   lam, diag, seconds, len(per), iteration, bar, capture,
+                                   cb[len(per)])
+                    finally:
+                        solver.pool = None
+                    top_done = True
         else:
             _run_nodes(p, work, blk, opts, tree, solver, per[0], lam, diags[0], seconds, 0,
                        iteration, bar, capture, cb[0])
-        diag = None
-        if lam > 0.0:
-            diag = diags[0]
-            for d in diags[1:]:
-                diag += d
+        if client is not None or len(per) == 1:
+            diag = _summed(diags, lam)
         if top and client is not None:   # Dask: the top's fronts on the workers too
             from .distributed import distributed_top
 
@@ -410,7 +421,7 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
             solver.file = file
             seconds[len(per)] += time.perf_counter() - t_top
             bar.update(sum(int(tree.pt_start[j + 1] - tree.pt_start[j]) for j in top))
-        elif top:
+        elif top and not top_done:
             _run_nodes(p, work, blk, opts, tree, solver, [(j, j + 1) for j in top], lam,
                        diag, seconds, len(per), iteration, bar, capture, cb[len(per)])
     t0 = time.perf_counter()
@@ -437,6 +448,15 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     out["seconds"] = (float(seconds[:len(per)].max() + seconds[len(per)])
                       + time.perf_counter() - t0)
     return out
+
+
+def _summed(diags, lam):
+    """The threads' undamped diagonals summed (into the first), or None without damping."""
+    if lam <= 0.0:
+        return None
+    for d in diags[1:]:
+        diags[0] += d
+    return diags[0]
 
 
 def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slot,
