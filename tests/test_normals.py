@@ -141,3 +141,58 @@ def test_parallel_update_equals_the_one_thread_kernel(p1_block, threads):
     _, _, st1 = run(update_points)
     _, _, st2 = run(update_points_parallel, threads)
     assert st1[7] == st2[7] == bad + 1 and st1[8] == st2[8] != 0
+
+
+@pytest.mark.parametrize("solver", ["band", "tree"])
+def test_kept_point_chunks_change_nothing(tmp_path, monkeypatch, solver):
+    """The points' chunks kept for the run (Project.keep_point_chunks) give bit for bit the
+    run that converts every chunk afresh, with data snooping's rejections on top of them,
+    and the kept arrays stay as they were read (the run's rejections never written into
+    them)."""
+    import shutil
+
+    import sapgo
+    from sapgo import normals
+    from sapgo.project import Project
+
+    src = tmp_path / "src.h5"
+    sapgo.generate_block(src, strips=4, photos_per_strip=8, control_points=8, blunders=3,
+                         blunder_size=(0.08, 0.1), seed=2, progress=False)
+    opts = sapgo.Options(progress=False, snooping=True, solver=solver)
+    kept, made = [], []
+    real_keep, real_arrays = Project.keep_point_chunks, normals._chunk_arrays
+
+    def keep(self, expected, most):
+        got = real_keep(self, expected, most)
+        kept.append(self.point_chunks)
+        return got
+
+    def arrays(*a):
+        out = real_arrays(*a)
+        made.append((out, [x.copy() if isinstance(x, np.ndarray) else x for x in out]))
+        return out
+
+    runs = {}
+    for name in ("kept", "afresh"):
+        path = tmp_path / f"{name}.h5"
+        shutil.copy(src, path)
+        monkeypatch.setattr(Project, "keep_point_chunks",
+                            keep if name == "kept" else (lambda self, e, m: 0))
+        monkeypatch.setattr(normals, "_chunk_arrays", arrays)
+        runs[name] = (sapgo.adjust(path, opts), path)
+        if name == "kept":
+            assert kept and kept[-1], "no chunk was kept"
+            held = {id(entry[3]) for entry in kept[-1].values()}
+            seen = [(out, copy) for out, copy in made if id(out) in held]
+            assert len(seen) == len(held)
+            for out, copy in seen:   # as read: nothing written into them during the run
+                for x, y in zip(out, copy):
+                    np.testing.assert_array_equal(x, y)
+    (sk, pk), (sa, pa) = runs["kept"], runs["afresh"]
+    assert len(sk.rejected) >= 2
+    assert sk.sigma0 == sa.sigma0 and sk.iterations == sa.iterations
+    assert [(r["photo_id"], r["point_id"]) for r in sk.rejected] == \
+        [(r["photo_id"], r["point_id"]) for r in sa.rejected]
+    with Project(pk) as qk, Project(pa) as qa:
+        for name in ("station_corr", "point_corr", "residuals", "point_sigma"):
+            np.testing.assert_array_equal(qk.solution(name), qa.solution(name))

@@ -1774,6 +1774,25 @@ def _hold_records(p, blk, opts):
     return p.hold(max_bytes=tree_budget(opts, 0, len(blk.station_ids)) // 4)
 
 
+#: Bytes of kept point chunks (:func:`_keep_chunks`) at most on the band.
+KEEP_CHUNKS_BYTES = 64 << 20
+
+
+def _keep_chunks(p, blk, opts):
+    """Keep the kernels' arrays of the points' chunks for the run
+    (:meth:`sapgo.project.Project.keep_point_chunks`), so that every pass after the first
+    converts nothing: room for two sets of chunks (the build's and the update's, cut apart
+    on the tree), when it is at most an eighth of the tree's memory budget (on the band
+    :data:`KEEP_CHUNKS_BYTES`). Returns the bytes reserved."""
+    from .normals import CHUNK_OBS_BYTES, CHUNK_POINT_BYTES
+    from .solve.tree import tree_budget
+
+    need = 2 * (p.n_points * CHUNK_POINT_BYTES + p.n_observations * CHUNK_OBS_BYTES)
+    room = (tree_budget(opts, blk.held, len(blk.station_ids)) // 8 if blk.tree is not None
+            else KEEP_CHUNKS_BYTES)
+    return p.keep_point_chunks(need, room)
+
+
 def _tree_figures(blk, opts):
     """The tree's figures for the summary, with the tiling the run's budget gave
     (:func:`sapgo.solve.tree.tiling`)."""
@@ -1927,6 +1946,7 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
 
             check_tree_memory(blk.tree, blk.npar, opts, path, len(blk.station_ids))
         blk.held = _hold_records(p, blk, opts)
+        blk.held += _keep_chunks(p, blk, opts)
         if opts.max_iterations is None:
             opts.max_iterations = (LM_MAX_ITERATIONS if blk.free
                                    or opts.method == "levenberg-marquardt"

@@ -919,35 +919,58 @@ class PointChunk:
 
     def __init__(self, project, start, stop, xyz, camera, cam_sigma, frame=None, rejected=None,
                  rejected_points=None):
-        pts = project.read("points", start, stop)
+        kept = getattr(project, "point_chunks", None)
+        entry = kept.get((start, stop)) if kept is not None else None
+        if entry is None or entry[0] is not camera or entry[1] is not cam_sigma \
+                or entry[2] is not frame:
+            base = _chunk_arrays(project, start, stop, camera, cam_sigma, frame)
+            size = sum(a.nbytes for a in base if isinstance(a, np.ndarray))
+            if kept is not None and project.point_chunk_room >= size:
+                kept[(start, stop)] = (camera, cam_sigma, frame, base)
+                project.point_chunk_room -= size
+        else:
+            base = entry[3]
+        (self.o0, self.o1, self.kind, self.ctrl, self.csig, self.rot, self.pt_start, self.nobs,
+         self.smax, self.smin, self.active, self.obs_station, self.obs_xy, self.obs_sigma,
+         self.obs_active, self.max_rays) = base
         self.start, self.stop = start, stop
-        self.o0 = int(pts["obs_start"][0]) if len(pts) else 0
-        self.o1 = int(pts["obs_start"][-1] + pts["n_obs"][-1]) if len(pts) else 0
-        obs = project.read("observations", self.o0, self.o1)
-        c = np.ascontiguousarray
-        self.xyz = c(xyz, dtype=np.float64)
-        self.kind = c(pts["kind"], dtype=np.int64)
-        self.ctrl = c(pts["control"])
-        self.csig = c(pts["control_sigma"])
-        self.rot = control_rotations(pts["kind"], pts["control"], frame)
-        self.pt_start = c(pts["obs_start"] - self.o0)
-        self.nobs = c(pts["n_obs"], dtype=np.int64)
-        self.smax = c(pts["station_max"])
-        self.smin = c(pts["station_min"])
-        self.active = c(pts["status"], dtype=np.int64)
-        self.obs_station = c(obs["station"])
-        self.obs_xy = c(np.column_stack([obs["x"], obs["y"]]))
-        # sigma 0: the standard error of the station's camera
-        self.obs_sigma = c(np.where(obs["sigma"] > 0, obs["sigma"],
-                                    cam_sigma[camera[obs["station"]]]))
-        self.obs_active = c(obs["status"] == STATUS_ACTIVE)
+        self.xyz = np.ascontiguousarray(xyz, dtype=np.float64)
         if rejected is not None and len(rejected):  # rejected in this run (data snooping)
             lo, hi = np.searchsorted(rejected, [self.o0, self.o1])
-            self.obs_active[rejected[lo:hi] - self.o0] = False
+            if hi > lo:
+                self.obs_active = self.obs_active.copy()   # (never the kept one)
+                self.obs_active[rejected[lo:hi] - self.o0] = False
         if rejected_points is not None and len(rejected_points):
             lo, hi = np.searchsorted(rejected_points, [start, stop])
-            self.active[rejected_points[lo:hi] - start] = 1
-        self.max_rays = int(max(1, self.nobs.max() if len(self.nobs) else 1))
+            if hi > lo:
+                self.active = self.active.copy()
+                self.active[rejected_points[lo:hi] - start] = 1
+
+
+#: Bytes of :class:`PointChunk`'s arrays a point and an observation (kept for a run by
+#: :meth:`sapgo.project.Project.keep_point_chunks`).
+CHUNK_POINT_BYTES = 8 + 24 + 24 + 72 + 8 + 8 + 8 + 8 + 8
+CHUNK_OBS_BYTES = 8 + 16 + 8 + 1
+
+
+def _chunk_arrays(project, start, stop, camera, cam_sigma, frame):
+    """:class:`PointChunk`'s arrays of points ``start .. stop`` (all but the coordinates),
+    before the run's rejections: ``(o0, o1, kind, ctrl, csig, rot, pt_start, nobs, smax,
+    smin, active, obs_station, obs_xy, obs_sigma, obs_active, max_rays)``."""
+    pts = project.read("points", start, stop)
+    o0 = int(pts["obs_start"][0]) if len(pts) else 0
+    o1 = int(pts["obs_start"][-1] + pts["n_obs"][-1]) if len(pts) else 0
+    obs = project.read("observations", o0, o1)
+    c = np.ascontiguousarray
+    nobs = c(pts["n_obs"], dtype=np.int64)
+    return (o0, o1, c(pts["kind"], dtype=np.int64), c(pts["control"]),
+            c(pts["control_sigma"]), control_rotations(pts["kind"], pts["control"], frame),
+            c(pts["obs_start"] - o0), nobs, c(pts["station_max"]), c(pts["station_min"]),
+            c(pts["status"], dtype=np.int64), c(obs["station"]),
+            c(np.column_stack([obs["x"], obs["y"]])),
+            # sigma 0: the standard error of the station's camera
+            c(np.where(obs["sigma"] > 0, obs["sigma"], cam_sigma[camera[obs["station"]]])),
+            c(obs["status"] == STATUS_ACTIVE), int(max(1, nobs.max() if len(nobs) else 1)))
 
 
 def control_rotations(kind, control, frame=None):

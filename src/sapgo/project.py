@@ -489,6 +489,8 @@ class Project:
             )
         self._held = {}
         self._open = {}   # datasets kept open (read only): their chunk caches stay
+        self.point_chunks = None   # :meth:`keep_point_chunks`
+        self.point_chunk_room = 0
         try:
             self._f = h5py.File(self.file_path, mode, **CHUNK_CACHE)
         except OSError as exc:
@@ -564,6 +566,7 @@ class Project:
     def close(self):
         self._held = {}
         self._open = {}
+        self.point_chunks = None
         if self._f is not None:
             self._f.close()
             self._f = None
@@ -675,6 +678,18 @@ class Project:
             ds = self.file[n]
             self._held[n] = self._checked(ds, 0, ds.shape[0], lambda: ds[...])
         return size
+
+    def keep_point_chunks(self, expected_bytes, max_bytes):
+        """Keep the kernels' arrays of every chunk of points read
+        (:class:`sapgo.normals.PointChunk`: all but the coordinates, converted once) for the
+        rest of the run, when the project is open read only (its records cannot change) and
+        ``expected_bytes`` (what they will come to) is at most ``max_bytes``. Returns the
+        bytes reserved (0: nothing kept)."""
+        if self.file.mode != "r" or expected_bytes > max_bytes:
+            return 0
+        self.point_chunks = {}
+        self.point_chunk_room = int(expected_bytes)   # (what is left: spent as kept)
+        return int(expected_bytes)
 
     def read(self, name, start=0, stop=None):
         """Records ``start:stop`` of dataset ``name`` (e.g. ``"points"``, ``"truth/points"``)."""
