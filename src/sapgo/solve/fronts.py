@@ -47,7 +47,8 @@ from numba import njit
 from .band import PIVOT_TOLERANCE, PivotError
 from .tiles import (Panels, _factor_panel, _left_update, chol_columns, extend_add,
                     invert_tiled, node_bounds, update_bounds, write_dense_panels)
-from ..blas import FNS, L, N, R, T, gemm, gemv, lauum, syrk, trmm, trsm, trsv, trtri
+from ..blas import (FNS, L, N, R, T, blas_limits, gemm, gemv, lauum, syrk, trmm, trsm,
+                    trsv, trtri)
 from ..geometry import N_CALIBRATION
 from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_point, _chol3,
                        _point_system, _ray_terms, _solve3, _workspace)
@@ -571,8 +572,9 @@ class TreeSolver:
         y = self.file.y_slot(i) if in_place else np.empty(m * nr)
         if (self.pool is not None and m + f >= SPLIT_ROWS
                 and not any(isinstance(u, Panels) for u, _, _, _ in kids)):
-            fail, yy = self._eliminate_split(own, upd if f else _NO_UPDATE, f, b, bflat, nr,
-                                             kids, damping, y)
+            with blas_limits(1):
+                fail, yy = self._eliminate_split(own, upd if f else _NO_UPDATE, f, b, bflat,
+                                                 nr, kids, damping, y)
         else:
             quick = []
             for u, ub, ix, cm in kids:

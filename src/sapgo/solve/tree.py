@@ -386,14 +386,18 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
             file = FactorFile(work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
             solver.file = file
         elif len(per) > 1:
-            with blas_limits(1), ThreadPoolExecutor(len(per)) as pool:
-                jobs = [pool.submit(_run_nodes, p, work, blk, opts, tree, solver, ranges,
-                                    lam, diags[w], seconds, w, iteration, bar, capture, cb[w])
-                        for w, ranges in enumerate(per)]
-                for j in jobs:
-                    j.result()
+            with ThreadPoolExecutor(len(per)) as pool:
+                with blas_limits(1):
+                    jobs = [pool.submit(_run_nodes, p, work, blk, opts, tree, solver, ranges,
+                                        lam, diags[w], seconds, w, iteration, bar, capture,
+                                        cb[w]) for w, ranges in enumerate(per)]
+                    for j in jobs:
+                        j.result()
                 diag = _summed(diags, lam)
-                if top:   # each large front split between this thread and the pool's
+                # the top: a large front in core split between this thread and the pool's
+                # (each on one BLAS thread), the others (tiled, or a child's update in
+                # panels on disk) with every thread in BLAS
+                if top:
                     solver.pool = pool
                     try:
                         _run_nodes(p, work, blk, opts, tree, solver, [(j, j + 1) for j in top],
