@@ -624,8 +624,9 @@ class TreeSolver:
         then a right-looking blocked Cholesky of the own columns in panels of about
         :data:`SPLIT_PANEL` columns: the panel's diagonal block on one thread, the rows
         below it (``dtrsm``) and the trailing lower triangle (``dsyrk``, ``dgemm``) split in
-        two. (OpenBLAS's own two threads took 1.5-3 times as long on the 100 x 100 block's
-        top fronts, and varied 5x: many small calls, each waking the other virtual CPU.)
+        two. (OpenBLAS's own two threads took 14-60 ms on the 100 x 100 block's two top
+        fronts, depending on the phase of the VM: many small calls, each waking the other
+        virtual CPU; split, 17-20 ms.)
         Returns ``(fail, y1'y1)`` as :func:`_eliminate_front`."""
         m = own.shape[1]
         kf = m + f
