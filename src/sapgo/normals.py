@@ -919,13 +919,15 @@ class PointChunk:
 
     def __init__(self, project, start, stop, xyz, camera, cam_sigma, frame=None, rejected=None,
                  rejected_points=None):
+        # kept for the run (Project.keep_point_chunks): the first chunk of these points, for
+        # this camera table and frame (another asks afresh, and is not kept)
         kept = getattr(project, "point_chunks", None)
         entry = kept.get((start, stop)) if kept is not None else None
         if entry is None or entry[0] is not camera or entry[1] is not cam_sigma \
                 or entry[2] is not frame:
             base = _chunk_arrays(project, start, stop, camera, cam_sigma, frame)
             size = sum(a.nbytes for a in base if isinstance(a, np.ndarray))
-            if kept is not None and project.point_chunk_room >= size:
+            if kept is not None and entry is None and project.point_chunk_room >= size:
                 kept[(start, stop)] = (camera, cam_sigma, frame, base)
                 project.point_chunk_room -= size
         else:

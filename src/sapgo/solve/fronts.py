@@ -424,7 +424,8 @@ class TreeSolver:
     upd)``, its own columns and its update block; the caller adds the node's own
     contributions into their lower triangles and ``b``, then ``solver.eliminate(i, A, b,
     damping)`` (a tiled front: :meth:`eliminate_tiled`). After the last node, ``solve()``
-    returns ``delta`` (stations x k) and ``y_norm2`` is ``y'y``. ``inverse(on_node)`` runs the selected inversion afterwards.
+    returns ``delta`` (stations x k) and ``y_norm2`` is ``y'y``. ``inverse(on_node)`` runs
+    the selected inversion afterwards.
 
     Self-calibration (``n_border`` columns ``B`` of the stations against the border's
     unknowns): ``b`` is ``kf x (1 + n_border)``, the right-hand side and then the front's

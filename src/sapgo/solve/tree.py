@@ -329,8 +329,9 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     solving (the rest is the build). Raises :class:`~sapgo.solve.band.PivotError` (logical
     station, parameter) when the normals are not positive definite and
     :class:`~sapgo.solve.band.BorderPivotError` when the border's are not.
-    ``capture(i, front, rhs)`` (benchmarks) sees each node's front with its own points, priors and damping, before the
-    children's updates are added: their sum over the nodes is the reduced normal matrix.
+    ``capture(i, front, rhs)`` (benchmarks) sees each node's front with its own points,
+    priors and damping, before the children's updates are added: their sum over the nodes
+    is the reduced normal matrix.
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -374,60 +375,59 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     # the border's block, right-hand side and undamped diagonal, a set per thread
     cb = [(np.zeros((ng, ng)), np.zeros(ng), np.zeros(ng)) for _ in range(len(per) + 1)]
     seconds = np.zeros(len(per) + 1)
-    top_done = False   # (the top nodes with the parts' threads)
-    with _progress(opts.progress, p.n_points, "build") as bar:
-        if client is not None:
-            from .distributed import distributed_step
+    pool = None   # the parts' threads, kept for the top (a large front split between them)
+    try:
+        with _progress(opts.progress, p.n_points, "build") as bar:
+            if client is not None:
+                from .distributed import distributed_step
 
-            file.close()   # the workers write their records; read back after them
-            diags[:len(per)], cb[:len(per)], sec = distributed_step(
-                p, work, blk, opts, tree, solver, per, top, lam, iteration, bar)
-            seconds[:len(per)] = sec
-            file = FactorFile(work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
-            solver.file = file
-        elif len(per) > 1:
-            with ThreadPoolExecutor(len(per)) as pool:
+                file.close()   # the workers write their records; read back after them
+                diags[:len(per)], cb[:len(per)], sec = distributed_step(
+                    p, work, blk, opts, tree, solver, per, top, lam, iteration, bar)
+                seconds[:len(per)] = sec
+                file = FactorFile(work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
+                solver.file = file
+            elif len(per) > 1:
+                pool = ThreadPoolExecutor(len(per))
                 with blas_limits(1):
                     jobs = [pool.submit(_run_nodes, p, work, blk, opts, tree, solver, ranges,
                                         lam, diags[w], seconds, w, iteration, bar, capture,
                                         cb[w]) for w, ranges in enumerate(per)]
                     for j in jobs:
                         j.result()
-                diag = _summed(diags, lam)
-                # the top: a large front in core split between this thread and the pool's
-                # (each on one BLAS thread), the others (tiled, or a child's update in
-                # panels on disk) with every thread in BLAS
-                if top:
-                    solver.pool = pool
-                    try:
-                        _run_nodes(p, work, blk, opts, tree, solver, [(j, j + 1) for j in top],
-                                   lam, diag, seconds, len(per), iteration, bar, capture,
-                                   cb[len(per)])
-                    finally:
-                        solver.pool = None
-                    top_done = True
-        else:
-            _run_nodes(p, work, blk, opts, tree, solver, per[0], lam, diags[0], seconds, 0,
-                       iteration, bar, capture, cb[0])
-        if client is not None or len(per) == 1:
-            diag = _summed(diags, lam)
-        if top and client is not None:   # Dask: the top's fronts on the workers too
-            from .distributed import distributed_top
-
-            t_top = time.perf_counter()
+            else:
+                _run_nodes(p, work, blk, opts, tree, solver, per[0], lam, diags[0], seconds,
+                           0, iteration, bar, capture, cb[0])
+            diag = None
             if lam > 0.0:
-                points_diagonal(p, work, blk, opts, tree, top, diag)
-            distributed_top(client, p, work, blk, opts, tree, solver, top, work._dask_parts,
-                            lam, diag, cb[len(per)])
-            work._dask_parts = work._blk_future = None   # (the parts' updates go)
-            file.close()   # (opened again: what the workers wrote, seen on any filesystem)
-            file = FactorFile(work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
-            solver.file = file
-            seconds[len(per)] += time.perf_counter() - t_top
-            bar.update(sum(int(tree.pt_start[j + 1] - tree.pt_start[j]) for j in top))
-        elif top and not top_done:
-            _run_nodes(p, work, blk, opts, tree, solver, [(j, j + 1) for j in top], lam,
-                       diag, seconds, len(per), iteration, bar, capture, cb[len(per)])
+                diag = diags[0]
+                for d in diags[1:]:
+                    diag += d
+            if top and client is not None:   # Dask: the top's fronts on the workers too
+                from .distributed import distributed_top
+
+                t_top = time.perf_counter()
+                if lam > 0.0:
+                    points_diagonal(p, work, blk, opts, tree, top, diag)
+                distributed_top(client, p, work, blk, opts, tree, solver, top,
+                                work._dask_parts, lam, diag, cb[len(per)])
+                work._dask_parts = work._blk_future = None   # (the parts' updates go)
+                file.close()   # (opened again: what the workers wrote, on any filesystem)
+                file = FactorFile(work.dir / FACTOR_FILE, layout, n_rhs=1 + ng)
+                solver.file = file
+                seconds[len(per)] += time.perf_counter() - t_top
+                bar.update(sum(int(tree.pt_start[j + 1] - tree.pt_start[j]) for j in top))
+            elif top:
+                # with the parts' threads: a large front in core split between this thread
+                # and the pool's (each on one BLAS thread), the others (tiled, or a child's
+                # update in panels on disk) with every thread in BLAS
+                solver.pool = pool
+                _run_nodes(p, work, blk, opts, tree, solver, [(j, j + 1) for j in top], lam,
+                           diag, seconds, len(per), iteration, bar, capture, cb[len(per)])
+    finally:
+        solver.pool = None
+        if pool is not None:
+            pool.shutdown()
     t0 = time.perf_counter()
     out = {"diag": diag, "border": None, "theta": None, "border_cov": None}
     theta = None
@@ -452,15 +452,6 @@ def tree_step(p, work, blk, opts, tree, lam=0.0, iteration=0, threads=None, capt
     out["seconds"] = (float(seconds[:len(per)].max() + seconds[len(per)])
                       + time.perf_counter() - t0)
     return out
-
-
-def _summed(diags, lam):
-    """The threads' undamped diagonals summed (into the first), or None without damping."""
-    if lam <= 0.0:
-        return None
-    for d in diags[1:]:
-        diags[0] += d
-    return diags[0]
 
 
 def _run_nodes(p, work, blk, opts, tree, solver, ranges, lam, diag, seconds, slot,
