@@ -735,7 +735,7 @@ def build_parser():
                         "(nested dissection: square, irregular and unordered blocks), or "
                         "auto (default): the one of the smaller predicted factorisation time")
     o.add_argument("--leaf-stations", type=int, default=None, metavar="N",
-                   help="the partition tree's largest leaf (default 48 stations)")
+                   help="the partition tree's largest leaf (default 24 stations)")
     o.add_argument("--page-stations", type=int, default=None, metavar="N",
                    help="above N photos keep the per-photo vectors and the station graph in "
                         "memory-mapped scratch files beside the project, their pages "
