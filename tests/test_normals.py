@@ -196,3 +196,44 @@ def test_kept_point_chunks_change_nothing(tmp_path, monkeypatch, solver):
     with Project(pk) as qk, Project(pa) as qa:
         for name in ("station_corr", "point_corr", "residuals", "point_sigma"):
             np.testing.assert_array_equal(qk.solution(name), qa.solution(name))
+
+
+def test_part_of_a_kept_chunk_is_the_chunk_read_afresh(tmp_path):
+    """A chunk of points inside a kept one (the tree's precision pass asks node by node) is
+    served as views of the kept arrays, equal to the same points converted afresh; a range
+    no kept chunk holds, or another camera table, is read afresh and not kept."""
+    import sapgo
+    from sapgo import normals
+    from sapgo.normals import PointChunk
+
+    path = tmp_path / "b.h5"
+    sapgo.generate_block(path, strips=3, photos_per_strip=6, control_points=4, progress=False)
+    with Project(path) as p:
+        blk = _load_block(p)
+        n = p.n_points
+        xyz = p.read("points")["xyz"]
+        p.keep_point_chunks(1 << 30, 1 << 30)
+        whole = PointChunk(p, 0, n // 2, xyz[:n // 2], blk.camera, blk.cam_sigma, blk.frame)
+        assert list(p.point_chunks) == [(0, n // 2)]
+        rng = np.random.default_rng(0)
+        cases = [(0, n // 2), (3, 4), (0, 1), (n // 2 - 1, n // 2), (5, 5)]
+        cases += [tuple(sorted(rng.integers(0, n // 2 + 1, 2))) for _ in range(20)]
+        for a, b in cases:
+            part = PointChunk(p, a, b, xyz[a:b], blk.camera, blk.cam_sigma, blk.frame)
+            fresh = normals._chunk_arrays(p, a, b, blk.camera, blk.cam_sigma, blk.frame)
+            got = (part.o0, part.o1, part.kind, part.ctrl, part.csig, part.rot,
+                   part.pt_start, part.nobs, part.smax, part.smin, part.active,
+                   part.obs_station, part.obs_xy, part.obs_sigma, part.obs_active)
+            if b > a:
+                for x, y in zip(got, fresh[:-1]):
+                    np.testing.assert_array_equal(x, y)
+                assert np.shares_memory(part.obs_xy, whole.obs_xy)
+            assert part.max_rays >= fresh[-1]
+        assert list(p.point_chunks) == [(0, n // 2)]   # (parts are not kept again)
+        # beyond the kept chunk, or for another camera table: read afresh
+        other = PointChunk(p, n // 2 - 1, n // 2 + 1, xyz[n // 2 - 1:n // 2 + 1], blk.camera,
+                           blk.cam_sigma, blk.frame)
+        assert not np.shares_memory(other.obs_xy, whole.obs_xy)
+        cams = blk.camera.copy()
+        again = PointChunk(p, 1, 3, xyz[1:3], cams, blk.cam_sigma, blk.frame)
+        assert not np.shares_memory(again.obs_xy, whole.obs_xy)

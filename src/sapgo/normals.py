@@ -923,15 +923,17 @@ class PointChunk:
         # this camera table and frame (another asks afresh, and is not kept)
         kept = getattr(project, "point_chunks", None)
         entry = kept.get((start, stop)) if kept is not None else None
-        if entry is None or entry[0] is not camera or entry[1] is not cam_sigma \
-                or entry[2] is not frame:
+        same = (entry is not None and entry[0] is camera and entry[1] is cam_sigma
+                and entry[2] is frame)
+        base = entry[3] if same else None
+        if base is None and entry is None and kept:   # a part of a kept chunk (views)
+            base = _kept_part(kept, start, stop, camera, cam_sigma, frame)
+        if base is None:
             base = _chunk_arrays(project, start, stop, camera, cam_sigma, frame)
             size = sum(a.nbytes for a in base if isinstance(a, np.ndarray))
             if kept is not None and entry is None and project.point_chunk_room >= size:
                 kept[(start, stop)] = (camera, cam_sigma, frame, base)
                 project.point_chunk_room -= size
-        else:
-            base = entry[3]
         (self.o0, self.o1, self.kind, self.ctrl, self.csig, self.rot, self.pt_start, self.nobs,
          self.smax, self.smin, self.active, self.obs_station, self.obs_xy, self.obs_sigma,
          self.obs_active, self.max_rays) = base
@@ -947,6 +949,25 @@ class PointChunk:
             if hi > lo:
                 self.active = self.active.copy()
                 self.active[rejected_points[lo:hi] - start] = 1
+
+
+def _kept_part(kept, start, stop, camera, cam_sigma, frame):
+    """:func:`_chunk_arrays` of points ``start .. stop`` as views of a kept chunk that holds
+    them all (read for the same cameras and frame), or None. (The precision pass on the
+    tree asks node by node for parts of the build's chunks.)"""
+    for (a, b), (cam, sig, fr, base) in kept.items():
+        if a <= start and stop <= b and cam is camera and sig is cam_sigma and fr is frame:
+            break
+    else:
+        return None
+    (o0, _, kind, ctrl, csig, rot, pt_start, nobs, smax, smin, active, obs_station,
+     obs_xy, obs_sigma, obs_active, max_rays) = base
+    i, j = start - a, stop - a
+    q0 = int(pt_start[i]) if j > i else 0
+    q1 = int(pt_start[j - 1] + nobs[j - 1]) if j > i else 0
+    return (o0 + q0, o0 + q1, kind[i:j], ctrl[i:j], csig[i:j], rot[i:j], pt_start[i:j] - q0,
+            nobs[i:j], smax[i:j], smin[i:j], active[i:j], obs_station[q0:q1], obs_xy[q0:q1],
+            obs_sigma[q0:q1], obs_active[q0:q1], max_rays)
 
 
 #: Bytes of :class:`PointChunk`'s arrays a point and an observation (kept for a run by
