@@ -187,6 +187,8 @@ def check_values(project: Project, ordered_layout=True):
     if expected_start != project.n_observations:
         raise DataError(f"{path}: the points reference {expected_start} observations, "
                         f"the project has {project.n_observations}")
+    reach_of_camera = FORMAT_REACH * np.maximum(cams["format_x"], cams["format_y"])
+    x0_of_camera, y0_of_camera = cams["x0"], cams["y0"]
     for a, b in project.chunks("observations"):
         obs = project.read("observations", a, b)
         pt = obs["point"]
@@ -211,12 +213,14 @@ def check_values(project: Project, ordered_layout=True):
         if i >= 0:
             raise DataError(f"observations record {a + i}: sigma must not be negative "
                             f"(0 takes the camera's sigma_image)")
-        c = cams[cam_of_station[obs["station"]]]
-        reach = FORMAT_REACH * np.maximum(c["format_x"], c["format_y"])
-        far = (reach > 0) & ((np.abs(obs["x"] - c["x0"]) > reach)
-                             | (np.abs(obs["y"] - c["y0"]) > reach))
+        # (per camera, then per observation: a field at a time, not the cameras' records)
+        cam = cam_of_station[obs["station"]]
+        reach = reach_of_camera[cam]
+        far = (reach > 0) & ((np.abs(obs["x"] - x0_of_camera[cam]) > reach)
+                             | (np.abs(obs["y"] - y0_of_camera[cam]) > reach))
         i = _first_bad(far)
         if i >= 0:
+            c = cams[cam]
             pid = project.read("points", int(pt[i]), int(pt[i]) + 1)["id"][0]
             sid = project.read("stations", int(obs["station"][i]),
                                int(obs["station"][i]) + 1)["id"][0]
