@@ -697,6 +697,7 @@ def test_large_strip_block_keeps_the_band_without_partitioning_it(monkeypatch):
 
     monkeypatch.setattr(ordering, "SCREEN_STATIONS", 1000)
     monkeypatch.setattr(ordering, "WINDOW_STATIONS", 600)
+    monkeypatch.setattr(ordering, "MIN_WINDOW_STATIONS", 100)
     calls = []
     real = partition.best_tree
 
@@ -729,4 +730,5 @@ def test_large_strip_block_keeps_the_band_without_partitioning_it(monkeypatch):
     b = band_width(40, 40, edges)
     tree, _, pred = ordering.choose_solver(pos, np.ones(1600, bool), edges, b,
                                            band_perm=band_order(40, 40))
-    assert calls == [600, 1600] and tree is not None and pred["tree"] < pred["band"]
+    # (the window: a fifth of the block, 320 stations)
+    assert calls == [320, 1600] and tree is not None and pred["tree"] < pred["band"]
