@@ -955,7 +955,7 @@ def _kept_part(kept, start, stop, camera, cam_sigma, frame):
     """:func:`_chunk_arrays` of points ``start .. stop`` as views of a kept chunk that holds
     them all (read for the same cameras and frame), or None. (The precision pass on the
     tree asks node by node for parts of the build's chunks.)"""
-    for (a, b), (cam, sig, fr, base) in kept.items():
+    for (a, b), (cam, sig, fr, base) in list(kept.items()):   # (another thread may add)
         if a <= start and stop <= b and cam is camera and sig is cam_sigma and fr is frame:
             break
     else:
