@@ -93,6 +93,25 @@ def test_replay_gives_the_file_s_adjustment(prior_block, tmp_path, monkeypatch, 
         equal(f[k], r[k], 1e-12, k)
 
 
+@pytest.mark.parametrize("kw", [dict(method="gauss-newton"), dict(snooping=True),
+                                dict(calibrate=("f",)), dict(datum="free")])
+def test_factor_in_core_is_the_file_s_bit_for_bit(prior_block, tmp_path, kw):
+    """The factor rows in core (the same kernels, taken out of the solver's ring straight
+    into the arrays): every result equal to the file's to the last bit, with snooping,
+    self-calibration's border and a free network's inner precision too; nothing written."""
+    s_f, f = run(prior_block, tmp_path, "file", factor_storage="file", **kw)
+    path = tmp_path / "kept.h5"
+    shutil.copy(prior_block, path)
+    s_c = sapgo.adjust(path, sapgo.Options(**OPTS, factor_storage="core", keep_scratch=True,
+                                           **kw))
+    names = {x.name for x in work_path(path).iterdir()}
+    assert not {"factor.bin", "y.bin", "replay.bin"} & names
+    _, c = run(prior_block, tmp_path, "core", factor_storage="core", **kw)
+    assert s_c.iterations == s_f.iterations and s_c.sigma0 == s_f.sigma0
+    for k in ("eo", "xyz", "residuals", "station_sigma", "point_sigma", "obs_quality"):
+        equal(f[k], c[k], 0, k)
+
+
 def test_replay_with_snooping_rejects_the_same(prior_block, tmp_path, monkeypatch):
     monkeypatch.setattr(band_mod, "REPLAY_SEGMENT_BYTES", 1)
     s_f, f = run(prior_block, tmp_path, "file", factor_storage="file", snooping=True)
@@ -147,10 +166,12 @@ RUN = ("import sys, sapgo, sapgo.solve.band as b; b.REPLAY_SEGMENT_BYTES = 1; "
 
 
 @pytest.mark.parametrize("fault, resume_with", [("solve:2", "replay"), ("build:2", "replay"),
-                                                ("update:1", "replay"), ("solve:2", "file")])
+                                                ("update:1", "replay"), ("solve:2", "file"),
+                                                ("update:2", "core")])
 def test_replay_killed_and_resumed(prior_block, tmp_path, monkeypatch, fault, resume_with):
     """Killed anywhere, resumed: the uninterrupted result, also when the resumed run keeps
-    its factor in a file (``auto`` may choose otherwise once the free disk has changed)."""
+    its factor in a file or in core (``auto`` may choose otherwise once the free disk has
+    changed)."""
     monkeypatch.setattr(band_mod, "REPLAY_SEGMENT_BYTES", 1)
     _, ref = run(prior_block, tmp_path, "ref", factor_storage="replay")
     path = tmp_path / "killed.h5"
@@ -170,16 +191,27 @@ def test_replay_killed_and_resumed(prior_block, tmp_path, monkeypatch, fault, re
 
 
 def test_auto_replays_beyond_its_share_of_memory(prior_block, tmp_path, monkeypatch):
-    """``--factor-storage auto``: the file up to half the machine's memory in factor rows,
-    the replay beyond (a share made tiny here)."""
+    """``--factor-storage auto``: in core up to a quarter of the memory budget, the file up
+    to half the machine's memory in factor rows, the replay beyond (shares made tiny here);
+    the same adjustment in each."""
     import importlib
 
     adjust_mod = importlib.import_module("sapgo.adjust")
     assert adjust_mod.factor_file_limit() > 1 << 28
-    for fraction, expect in [(1 / 2, "factor.bin"), (1e-12, "replay.bin")]:
+    assert adjust_mod.factor_core_limit(sapgo.Options()) == 1 << 28
+    assert adjust_mod.factor_core_limit(sapgo.Options(memory="2G")) == 1 << 29
+    eo = {}
+    for core, fraction, expect in [(1 / 4, 1 / 2, None), (1e-12, 1 / 2, "factor.bin"),
+                                   (1e-12, 1e-12, "replay.bin")]:
+        monkeypatch.setattr(adjust_mod, "FACTOR_CORE_FRACTION", core)
         monkeypatch.setattr(adjust_mod, "FACTOR_FILE_FRACTION", fraction)
         path = tmp_path / f"auto-{expect}.h5"
         shutil.copy(prior_block, path)
         sapgo.adjust(path, sapgo.Options(**OPTS, keep_scratch=True))
         names = {x.name for x in work_path(path).iterdir()}
-        assert expect in names and ({"factor.bin", "replay.bin"} - {expect}).isdisjoint(names)
+        assert ({"factor.bin", "replay.bin"} - {expect}).isdisjoint(names)
+        assert expect is None or expect in names
+        with Project(path) as p:
+            eo[expect] = p.read("stations")["eo"]
+    equal(eo["factor.bin"], eo[None], 1e-12, "eo in core")
+    equal(eo["factor.bin"], eo["replay.bin"], 1e-12, "eo replayed")

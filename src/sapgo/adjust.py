@@ -112,6 +112,8 @@ from .validate import check_values
 ARCSEC = math.pi / (180 * 3600)
 #: Solution methods (:attr:`Options.method`).
 METHODS = ("auto", "gauss-newton", "levenberg-marquardt")
+#: Where the band's factor rows live (``Options.factor_storage``).
+FACTOR_STORAGES = ("auto", "core", "file", "replay")
 #: The datums ``--datum`` names (:attr:`Options.datum`; None: the project's).
 DATUMS = (None, "control", "priors", "free")
 #: Iterations of a run without ``max_iterations``: Gauss-Newton converges in a few, the
@@ -215,13 +217,15 @@ class Options:
     #: "stations" (the stations' alone, in a fraction of the time) or "none".
     precision: str = "full"
     #: Where the band's factor rows live between the factorisation and the passes that read
-    #: them back (``--factor-storage``): "file" (``factor.bin``: 12 KB a photo at band width
-    #: 42, read back at the disk's speed once beyond the page cache), "replay" (no factor
-    #: file: the solver's state at the start of every segment of about 5 000 photos, and
-    #: each segment refactored from its band rows built again when it is read back;
-    #: :class:`sapgo.solve.band.FactorReplay`) or "auto" (replay when the factor would
+    #: them back (``--factor-storage``): "core" (arrays in the process: no file written or
+    #: read back), "file" (``factor.bin``: 12 KB a photo at band width 42, read back at the
+    #: disk's speed once beyond the page cache), "replay" (no factor file: the solver's state
+    #: at the start of every segment of about 5 000 photos, and each segment refactored from
+    #: its band rows built again when it is read back;
+    #: :class:`sapgo.solve.band.FactorReplay`) or "auto" (core when the factor takes at
+    #: most a quarter of the memory budget, :func:`factor_core_limit`; replay when it would
     #: exceed half the machine's memory, :func:`factor_file_limit`, or nine tenths of the
-    #: free disk). Self-calibration's border needs the file.
+    #: free disk; else the file). Self-calibration's border cannot be replayed.
     factor_storage: str = "auto"
     #: Above this many stations the per-station vectors of the run (orientations, step,
     #: variances: 48 bytes a station each) are memory-mapped from scratch files whose pages
@@ -318,9 +322,9 @@ class Options:
                              f"named twice (a parameter is shared by a camera's photos or "
                              f"adjusted per photo, not both)")
         self.fix = tuple(parse_fix(f) for f in self.fix)
-        if self.factor_storage not in ("auto", "file", "replay"):
-            raise ParameterError(f"factor storage {self.factor_storage!r}: choose auto, file or "
-                                 f"replay")
+        if self.factor_storage not in FACTOR_STORAGES:
+            raise ParameterError(f"factor storage {self.factor_storage!r}: choose "
+                                 f"{', '.join(FACTOR_STORAGES)}")
         if self.page_stations is not None and self.page_stations < 0:
             raise ParameterError(f"page stations {self.page_stations}: a number of stations, "
                                  f"0 or more")
@@ -528,6 +532,8 @@ class _Block:
     held: int = 0
     #: the band's factor is replayed, not kept in a file (``Options.factor_storage``)
     replay: bool = False
+    #: the band's factor rows are arrays in core, not a file (``Options.factor_storage``)
+    core: bool = False
 
     @property
     def solver(self):
@@ -1825,23 +1831,49 @@ def factor_file_limit():
     return int(FACTOR_FILE_FRACTION * mem)
 
 
-def _choose_replay(blk: _Block, opts: Options, work_dir):
-    """Whether the band's factor is replayed (``blk.replay``), by ``opts.factor_storage``:
-    "auto" replays a factor beyond :func:`factor_file_limit` or beyond nine tenths of the
-    free space where the work files go."""
+#: The band's factor rows are kept in core by ``--factor-storage auto`` up to this fraction
+#: of the memory budget (``--memory``, default :data:`DEFAULT_CORE_BUDGET`).
+FACTOR_CORE_FRACTION = 1 / 4
+
+#: The memory budget :func:`factor_core_limit` divides when ``--memory`` is not given.
+DEFAULT_CORE_BUDGET = 1 << 30
+
+
+def factor_core_limit(opts: Options):
+    """Bytes of band factor rows up to which ``--factor-storage auto`` keeps them in core."""
+    total = DEFAULT_CORE_BUDGET if opts.memory is None else parse_memory(opts.memory)
+    return int(FACTOR_CORE_FRACTION * total)
+
+
+def _choose_storage(blk: _Block, opts: Options, work_dir):
+    """Where the band's factor rows go, by ``opts.factor_storage``: sets ``blk.replay``
+    and ``blk.core``. "auto" keeps them in core up to :func:`factor_core_limit`, replays a
+    factor beyond :func:`factor_file_limit` or beyond nine tenths of the free space where
+    the work files go, and writes the file between the two."""
+    blk.replay = blk.core = False
     if blk.tree is not None:
-        return False
+        return
     if opts.factor_storage == "replay":
         if blk.n_border:
             raise ParameterError("--factor-storage replay: self-calibration's border needs "
-                                 "the factor file; use --factor-storage file (or auto)")
-        return True
-    factor = 8 * len(blk.station_ids) * blk.npar * blk.npar * blk.band_width
-    if opts.factor_storage != "auto" or blk.n_border:
-        return False
+                                 "the factor file (or the factor in core); use "
+                                 "--factor-storage core, file or auto")
+        blk.replay = True
+        return
+    factor = 8 * len(blk.station_ids) * blk.npar * (blk.npar * blk.band_width + 1)
+    if opts.factor_storage == "core":
+        blk.core = True
+        return
+    if opts.factor_storage != "auto":
+        return
+    if factor <= factor_core_limit(opts):
+        blk.core = True
+        return
+    if blk.n_border:
+        return
     from .project import free_space
 
-    return factor > factor_file_limit() or factor > 0.9 * free_space(work_dir)[1]
+    blk.replay = factor > factor_file_limit() or factor > 0.9 * free_space(work_dir)[1]
 
 
 def _work_band(blk: _Block):
@@ -1975,18 +2007,19 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                              f"starting from the beginning\n")
         converged = False
         work = None
-        blk.replay = _choose_replay(blk, opts, wpath)
+        _choose_storage(blk, opts, wpath)
         if checkpoint is not None:
             try:
                 work = Work(wpath, p, _work_band(blk), create=False, block=blk.npar,
-                            n_border=blk.n_border, replay=blk.replay)
+                            n_border=blk.n_border, replay=blk.replay,
+                            core=blk.core)
             except (OSError, ValueError) as exc:  # work files missing or cut short
                 sys.stderr.write(f"sapgo: warning: the interrupted run of {path} cannot be "
                                  f"resumed ({exc}); starting from the beginning\n")
                 checkpoint = None
         if work is None:
             work = Work(wpath, p, _work_band(blk), create=True, block=blk.npar,
-                        n_border=blk.n_border, replay=blk.replay)
+                        n_border=blk.n_border, replay=blk.replay, core=blk.core)
         if blk.tree is not None:   # (the factor's pages mapped meanwhile, when in core)
             from .solve.tree import start_arena
 

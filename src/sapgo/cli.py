@@ -930,13 +930,15 @@ def build_parser():
                         "normalised residual above the critical value and adjust again, until "
                         "none is left (rejected observations are flagged, not deleted; "
                         "default: no snooping)")
-    a.add_argument("--factor-storage", choices=("auto", "file", "replay"), default="auto",
+    a.add_argument("--factor-storage", choices=("auto", "core", "file", "replay"),
+                   default="auto",
                    help="the band's factor between the factorisation and the passes that read "
-                        "it back: file (factor.bin, 12 KB a photo at band width 42), replay "
-                        "(no factor file: each segment refactored from its rows built again, "
-                        "scratch growing with the band, not the photos) or auto (replay "
-                        "beyond half the memory or nine tenths of the free disk; the "
-                        "default)")
+                        "it back: core (in memory, nothing written), file (factor.bin, 12 KB "
+                        "a photo at band width 42), replay (no factor file: each segment "
+                        "refactored from its rows built again, scratch growing with the "
+                        "band, not the photos) or auto (core up to a quarter of --memory, "
+                        "default 1 GiB; replay beyond half the machine's memory or nine "
+                        "tenths of the free disk; else file; the default)")
     a.add_argument("--page-stations", type=int, default=None, metavar="N",
                    help="above N stations keep the per-station vectors (orientations, step, "
                         "variances: 48 bytes a photo each) in memory-mapped scratch files "

@@ -55,7 +55,8 @@ class Work:
     """The work directory of a run: scratch record files and the checkpoint.
 
     Files: ``factor.bin`` (n x 6 x 6b factor rows, diagonal-first), ``y.bin`` (n x 6, the
-    forward-substituted right-hand side),
+    forward-substituted right-hand side; both arrays in core instead with ``core``, and
+    neither with ``replay``),
     ``xyz.0.bin`` / ``xyz.1.bin`` (point coordinates, double-buffered), ``residuals.0.bin`` /
     ``residuals.1.bin`` (vx, vy of every observation), ``eo.K.npy`` (the stations'
     orientation after iteration K) and ``checkpoint.json`` (the last completed iteration K,
@@ -63,7 +64,7 @@ class Work:
     """
 
     def __init__(self, path, p: Project, band_width, create, block=6, n_border=0,
-                 replay=False):
+                 replay=False, core=False):
         self.dir = Path(path)
         self.n_st, self.n_pt, self.n_obs = p.n_stations, p.n_points, p.n_observations
         self.band_width = band_width
@@ -77,7 +78,7 @@ class Work:
         if create:   # (the files are sparse: the bytes they can come to)
             from .project import ensure_free
 
-            rows = k * (k * bw + 1)
+            rows = 0 if core else k * (k * bw + 1)
             if replay:   # a solver state (k b columns of k b + P doubles) a segment
                 from .solve.band import REPLAY_SEGMENT_BYTES
 
@@ -88,7 +89,10 @@ class Work:
             ensure_free(self.dir, need, "the run's work files")
         # (a replayed factor, sapgo.solve.band.FactorReplay, has no factor file: replay.bin)
         self.factor = self.y = None
-        if not replay:   # (a run resumed with the file that started replaying makes it:
+        if core:   # in core (``--factor-storage core``): arrays, gone with the process
+            self.factor = np.empty((self.n_st, k, k * bw))
+            self.y = np.empty((self.n_st, k))
+        elif not replay:   # (a run resumed with the file that started replaying makes it:
             # a resumed run factors anew before it reads the factor)
             fmode = mode if (self.dir / "factor.bin").exists() else "w"
             self.factor = RawArray(self.dir / "factor.bin", (self.n_st, k, k * bw), mode=fmode)
@@ -202,7 +206,7 @@ class Work:
     def close(self):
         self.drop_replay()
         for a in [self.factor, self.y, *self.xyz, *self.res]:
-            if a is not None:
+            if isinstance(a, RawArray):
                 a.close()
         if self.border is not None:
             self.border.close()

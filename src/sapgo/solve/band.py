@@ -577,6 +577,9 @@ class BandSolver:
         if p % kb:
             raise ValueError(f"panel width {p} is not a multiple of {kb}")
         self.factor_ds, self.y_ds = factor_ds, y_ds
+        # factor rows in core (C-contiguous arrays): taken out of the ring into them directly
+        self._in_place = all(isinstance(a, np.ndarray) and a.flags.c_contiguous
+                             and a.dtype == np.float64 for a in (factor_ds, y_ds))
         self.chunk_rows = max(1, chunk_rows)
         self.pivot_tol = pivot_tol
         self.progress = progress
@@ -677,8 +680,11 @@ class BandSolver:
         first ``6 b`` doubles of each column of ``L``)."""
         i0 = self.stored
         kb = self.block
-        fac = np.empty((i1 - i0, kb, self.width))
-        rhs = np.empty((i1 - i0, kb))
+        if self._in_place:
+            fac, rhs = self.factor_ds[i0:i1], self.y_ds[i0:i1]
+        else:
+            fac = np.empty((i1 - i0, kb, self.width))
+            rhs = np.empty((i1 - i0, kb))
         _take_cols(self.a, self.y, self.ring, self.ld1, (kb * i0) % self.ring, fac, rhs)
         self.stored = i1
         return i0, fac, rhs
@@ -691,8 +697,9 @@ class BandSolver:
             if self.replay is not None:
                 self.replay.keep_tail(i0, band, rhs)
             return
-        self.factor_ds[i0:i0 + len(band)] = band
-        self.y_ds[i0:i0 + len(rhs)] = rhs
+        if not self._in_place:
+            self.factor_ds[i0:i0 + len(band)] = band
+            self.y_ds[i0:i0 + len(rhs)] = rhs
 
     def finish(self, border=None, back=True):
         """Factor the rest (every row must have been fed) and return ``delta`` (n x 6).
