@@ -342,6 +342,12 @@ def test_reliability_formulas():
         assert chi2_isf(alpha) == pytest.approx(crit, rel=1e-14)
         ref = brentq(lambda lam: ncx2.sf(crit, 2, lam) - 0.8, 1e-6, 1e4, xtol=1e-14)
         assert noncentrality(alpha) == pytest.approx(ref, rel=1e-11)
+        for dof in (1, 2, 4):   # any power, any (even or odd) degrees of freedom
+            crit = chi2.isf(alpha, dof)
+            for power in (0.5, 0.99):
+                ref = brentq(lambda lam: ncx2.sf(crit, dof, lam) - power, 1e-9, 1e4,
+                             xtol=1e-14)
+                assert noncentrality(alpha, power, dof) == pytest.approx(ref, rel=1e-11)
     for dof in (2, 4):
         for x in (0.1, 3.0, 13.8, 50.0, 300.0):
             for lam in (0.0, 0.5, 10.0, 400.0, 3000.0):

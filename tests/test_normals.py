@@ -143,6 +143,39 @@ def test_parallel_update_equals_the_one_thread_kernel(p1_block, threads):
     assert st1[7] == st2[7] == bad + 1 and st1[8] == st2[8] != 0
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3, 50])
+def test_parallel_station_diagonal_equals_the_obvious_sum(p1_block, threads):
+    """station_diagonal_parallel (runs of points on threads, each into a buffer of its own
+    stations) equals the diagonal of A'PA summed observation by observation in Python from
+    the collinearity partials, for any number of runs; an inactive point and a rejected
+    observation add nothing. Added to what ``diag`` held."""
+    from sapgo.geometry import linearize
+    from sapgo.normals import PointChunk, station_diagonal_parallel
+
+    order_project(p1_block)
+    with Project(p1_block) as p:
+        blk = _load_block(p)
+        c = PointChunk(p, 0, p.n_points, p.read_field("points", "xyz"), blk.camera,
+                       blk.cam_sigma, blk.frame, blk.rejected, blk.rejected_points)
+    c.active[3] = 1
+    c.obs_active[c.pt_start[5]] = False
+    ref = np.full((len(blk.eo), 6), 2.0)
+    a, b = np.empty((2, 6)), np.empty((2, 3))
+    for j in range(len(c.xyz)):
+        if c.active[j] != 0:
+            continue
+        for i in range(c.pt_start[j], c.pt_start[j] + c.nobs[j]):
+            if c.obs_active[i]:
+                s = c.obs_station[i]
+                linearize(blk.eo[s], c.xyz[j], blk.cams[blk.camera[s]], a, b)
+                ref[s] += (a * a).sum(axis=0) / c.obs_sigma[i] ** 2
+    diag = np.full((len(blk.eo), 6), 2.0)
+    station_diagonal_parallel(threads, c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
+                              c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams, diag)
+    np.testing.assert_allclose(diag, ref, rtol=1e-13)
+    assert (diag > 2.0).sum() > 0.9 * diag.size
+
+
 @pytest.mark.parametrize("solver", ["band", "tree"])
 def test_kept_point_chunks_change_nothing(tmp_path, monkeypatch, solver):
     """The points' chunks kept for the run (Project.keep_point_chunks) give bit for bit the

@@ -75,7 +75,7 @@ from .normals import (
     build_points_parallel,
     control_rotations,
     point_costs,
-    station_diagonal,
+    station_diagonal_parallel,
     update_points_parallel,
 )
 from .ordering import order_project
@@ -1187,8 +1187,9 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             if marks is not None and rows is None:
                 marks.see(a, c.smin, c.active)
             if lam > 0.0 and rows is None:
-                station_diagonal(c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
-                                 c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams, diag)
+                station_diagonal_parallel(_threads.parts(), c.xyz, c.active, c.pt_start,
+                                          c.nobs, c.obs_station, c.obs_sigma, c.obs_active,
+                                          blk.eo, blk.camera, blk.cams, diag)
             j = 0
             while j < len(c.xyz):
                 _threads.adapt()

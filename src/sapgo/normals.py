@@ -163,6 +163,76 @@ def station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigm
                 diag[s, u] += p * (a[0, u] * a[0, u] + a[1, u] * a[1, u])
 
 
+#: :func:`station_diagonal_parallel`'s runs' buffers hold at most this many stations, or
+#: as many as the block has: beyond, the runs span the block (points whose rays reach far
+#: apart in the order) and one thread adds straight into ``diag``.
+DIAGONAL_BUFFER_STATIONS = 65536
+
+
+@njit(cache=True, error_model="numpy", nogil=True, parallel=True)
+def station_diagonal_parallel(nthreads, pt_xyz, pt_active, pt_start, pt_nobs, obs_station,
+                              obs_sigma, obs_active, eo, cam_of_station, cams, diag):
+    """:func:`station_diagonal` on ``nthreads`` threads: the points cut into runs of about
+    equal observations, each run adding into a buffer of its own stations' range (points
+    sorted by first station: a run sees about a band's width of stations), the buffers
+    added into ``diag`` in run order afterwards."""
+    n = pt_xyz.shape[0]
+    nt = max(1, min(nthreads, n))
+    if nt < 2 or n == 0:
+        station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigma,
+                         obs_active, eo, cam_of_station, cams, diag)
+        return
+    o0 = pt_start[0]
+    total = pt_start[n - 1] + pt_nobs[n - 1] - o0
+    cut = np.empty(nt + 1, np.int64)
+    cut[0] = 0
+    cut[nt] = n
+    j = 0
+    for t in range(1, nt):
+        want = o0 + total * t // nt
+        while j < n and pt_start[j] < want:
+            j += 1
+        cut[t] = max(cut[t - 1], j)
+    lo = np.empty(nt, np.int64)
+    hi = np.empty(nt, np.int64)
+    for t in range(nt):
+        a, b = cut[t], cut[t + 1]
+        lo[t], hi[t] = 0, 0
+        if b > a:
+            i0, i1 = pt_start[a], pt_start[b - 1] + pt_nobs[b - 1]
+            if i1 > i0:
+                lo[t] = obs_station[i0:i1].min()
+                hi[t] = obs_station[i0:i1].max() + 1
+    npar = diag.shape[1]
+    off = np.zeros(nt + 1, np.int64)
+    for t in range(nt):
+        off[t + 1] = off[t] + hi[t] - lo[t]
+    if off[nt] > max(DIAGONAL_BUFFER_STATIONS, diag.shape[0]):   # runs spanning the block
+        station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigma,
+                         obs_active, eo, cam_of_station, cams, diag)
+        return
+    buf = np.zeros((off[nt], npar))
+    for t in prange(nt):
+        a = np.empty((2, npar))
+        b = np.empty((2, 3))
+        for j in range(cut[t], cut[t + 1]):
+            if pt_active[j] != 0:
+                continue
+            for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+                if not obs_active[i]:
+                    continue
+                s = obs_station[i]
+                linearize(eo[s], pt_xyz[j], cams[cam_of_station[s]], a, b)
+                p = 1.0 / (obs_sigma[i] * obs_sigma[i])
+                r = off[t] + s - lo[t]
+                for u in range(npar):
+                    buf[r, u] += p * (a[0, u] * a[0, u] + a[1, u] * a[1, u])
+    for t in range(nt):
+        for r in range(hi[t] - lo[t]):
+            for u in range(npar):
+                diag[lo[t] + r, u] += buf[off[t] + r, u]
+
+
 @njit(cache=True, error_model="numpy")
 def _chol3(nn, lo):
     """Cholesky factor ``lo`` (lower) of the 3x3 SPD matrix ``nn``; False if not SPD.
