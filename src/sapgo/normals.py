@@ -322,6 +322,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     npar = band.shape[1]
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all, o_all = _workspace(max_rays, npar)
     g = np.empty((max_rays, npar, 3))
+    nbt = np.empty((max_rays, 3, npar))
     h = np.empty(3)
     col = np.empty(3)
     tmp = np.empty(3)
@@ -356,21 +357,25 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
             row = band[r] if r < split else ovf_band[r - split]
             rrow = rhs[r] if r < split else ovf_rhs[r - split]
             _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, row, rrow, g, col, tmp)
+            for c in range(3):   # (Nbar transposed: the update below runs along its rows)
+                for v in range(npar):
+                    nbt[q, c, v] = nbar[q, v, c]
         # Schur complement into the band rows: M[s_q, s_t] -= G_q Nbar_t'
         for q in range(k):
             r = st_all[q] - base
             row = band[r] if r < split else ovf_band[r - split]
             for t in range(q, k):
                 off = npar * (st_all[t] - st_all[q])
-                same = st_all[t] == st_all[q]
-                for u in range(npar):
+                for u in range(npar):   # (the rank-3 update, its three terms hoisted)
+                    g0, g1, g2 = g[q, u, 0], g[q, u, 1], g[q, u, 2]
                     for v in range(npar):
-                        x = 0.0
-                        for c in range(3):
-                            x += g[q, u, c] * nbar[t, v, c]
-                        row[u, off + v] -= x
-                        if same and t != q:
-                            row[v, off + u] -= x
+                        row[u, off + v] -= g0 * nbt[t, 0, v] + g1 * nbt[t, 1, v] \
+                            + g2 * nbt[t, 2, v]
+                if st_all[t] == st_all[q] and t != q:   # (two rays of one photo: both ways)
+                    for u in range(npar):
+                        for v in range(npar):
+                            row[v, off + u] -= g[q, u, 0] * nbar[t, v, 0] \
+                                + g[q, u, 1] * nbar[t, v, 1] + g[q, u, 2] * nbar[t, v, 2]
         if ng > 0:
             _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal, xyz,
                           a_all, l_all, w_all, st_all, g, lo, h, base, split, bord, ovf_bord,
