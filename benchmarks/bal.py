@@ -3,7 +3,7 @@
 How to run::
 
     pip install pycolmap pyceres  # benchmark-only (the bench extra; measured with 4.2.1, 2.6)
-    python benchmarks/bal.py [--repeat 3] [--problems NAME ...] [--no-exact] [--exact-tight]
+    python benchmarks/bal.py [--rounds 7] [--problems NAME ...] [--no-exact] [--exact-tight]
                              [--out PATH]
 
 Problems: ``problem-49-7776`` (Ladybug) and ``dubrovnik-3-7`` from ../shared/datasets/bal
@@ -69,8 +69,15 @@ checked against the BAL cost of its exported solution (``final_cost_recomputed``
 if they differ by more than 1e-6). Time: sapgo's ``adjust`` wall time (numba warmed;
 ordering, checks and writing the project included) and its time per iteration (build +
 solve + update); COLMAP: problem construction plus ``solve()``, and its minimizer time per
-iteration; the exact functor: ``solve()`` and that divided by the iterations. Repeated runs
-(``--repeat``): the fastest is kept; the exact functor runs once.
+iteration; the exact functor: ``solve()`` and that divided by the iterations. sapgo runs
+twice in each round: with its precision pass (the default: the stations' and points'
+standard deviations, the observations' redundancy numbers and tests, which Ceres does not
+compute) and with ``precision="none"`` (``--precision none``: the work Ceres does).
+``--rounds`` interleaved rounds (default 7: sapgo, sapgo without precision, each COLMAP
+configuration, in turn, the machine's load average recorded before each round; a
+configuration whose run took over 10 s runs once): each row gives the median time to
+solution and per iteration with the spread (min-max) of its runs; the fastest COLMAP
+configuration is the one of lowest median. The exact functor runs once.
 """
 
 from __future__ import annotations
@@ -227,19 +234,19 @@ def _stopped_by(s, tol_cost):
     return "corrections"
 
 
-def run_sapgo(path, workdir, tol_name, intrinsics):
+def run_sapgo(path, workdir, tol_name, intrinsics, precision="full"):
     """sapgo on the BAL file ``path``: ``intrinsics`` "fixed" or "adjusted" (import_bal's),
-    the options of ``SAPGO_TOL[tol_name]``."""
+    the options of ``SAPGO_TOL[tol_name]``, the precision pass ``precision``."""
     proj = Path(workdir) / "p.h5"
     import_bal(path, proj, force=True, intrinsics=intrinsics)
     opts = SAPGO_TOL[tol_name]
     t0 = time.perf_counter()
     try:
-        s = sapgo.adjust(proj, sapgo.Options(progress=False, **opts))
+        s = sapgo.adjust(proj, sapgo.Options(progress=False, precision=precision, **opts))
     except sapgo.SapgoError as exc:  # e.g. no redundancy: more unknowns than observations
         return {"tool": "sapgo", "solver": "banded (Levenberg-Marquardt)",
                 "intrinsics": "free" if intrinsics == "adjusted" else "fixed",
-                "import_intrinsics": intrinsics, "options": dict(opts),
+                "import_intrinsics": intrinsics, "options": dict(opts), "precision": precision,
                 "tol_cost": opts["tol_cost"], "error": str(exc).split(": ", 1)[-1],
                 "initial_cost": None, "final_cost": None, "iterations": 0,
                 "converged": False, "time_to_solution_s": time.perf_counter() - t0,
@@ -255,7 +262,7 @@ def run_sapgo(path, workdir, tol_name, intrinsics):
     ti = s.timings_per_iteration_s
     return {"tool": "sapgo", "solver": "banded (Levenberg-Marquardt)",
             "intrinsics": "free" if intrinsics == "adjusted" else "fixed",
-            "import_intrinsics": intrinsics, "options": dict(opts),
+            "import_intrinsics": intrinsics, "options": dict(opts), "precision": precision,
             "tol_cost": opts["tol_cost"], "initial_cost": s.initial_cost,
             "final_cost": s.final_cost, "final_cost_recomputed": recomputed,
             "iterations": s.iterations, "converged": s.converged,
@@ -366,6 +373,42 @@ def best(runs):
     return min(runs, key=lambda r: r["time_to_solution_s"])
 
 
+#: A configuration whose run took longer than this (s) runs in one round only.
+REPEAT_BELOW_S = 10.0
+
+
+def median_run(runs):
+    """The run of median time to solution (the lower middle of an even count), its times to
+    solution and per iteration replaced by the medians of all ``runs``, which it lists
+    (``runs_time_to_solution_s``, ``runs_s_per_iteration``); a refusal as it is."""
+    if "error" in runs[0]:
+        return runs[0]
+    ordered = sorted(runs, key=lambda r: r["time_to_solution_s"])
+    r = dict(ordered[(len(ordered) - 1) // 2])
+    r["runs_time_to_solution_s"] = [x["time_to_solution_s"] for x in runs]
+    r["runs_s_per_iteration"] = [x["s_per_iteration"] for x in runs]
+    r["time_to_solution_s"] = float(np.median(r["runs_time_to_solution_s"]))
+    r["s_per_iteration"] = float(np.median(r["runs_s_per_iteration"]))
+    return r
+
+
+def spread(r, key, scale=1.0, nd=3, unit=" s"):
+    """``median (min-max)`` of a row's runs (its figure alone when it ran once)."""
+    runs = r.get({"time_to_solution_s": "runs_time_to_solution_s",
+                  "s_per_iteration": "runs_s_per_iteration"}[key]) or [r[key]]
+    v = f"{r[key] * scale:.{nd}f}{unit}"
+    if len(runs) == 1:
+        return v
+    return f"{v} ({min(runs) * scale:.{nd}f}-{max(runs) * scale:.{nd}f})"
+
+
+def load_average():
+    try:
+        return [float(x) for x in Path("/proc/loadavg").read_text().split()[:3]]
+    except OSError:
+        return None
+
+
 EXACT = "ceres (exact BAL cost, Python functor)"
 
 
@@ -392,7 +435,7 @@ def _fmt_rel(x):
 def summary_rows(rows):
     """sapgo against the fastest COLMAP configuration, per problem, tolerance, intrinsics."""
     out = []
-    for r in _pick(rows, tool="sapgo"):
+    for r in _pick(rows, tool="sapgo", precision="full"):
         if "error" in r:
             continue
         key = {"problem": r["problem"], "tolerance": r["tolerance"],
@@ -401,7 +444,13 @@ def summary_rows(rows):
         if not ceres:
             continue
         c = best(ceres)
-        out.append(dict(key, sapgo_time_to_solution_s=r["time_to_solution_s"],
+        bare = _pick(rows, tool="sapgo", precision="none", **key)
+        extra = {}
+        if bare and "error" not in bare[0]:
+            extra = dict(sapgo_precision_none_time_to_solution_s=bare[0]["time_to_solution_s"],
+                         ratio_to_solution_precision_none=_ratio(
+                             bare[0]["time_to_solution_s"], c["time_to_solution_s"]))
+        out.append(dict(key, **extra, sapgo_time_to_solution_s=r["time_to_solution_s"],
                         sapgo_s_per_iteration=r["s_per_iteration"],
                         sapgo_iterations=r["iterations"], sapgo_final_cost=r["final_cost"],
                         ceres_solver=c["solver"], ceres_time_to_solution_s=c["time_to_solution_s"],
@@ -419,7 +468,7 @@ def cost_check(rows):
     and COLMAP at the same tolerance (fastest configuration; its own cost, which zeroes the
     residuals of points behind a camera, and the BAL cost of its solution)."""
     out = []
-    for r in _pick(rows, tool="sapgo", intrinsics="free"):
+    for r in _pick(rows, tool="sapgo", intrinsics="free", precision="full"):
         if "error" in r:
             out.append({"problem": r["problem"], "sapgo_tolerance": r["tolerance"],
                         "sapgo_error": r["error"]})
@@ -470,8 +519,10 @@ def problem_names(values):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeat", type=int, default=3,
-                    help="runs of each sapgo and COLMAP configuration; the fastest is kept")
+    ap.add_argument("--rounds", type=int, default=7,
+                    help="interleaved rounds of sapgo (with and without its precision pass) "
+                         "and each COLMAP configuration; the median run is kept, with the "
+                         "spread (a configuration whose run took over 10 s runs once)")
     ap.add_argument("--problems", nargs="+", default=list(PROBLEMS), metavar="NAME",
                     help=f"problems to run (default: all: {' '.join(PROBLEMS)})")
     ap.add_argument("--no-exact", dest="exact", action="store_false",
@@ -516,14 +567,19 @@ def main(argv=None):
                     free = intrinsics == "adjusted"
                     tag = dict(problem=name, tolerance=tol_name, file=PROBLEMS[name],
                                file_initial_cost=ref)
-                    runs = [run_sapgo(path, tmp, tol_name, intrinsics)]
-                    if "error" not in runs[0]:
-                        runs += [run_sapgo(path, tmp, tol_name, intrinsics)
-                                 for _ in range(args.repeat - 1)]
-                    block = [best(runs)]
-                    for solver in COLMAP_SOLVERS:
-                        block.append(best([run_ceres(d, pycolmap, solver, tol, free)
-                                           for _ in range(args.repeat)]))
+                    confs = [lambda p=precision: run_sapgo(path, tmp, tol_name, intrinsics, p)
+                             for precision in ("full", "none")]
+                    confs += [lambda v=solver: run_ceres(d, pycolmap, v, tol, free)
+                              for solver in COLMAP_SOLVERS]
+                    runs, loads = [[] for _ in confs], []
+                    for _ in range(max(1, args.rounds)):   # interleaved rounds
+                        loads.append(load_average())
+                        for fn, done in zip(confs, runs):
+                            if done and ("error" in done[0] or done[-1]["time_to_solution_s"]
+                                         > REPEAT_BELOW_S):
+                                continue
+                            done.append(fn())
+                    block = [dict(median_run(done), load_before_rounds=loads) for done in runs]
                     if args.exact and (not free or tol_name == "default" or args.exact_tight):
                         block.append(run_pyceres(d, free, tol))
                     for r in block:
@@ -544,7 +600,8 @@ def main(argv=None):
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "error" in r:
-            print(f"| {r['problem']} | {r['tolerance']} | {r['tool']} | {r['solver']} | "
+            tool = r["tool"] + (", --precision none" if r.get("precision") == "none" else "")
+            print(f"| {r['problem']} | {r['tolerance']} | {tool} | {r['solver']} | "
                   f"{r['intrinsics']} | - | - | - | refused: {r['error']} | - | - | - |")
             continue
         rel = _rel(r["final_cost"], refs[r["problem"], r["intrinsics"]]) \
@@ -552,25 +609,34 @@ def main(argv=None):
         if r["final_cost"] <= 1e-12 * r["initial_cost"]:
             rel = None  # rounding noise of a zero-residual problem
         conv = "yes" if r["converged"] else "no"
-        if r["tool"] == "sapgo":
+        tool = r["tool"]
+        if tool == "sapgo":
             conv += f" ({r['stopped_by']})"
-        print(f"| {r['problem']} | {r['tolerance']} | {r['tool']} | {r['solver']} | "
+            tool += ", --precision none" if r["precision"] == "none" else ""
+        print(f"| {r['problem']} | {r['tolerance']} | {tool} | {r['solver']} | "
               f"{r['intrinsics']} | {r['initial_cost']:.6e} | {r['final_cost']:.6e} | "
               f"{_fmt_rel(rel)} | {conv} | {r['iterations']} | "
-              f"{r['s_per_iteration'] * 1000:.1f} ms | {r['time_to_solution_s']:.3f} s |")
+              f"{spread(r, 's_per_iteration', 1000, 1, ' ms')} | "
+              f"{spread(r, 'time_to_solution_s')} |")
 
-    print("\nsapgo against the fastest COLMAP configuration:\n")
-    print("| problem | tolerance | intrinsics | sapgo to solution | sapgo per iteration "
-          "| sapgo iterations | Ceres (fastest) | Ceres to solution | Ceres per iteration "
-          "| Ceres iterations | to solution, sapgo / Ceres | per iteration, sapgo / Ceres |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("\nsapgo against the fastest COLMAP configuration (medians; sapgo's time with its "
+          "precision pass, and without it: the work Ceres does):\n")
+    print("| problem | tolerance | intrinsics | sapgo to solution | sapgo --precision none "
+          "| sapgo per iteration | sapgo iterations | Ceres (fastest) | Ceres to solution "
+          "| Ceres per iteration | Ceres iterations | to solution, sapgo / Ceres | the same, "
+          "--precision none | per iteration, sapgo / Ceres |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in summary:
+        none_s = r.get("sapgo_precision_none_time_to_solution_s")
+        none_r = r.get("ratio_to_solution_precision_none")
         print(f"| {r['problem']} | {r['tolerance']} | {r['intrinsics']} | "
               f"{r['sapgo_time_to_solution_s']:.3f} s | "
+              f"{'-' if none_s is None else f'{none_s:.3f} s'} | "
               f"{r['sapgo_s_per_iteration'] * 1000:.1f} ms | {r['sapgo_iterations']} | "
               f"{r['ceres_solver']} | {r['ceres_time_to_solution_s']:.3f} s | "
               f"{r['ceres_s_per_iteration'] * 1000:.1f} ms | {r['ceres_iterations']} | "
-              f"{r['ratio_to_solution']:.2f} | {r['ratio_per_iteration']:.2f} |")
+              f"{r['ratio_to_solution']:.2f} | {'-' if none_r is None else f'{none_r:.2f}'} | "
+              f"{r['ratio_per_iteration']:.2f} |")
 
     print("\nsapgo's final cost with free intrinsics against Ceres' "
           f"(target: within {100 * TARGET:g} % of exact Ceres, default tolerances; COLMAP's "
@@ -610,7 +676,7 @@ def main(argv=None):
         return
     meta = {"machine": platform.processor() or platform.machine(),
             "pycolmap": pycolmap.__version__, "sapgo": sapgo.__version__,
-            "repeat": args.repeat, "problems": names, "exact": args.exact,
+            "rounds": args.rounds, "problems": names, "exact": args.exact,
             "exact_tight": args.exact_tight, "target": TARGET}
     sys.path.insert(0, str(Path(__file__).parent))
     from colmap import git_state
