@@ -244,7 +244,8 @@ def test_covariance_window_holds_the_band_of_the_inverse_for_each_block(step, th
     inv = np.linalg.inv(a)
     seen = []
 
-    def check(start, stop, zb, base):
+    def check(start, stop, zb, base, alone=False):
+        assert alone == (threads == 1 or start == 0)   # (nothing beside it: the last block)
         lo, hi = 6 * start, min(6 * n, 6 * stop + 6 * bw - 1)
         for k in range(lo, hi):
             for j in range(max(lo, k - 6 * bw + 1), min(hi, k + 6 * bw)):

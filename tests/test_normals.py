@@ -143,6 +143,50 @@ def test_parallel_update_equals_the_one_thread_kernel(p1_block, threads):
     assert st1[7] == st2[7] == bad + 1 and st1[8] == st2[8] != 0
 
 
+@pytest.mark.parametrize("threads", [2, 3, 50])
+def test_parallel_point_sigmas_equal_the_one_thread_kernel(p1_block, threads):
+    """point_sigmas_parallel gives each run its own points and its own observations: the
+    points' precision and the observations' redundancy numbers and tests bit for bit those
+    of point_sigmas on one thread (an inactive point and an inactive observation among
+    them); a chunk whose points' observations do not follow each other goes on one
+    thread, the same again."""
+    from sapgo.normals import PointChunk, point_sigmas, point_sigmas_parallel
+
+    order_project(p1_block)
+    with Project(p1_block) as p:
+        blk = _load_block(p)
+        c = PointChunk(p, 0, p.n_points, p.read_field("points", "xyz"), blk.camera,
+                       blk.cam_sigma, blk.frame, blk.rejected, blk.rejected_points)
+    c.active[4] = 1
+    c.obs_active[c.pt_start[7]] = False
+    n = 6 * len(blk.eo)
+    rng = np.random.default_rng(5)
+    m = rng.normal(size=(n, n))
+    zb = np.linalg.inv(m @ m.T + n * np.eye(n)) * 1e-4   # (any cofactors: the same ones)
+    res = rng.normal(0, 3e-3, (len(c.obs_station), 2))
+
+    def run(fn, *first, pt_start=c.pt_start):
+        out = np.full((len(c.xyz), 6), 7.0)
+        out_r = np.full((len(c.obs_station), 3), 7.0)
+        out_w = np.full((len(c.obs_station), 3), 7.0)
+        fn(*first, c.xyz, c.kind, c.ctrl, c.csig, c.rot, pt_start, c.nobs, c.active,
+           c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams,
+           blk.ctrl_mask, c.max_rays, zb, 0, res, out, out_r, out_w, 6, None, None, 0, None,
+           blk.fixed, blk.behind_ok)
+        return out, out_r, out_w
+
+    ref = run(point_sigmas)
+    assert np.isfinite(ref[0]).all() and (ref[1][:, 0] != 0).sum() > 0.9 * len(res)
+    for x, y in zip(run(point_sigmas_parallel, threads), ref):
+        np.testing.assert_array_equal(x, y)
+    swapped = c.pt_start.copy()   # (the first two points' observations in the other order)
+    swapped[0], swapped[1] = c.pt_start[0] + c.nobs[1], c.pt_start[0]
+    if c.nobs[0] == c.nobs[1]:
+        for x, y in zip(run(point_sigmas_parallel, threads, pt_start=swapped),
+                        run(point_sigmas, pt_start=swapped)):
+            np.testing.assert_array_equal(x, y)
+
+
 @pytest.mark.parametrize("threads", [1, 2, 3, 50])
 def test_parallel_station_diagonal_equals_the_obvious_sum(p1_block, threads):
     """station_diagonal_parallel (runs of points on threads, each into a buffer of its own

@@ -182,17 +182,7 @@ def station_diagonal_parallel(nthreads, pt_xyz, pt_active, pt_start, pt_nobs, ob
         station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigma,
                          obs_active, eo, cam_of_station, cams, diag)
         return
-    o0 = pt_start[0]
-    total = pt_start[n - 1] + pt_nobs[n - 1] - o0
-    cut = np.empty(nt + 1, np.int64)
-    cut[0] = 0
-    cut[nt] = n
-    j = 0
-    for t in range(1, nt):
-        want = o0 + total * t // nt
-        while j < n and pt_start[j] < want:
-            j += 1
-        cut[t] = max(cut[t - 1], j)
+    cut = _runs(pt_start, pt_nobs, nt)
     lo = np.empty(nt, np.int64)
     hi = np.empty(nt, np.int64)
     for t in range(nt):
@@ -726,6 +716,43 @@ def _runs(pt_start, pt_nobs, nt):
             j += 1
         cut[t] = j
     return cut
+
+
+@njit(cache=True, error_model="numpy", nogil=True, parallel=True)
+def point_sigmas_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start,
+                          pt_nobs, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
+                          cam_of_station, cams, ctrl_mask, max_rays, zb, base, res, out, out_r,
+                          out_w, npar=6, cal=None, xw=None, xbase=0, sig_b=None, st_fixed=None,
+                          behind_ok=False):
+    """:func:`point_sigmas` on ``nthreads`` threads: the points cut into runs of about equal
+    observations (:func:`_runs`), each run given its own points' rows and its own
+    observations' rows (a point's observations follow each other, the points' in turn);
+    observations of no run 0. Points whose observations do not follow each other in that
+    way: one thread."""
+    n = pt_xyz.shape[0]
+    nt = max(1, min(nthreads, n))
+    for j in range(1, n):
+        if pt_start[j] < pt_start[j - 1] + pt_nobs[j - 1]:
+            nt = 1
+    if nt < 2:
+        point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
+                     obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
+                     ctrl_mask, max_rays, zb, base, res, out, out_r, out_w, npar, cal, xw,
+                     xbase, sig_b, st_fixed, behind_ok)
+        return
+    out_r[:, :] = 0.0
+    out_w[:, :] = 0.0
+    cut = _runs(pt_start, pt_nobs, nt)
+    for t in prange(nt):
+        a, b = cut[t], cut[t + 1]
+        if b > a:
+            o0, o1 = pt_start[a], pt_start[b - 1] + pt_nobs[b - 1]
+            point_sigmas(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b], pt_rot[a:b],
+                         pt_start[a:b] - o0, pt_nobs[a:b], pt_active[a:b], obs_station[o0:o1],
+                         obs_xy[o0:o1], obs_sigma[o0:o1], obs_active[o0:o1], eo,
+                         cam_of_station, cams, ctrl_mask, max_rays, zb, base, res[o0:o1],
+                         out[a:b], out_r[o0:o1], out_w[o0:o1], npar, cal, xw, xbase, sig_b,
+                         st_fixed, behind_ok)
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

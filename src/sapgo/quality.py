@@ -15,7 +15,8 @@ import numpy as np
 from numba import njit
 
 from . import paging
-from .normals import PointChunk, point_sigmas
+from . import threads as _threads
+from .normals import PointChunk, point_sigmas_parallel
 from .project import STATUS_ACTIVE
 from .rawfile import RawArray
 from .report import station_correlations
@@ -108,13 +109,14 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
                        mode="w")
 
-    def points_of(start, stop, zb, base):
+    def points_of(start, stop, zb, base, alone=False):
         p0, p1 = int(first[start]), int(first[stop])
         xw = (np.ascontiguousarray(xb_ds[start:min(n_st, stop + blk.band_width)],
                                    dtype=np.float64) if ng else None)
         for a in range(p0, p1, opts.chunk_points):
             points_quality(p_read, work, blk, opts, a, min(p1, a + opts.chunk_points), sigma0,
-                            psig, quality, correlations, zb, base, None, xw, start, cal, sig_b)
+                           psig, quality, correlations, zb, base, None, xw, start, cal, sig_b,
+                           threads=_threads.parts() if alone else 1)
 
     k = blk.npar
     cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
@@ -215,7 +217,8 @@ def _in_angles(blocks, opk, fixed, out):
 
 
 def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correlations,
-                    zb, base, stations=None, xw=None, xlo=0, cal=None, sig_b=None, lock=None):
+                    zb, base, stations=None, xw=None, xlo=0, cal=None, sig_b=None, lock=None,
+                    threads=1):
     """Points ``a .. b`` (a chunk): their standard deviations into ``psig`` and their
     observations' quality into ``quality`` (:func:`sapgo.normals.point_sigmas` with the
     stations' cofactors ``zb`` from ``base``). ``stations(obs_station, obs_active)`` gives
@@ -223,7 +226,9 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
     and camera (the tree numbers them by their place in a front); default the logical
     stations. ``zb`` may instead be a function of the chunk's ``(obs_station,
     obs_active)`` giving ``(zb, stations, orientations, cameras, xw)`` (a tiled front's
-    inverse gathered over the chunk's stations)."""
+    inverse gathered over the chunk's stations). ``threads``: the kernel's threads
+    (:func:`sapgo.normals.point_sigmas_parallel`; more than one only where nothing else
+    runs beside it)."""
     c = PointChunk(p_read, a, b, work.xyz_current[a:b], blk.camera, blk.cam_sigma, blk.frame,
                    blk.rejected)
     weight = reweight(c, work, opts)
@@ -236,10 +241,11 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
         st, eo, camera, fixed = ((c.obs_station, blk.eo, blk.camera, blk.fixed)
                                  if stations is None else
                                  stations(c.obs_station, c.obs_active))
-    point_sigmas(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, st,
-                 c.obs_xy, c.obs_sigma, c.obs_active, eo, camera, blk.cams, blk.ctrl_mask,
-                 c.max_rays, zb, base, np.ascontiguousarray(work.res_current[c.o0:c.o1]), out,
-                 out_r, out_w, blk.npar, cal, xw, xlo, sig_b, fixed, blk.behind_ok)
+    point_sigmas_parallel(threads, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
+                          c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, eo, camera,
+                          blk.cams, blk.ctrl_mask, c.max_rays, zb, base,
+                          np.ascontiguousarray(work.res_current[c.o0:c.o1]), out, out_r, out_w,
+                          blk.npar, cal, xw, xlo, sig_b, fixed, blk.behind_ok)
     psig[a:b] = sigma0 * out[:, :3]
     if weight is None:
         weight = np.ones(c.o1 - c.o0)

@@ -1107,7 +1107,9 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     smaller, and no more than the window's ``INVERSE_WINDOW_BYTES`` allow beyond those ``b``):
     ``zb[k - base, j - base] = Z[k, j]`` for
     the scalar rows and columns ``k, j`` of those stations and the ``6b - 1`` after them,
-    inside the band (the covariances a point observed from those stations needs). Stations
+    inside the band (the covariances a point observed from those stations needs); with
+    ``alone=True`` where no inversion runs beside it (the last block, or every block when
+    the two do not overlap): then it may take every thread. Stations
     of ``k`` parameters (``factor_ds`` n x k x kb) give k x k blocks. ``observations``: how
     many image observations ``on_block`` will visit, for the choice of
     :data:`OVERLAP_FLOPS_PER_OBSERVATION`."""
@@ -1171,11 +1173,15 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
                               w, s)
             bases[cur] = int(state[0])   # (shifted, on one window; never on two)
             var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
-            if overlap:
+            if overlap and start > 0:
                 busy[cur] = pool.submit(on_block, start, stop, wins[cur], bases[cur])
                 cur = 1 - cur
-            elif on_block is not None:
-                on_block(start, stop, wins[cur], bases[cur])
+            elif on_block is not None:   # (nothing to invert beside it: all threads its own)
+                for f in busy:
+                    if f is not None:
+                        f.result()
+                busy = [None] * len(wins)
+                on_block(start, stop, wins[cur], bases[cur], alone=True)
             if keep:
                 blocks_all[start:stop] = blocks
             else:
