@@ -96,7 +96,7 @@ import sapgo
 from sapgo.formats.bal import bal_cost, export_bal, import_bal, read_bal, rodrigues
 
 sys.path.insert(0, str(Path(__file__).parent))
-from colmap import capture_stdout, parse_progress  # noqa: E402
+from colmap import capture_stdout, load_average, median_of, parse_progress  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEMS = {"problem-49-7776": "problem-49-7776-pre.txt",
@@ -383,12 +383,9 @@ def median_run(runs):
     (``runs_time_to_solution_s``, ``runs_s_per_iteration``); a refusal as it is."""
     if "error" in runs[0]:
         return runs[0]
-    ordered = sorted(runs, key=lambda r: r["time_to_solution_s"])
-    r = dict(ordered[(len(ordered) - 1) // 2])
-    r["runs_time_to_solution_s"] = [x["time_to_solution_s"] for x in runs]
-    r["runs_s_per_iteration"] = [x["s_per_iteration"] for x in runs]
-    r["time_to_solution_s"] = float(np.median(r["runs_time_to_solution_s"]))
-    r["s_per_iteration"] = float(np.median(r["runs_s_per_iteration"]))
+    r = median_of(runs)
+    r["time_to_solution_s"] = r.pop("median_time_to_solution_s")
+    r["s_per_iteration"] = r.pop("median_s_per_iteration")
     return r
 
 
@@ -401,12 +398,6 @@ def spread(r, key, scale=1.0, nd=3, unit=" s"):
         return v
     return f"{v} ({min(runs) * scale:.{nd}f}-{max(runs) * scale:.{nd}f})"
 
-
-def load_average():
-    try:
-        return [float(x) for x in Path("/proc/loadavg").read_text().split()[:3]]
-    except OSError:
-        return None
 
 
 EXACT = "ceres (exact BAL cost, Python functor)"

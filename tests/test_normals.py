@@ -101,19 +101,27 @@ def test_streamed_reduced_normals_equal_dense(small_block, tmp_path, chunks, mon
                 np.abs(m_ref[6 * i:6 * i + 6, 6 * j:6 * j + 6]).max() < 1e-9 * scale.max()
 
 
+def _whole_chunk(path):
+    """The ordered project's block and all its points as one chunk."""
+    from sapgo.normals import PointChunk
+
+    order_project(path)
+    with Project(path) as p:
+        blk = _load_block(p)
+        c = PointChunk(p, 0, p.n_points, p.read_field("points", "xyz"), blk.camera,
+                       blk.cam_sigma, blk.frame, blk.rejected, blk.rejected_points)
+    return blk, c
+
+
 @pytest.mark.parametrize("threads", [2, 3, 50])
 def test_parallel_update_equals_the_one_thread_kernel(p1_block, threads):
     """update_points_parallel cuts the points into runs on threads of their own: the same
     coordinates and residuals bit for bit as update_points on one thread, the statistics
     to rounding (summed by run), and a bad point named by its index in the chunk."""
     from sapgo.adjust import next_orientations
-    from sapgo.normals import PointChunk, update_points, update_points_parallel
+    from sapgo.normals import update_points, update_points_parallel
 
-    order_project(p1_block)
-    with Project(p1_block) as p:
-        blk = _load_block(p)
-        c = PointChunk(p, 0, p.n_points, p.read_field("points", "xyz"), blk.camera,
-                       blk.cam_sigma, blk.frame, blk.rejected, blk.rejected_points)
+    blk, c = _whole_chunk(p1_block)
     rng = np.random.default_rng(3)
     delta = rng.normal(0, 1e-5, (len(blk.eo), 6))
     delta[:, 3:] *= 1e5
@@ -150,13 +158,9 @@ def test_parallel_point_sigmas_equal_the_one_thread_kernel(p1_block, threads):
     of point_sigmas on one thread (an inactive point and an inactive observation among
     them); a chunk whose points' observations do not follow each other goes on one
     thread, the same again."""
-    from sapgo.normals import PointChunk, point_sigmas, point_sigmas_parallel
+    from sapgo.normals import point_sigmas, point_sigmas_parallel
 
-    order_project(p1_block)
-    with Project(p1_block) as p:
-        blk = _load_block(p)
-        c = PointChunk(p, 0, p.n_points, p.read_field("points", "xyz"), blk.camera,
-                       blk.cam_sigma, blk.frame, blk.rejected, blk.rejected_points)
+    blk, c = _whole_chunk(p1_block)
     c.active[4] = 1
     c.obs_active[c.pt_start[7]] = False
     n = 6 * len(blk.eo)
@@ -194,13 +198,9 @@ def test_parallel_station_diagonal_equals_the_obvious_sum(p1_block, threads):
     the collinearity partials, for any number of runs; an inactive point and a rejected
     observation add nothing. Added to what ``diag`` held."""
     from sapgo.geometry import linearize
-    from sapgo.normals import PointChunk, station_diagonal_parallel
+    from sapgo.normals import station_diagonal_parallel
 
-    order_project(p1_block)
-    with Project(p1_block) as p:
-        blk = _load_block(p)
-        c = PointChunk(p, 0, p.n_points, p.read_field("points", "xyz"), blk.camera,
-                       blk.cam_sigma, blk.frame, blk.rejected, blk.rejected_points)
+    blk, c = _whole_chunk(p1_block)
     c.active[3] = 1
     c.obs_active[c.pt_start[5]] = False
     ref = np.full((len(blk.eo), 6), 2.0)

@@ -143,10 +143,10 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigma, obs_active,
-                     eo, cam_of_station, cams, diag):
+                     eo, cam_of_station, cams, diag, first=0):
     """Add each station's diagonal of the (unreduced) normal matrix, ``sum p a_u^2`` over its
-    active observations of active points of a chunk, into ``diag`` (stations x 6): the
-    scaling of the Levenberg-Marquardt damping."""
+    active observations of active points of a chunk, into ``diag`` (stations x 6; row
+    ``s - first`` for station ``s``): the scaling of the Levenberg-Marquardt damping."""
     npar = diag.shape[1]
     a = np.empty((2, npar))
     b = np.empty((2, 3))
@@ -160,7 +160,7 @@ def station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigm
             linearize(eo[s], pt_xyz[j], cams[cam_of_station[s]], a, b)
             p = 1.0 / (obs_sigma[i] * obs_sigma[i])
             for u in range(npar):
-                diag[s, u] += p * (a[0, u] * a[0, u] + a[1, u] * a[1, u])
+                diag[s - first, u] += p * (a[0, u] * a[0, u] + a[1, u] * a[1, u])
 
 
 #: :func:`station_diagonal_parallel`'s runs' buffers hold at most this many stations, or
@@ -203,20 +203,10 @@ def station_diagonal_parallel(nthreads, pt_xyz, pt_active, pt_start, pt_nobs, ob
         return
     buf = np.zeros((off[nt], npar))
     for t in prange(nt):
-        a = np.empty((2, npar))
-        b = np.empty((2, 3))
-        for j in range(cut[t], cut[t + 1]):
-            if pt_active[j] != 0:
-                continue
-            for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
-                if not obs_active[i]:
-                    continue
-                s = obs_station[i]
-                linearize(eo[s], pt_xyz[j], cams[cam_of_station[s]], a, b)
-                p = 1.0 / (obs_sigma[i] * obs_sigma[i])
-                r = off[t] + s - lo[t]
-                for u in range(npar):
-                    buf[r, u] += p * (a[0, u] * a[0, u] + a[1, u] * a[1, u])
+        a, b = cut[t], cut[t + 1]
+        station_diagonal(pt_xyz[a:b], pt_active[a:b], pt_start[a:b], pt_nobs[a:b], obs_station,
+                         obs_sigma, obs_active, eo, cam_of_station, cams,
+                         buf[off[t]:off[t + 1]], lo[t])
     for t in range(nt):
         for r in range(hi[t] - lo[t]):
             for u in range(npar):
