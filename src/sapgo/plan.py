@@ -223,19 +223,22 @@ def solve_time(n_units, band_width, params=6, seconds=1.0, memory=400e6):
     """The time of one solve of ``n_units`` units of ``params`` parameters at a band width
     (blocks), measured on this machine as ``sapgo adjust`` runs the solver: a random
     positive definite band of that shape fed to :class:`sapgo.solve.band.BandSolver` in
-    segments of 256 stations, its factor rows written to a work file and read back by the
-    back substitution (the solver's own time, the fastest of several runs, in about
-    ``seconds`` in all), each run with caches as cold as after adjust's build.
+    segments of 256 stations, its factor rows kept where adjust keeps them by default (in
+    core up to :func:`sapgo.adjust.factor_core_limit`, else written to a work file) and read
+    back by the back substitution (the solver's own time, the fastest of several runs, in
+    about ``seconds`` in all), each run with caches as cold as after adjust's build.
 
     A block small enough (at most ``memory`` bytes of band rows, a run of at most a quarter
     of ``seconds``) is solved at its own size, fixed costs and all. A larger one is solved at
     the largest size ``n1`` that is, and its time extrapolated in proportion to the band
     flops (:func:`band_flops`; at that size the fixed costs are negligible). Returns
     ``{"predicted_s", "rate_flops", "timed_units", "extrapolated"}``."""
+    from .adjust import Options, factor_core_limit
     from .solve.band import BandSolver
 
     b = max(1, int(band_width))
     n_units = int(n_units)
+    core = 8 * n_units * params * (params * b + 1) <= factor_core_limit(Options())
     if n_units <= 0:
         return {"predicted_s": 0.0, "rate_flops": 0.0, "timed_units": 0, "extrapolated": False}
     n_max = min(n_units, max(2, int(memory / (8.0 * params * params * b))))
@@ -252,7 +255,8 @@ def solve_time(n_units, band_width, params=6, seconds=1.0, memory=400e6):
             made anew only when a larger one is needed (in place: no temporaries)."""
             if state.get("m", 0) < m:
                 for f in state.get("files", ()):
-                    f.close()
+                    if isinstance(f, RawArray):
+                        f.close()
                 state.clear()
                 band = np.empty((m, params, params * b))
                 rng.random(out=band)
@@ -260,8 +264,9 @@ def solve_time(n_units, band_width, params=6, seconds=1.0, memory=400e6):
                 band *= 0.2 / b
                 idx = np.arange(params)
                 band[:, idx, idx] = params * b  # diagonally dominant
-                files = (RawArray(Path(d) / "factor.bin", band.shape, mode="w"),
-                         RawArray(Path(d) / "y.bin", (m, params), mode="w"))
+                files = ((np.empty(band.shape), np.empty((m, params))) if core else
+                         (RawArray(Path(d) / "factor.bin", band.shape, mode="w"),
+                          RawArray(Path(d) / "y.bin", (m, params), mode="w")))
                 state.update(m=m, band=band, rhs=rng.random((m, params)), files=files)
             return state["band"], state["rhs"], state["files"]
 
@@ -297,7 +302,8 @@ def solve_time(n_units, band_width, params=6, seconds=1.0, memory=400e6):
             t1 = best(n1, seconds)
         finally:
             for f in state.get("files", ()):
-                f.close()
+                if isinstance(f, RawArray):
+                    f.close()
             state.clear()
     # a block of n1 units or fewer is timed at its own size, fixed costs and all; a larger
     # one from n1 units, where the fixed costs are negligible: the time grows with the flops
