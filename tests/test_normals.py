@@ -191,20 +191,38 @@ def test_parallel_point_sigmas_equal_the_one_thread_kernel(p1_block, threads):
             np.testing.assert_array_equal(x, y)
 
 
-@pytest.mark.parametrize("threads", [1, 2, 3, 50])
-def test_parallel_station_diagonal_equals_the_obvious_sum(p1_block, threads):
-    """station_diagonal_parallel (runs of points on threads, each into a buffer of its own
-    stations) equals the diagonal of A'PA summed observation by observation in Python from
-    the collinearity partials, for any number of runs; an inactive point and a rejected
-    observation add nothing. Added to what ``diag`` held."""
+@pytest.mark.parametrize("threads", [1, 2])
+def test_damping_diagonal_of_the_build_equals_the_obvious_sum(p1_block, tmp_path, threads,
+                                                              monkeypatch):
+    """The band's build sums the Levenberg-Marquardt damping's diagonal (each station's
+    ``sum p a_u^2`` over its rays) in its kernel, window by window (windows of 5 rows
+    beyond the band; on one thread chunks of 37 points) and thread by thread: equal to the sum taken
+    observation by observation in Python from the collinearity partials, a station's held
+    parameters 0."""
+    from sapgo import threads as sapgo_threads
     from sapgo.geometry import linearize
-    from sapgo.normals import station_diagonal_parallel
+    from sapgo.normals import fixed_columns
 
+    monkeypatch.setattr(sapgo_threads, "_setting", str(threads))
     blk, c = _whole_chunk(p1_block)
-    c.active[3] = 1
-    c.obs_active[c.pt_start[5]] = False
-    ref = np.full((len(blk.eo), 6), 2.0)
     a, b = np.empty((2, 6)), np.empty((2, 3))
+    with Project(p1_block) as p:
+        blk = _load_block(p)
+        blk.fixed[3] |= 0b000101   # (omega and kappa of station 3 held)
+        w = Work(tmp_path / "work", p, blk.band_width, create=True)
+        try:
+            w.initialise(p, 1000)
+            rows = []
+            opts = Options(progress=False, chunk_points=37 if threads == 1 else 10 ** 6,
+                           chunk_rows=5)
+            for lam in (0.0, 1e-3):
+                got = []
+                diag, _ = build(p, w, blk, opts, lam=lam,
+                                sink=lambda r, y, got=got: got.append(np.array(r)))
+                rows.append(np.concatenate(got))
+        finally:
+            w.close()
+    ref = np.zeros((len(blk.eo), 6))
     for j in range(len(c.xyz)):
         if c.active[j] != 0:
             continue
@@ -212,12 +230,11 @@ def test_parallel_station_diagonal_equals_the_obvious_sum(p1_block, threads):
             if c.obs_active[i]:
                 s = c.obs_station[i]
                 linearize(blk.eo[s], c.xyz[j], blk.cams[blk.camera[s]], a, b)
+                fixed_columns(a, blk.fixed[s])
                 ref[s] += (a * a).sum(axis=0) / c.obs_sigma[i] ** 2
-    diag = np.full((len(blk.eo), 6), 2.0)
-    station_diagonal_parallel(threads, c.xyz, c.active, c.pt_start, c.nobs, c.obs_station,
-                              c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams, diag)
-    np.testing.assert_allclose(diag, ref, rtol=1e-13)
-    assert (diag > 2.0).sum() > 0.9 * diag.size
+    np.testing.assert_allclose(diag, ref, rtol=1e-12)
+    assert (diag[3, [0, 2]] == 0).all() and (diag > 0).sum() == diag.size - 2
+    assert not np.array_equal(rows[0], rows[1])   # (damped: stations and points)
 
 
 @pytest.mark.parametrize("solver", ["band", "tree"])

@@ -75,7 +75,6 @@ from .normals import (
     build_points_parallel,
     control_rotations,
     point_costs,
-    station_diagonal_parallel,
     update_points_parallel,
 )
 from .ordering import order_project
@@ -1124,6 +1123,11 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     ovf_bord = np.zeros((threads, bw, k, ng))
     cnn_t, ccg_t, cdiag_t = (np.zeros((threads, ng, ng)), np.zeros((threads, ng)),
                              np.zeros((threads, ng)))
+    # the damping's diagonal of the window's stations, summed by the kernel (a replay's rows
+    # take the full build's, ``diag``)
+    keep_diag = lam > 0.0 and rows is None
+    dg = np.zeros((cap if keep_diag else 0, k))
+    ovf_dg = np.zeros((threads, bw, k))
     if sink is None:
         def sink(rows, rhs_rows, band_ds=work.factor, rhs_ds=work.y):
             band_ds[base:base + len(rows)] = rows
@@ -1171,6 +1175,10 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             work.border[base:base + shift] = bord[:shift]
             bord[:cap - shift] = bord[shift:]
             bord[cap - shift:] = 0.0
+        if keep_diag:   # (the rows are complete: every point that sees them is in)
+            diag[base:base + shift] = dg[:shift]
+            dg[:cap - shift] = dg[shift:]
+            dg[cap - shift:] = 0.0
         sink(band[:shift], rhs[:shift])
         band[:cap - shift] = band[shift:]
         rhs[:cap - shift] = rhs[shift:]
@@ -1186,10 +1194,6 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             reweight(c, work, opts)
             if marks is not None and rows is None:
                 marks.see(a, c.smin, c.active)
-            if lam > 0.0 and rows is None:
-                station_diagonal_parallel(_threads.parts(), c.xyz, c.active, c.pt_start,
-                                          c.nobs, c.obs_station, c.obs_sigma, c.obs_active,
-                                          blk.eo, blk.camera, blk.cams, diag)
             j = 0
             while j < len(c.xyz):
                 _threads.adapt()
@@ -1199,6 +1203,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
                     blk.camera, blk.cams, blk.ctrl_mask, band, rhs, base,
                     c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS, blk.cal,
                     bord, ovf_bord, cnn_t, ccg_t, cdiag_t, lam, blk.behind_ok, blk.fixed,
+                    dg, ovf_dg,
                 )
                 if status != OK:
                     raise _point_error(p, c, bad, status, blk)

@@ -143,10 +143,11 @@ def _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nob
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigma, obs_active,
-                     eo, cam_of_station, cams, diag, first=0):
+                     eo, cam_of_station, cams, diag):
     """Add each station's diagonal of the (unreduced) normal matrix, ``sum p a_u^2`` over its
-    active observations of active points of a chunk, into ``diag`` (stations x 6; row
-    ``s - first`` for station ``s``): the scaling of the Levenberg-Marquardt damping."""
+    active observations of active points of a chunk, into ``diag`` (stations x 6): the
+    scaling of the Levenberg-Marquardt damping (the tree's; the band's build sums it in
+    :func:`build_points`)."""
     npar = diag.shape[1]
     a = np.empty((2, npar))
     b = np.empty((2, 3))
@@ -160,57 +161,7 @@ def station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigm
             linearize(eo[s], pt_xyz[j], cams[cam_of_station[s]], a, b)
             p = 1.0 / (obs_sigma[i] * obs_sigma[i])
             for u in range(npar):
-                diag[s - first, u] += p * (a[0, u] * a[0, u] + a[1, u] * a[1, u])
-
-
-#: :func:`station_diagonal_parallel`'s runs' buffers hold at most this many stations, or
-#: as many as the block has: beyond, the runs span the block (points whose rays reach far
-#: apart in the order) and one thread adds straight into ``diag``.
-DIAGONAL_BUFFER_STATIONS = 65536
-
-
-@njit(cache=True, error_model="numpy", nogil=True, parallel=True)
-def station_diagonal_parallel(nthreads, pt_xyz, pt_active, pt_start, pt_nobs, obs_station,
-                              obs_sigma, obs_active, eo, cam_of_station, cams, diag):
-    """:func:`station_diagonal` on ``nthreads`` threads: the points cut into runs of about
-    equal observations, each run adding into a buffer of its own stations' range (points
-    sorted by first station: a run sees about a band's width of stations), the buffers
-    added into ``diag`` in run order afterwards."""
-    n = pt_xyz.shape[0]
-    nt = max(1, min(nthreads, n))
-    if nt < 2 or n == 0:
-        station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigma,
-                         obs_active, eo, cam_of_station, cams, diag)
-        return
-    cut = _runs(pt_start, pt_nobs, nt)
-    lo = np.empty(nt, np.int64)
-    hi = np.empty(nt, np.int64)
-    for t in range(nt):
-        a, b = cut[t], cut[t + 1]
-        lo[t], hi[t] = 0, 0
-        if b > a:
-            i0, i1 = pt_start[a], pt_start[b - 1] + pt_nobs[b - 1]
-            if i1 > i0:
-                lo[t] = obs_station[i0:i1].min()
-                hi[t] = obs_station[i0:i1].max() + 1
-    npar = diag.shape[1]
-    off = np.zeros(nt + 1, np.int64)
-    for t in range(nt):
-        off[t + 1] = off[t] + hi[t] - lo[t]
-    if off[nt] > max(DIAGONAL_BUFFER_STATIONS, diag.shape[0]):   # runs spanning the block
-        station_diagonal(pt_xyz, pt_active, pt_start, pt_nobs, obs_station, obs_sigma,
-                         obs_active, eo, cam_of_station, cams, diag)
-        return
-    buf = np.zeros((off[nt], npar))
-    for t in prange(nt):
-        a, b = cut[t], cut[t + 1]
-        station_diagonal(pt_xyz[a:b], pt_active[a:b], pt_start[a:b], pt_nobs[a:b], obs_station,
-                         obs_sigma, obs_active, eo, cam_of_station, cams,
-                         buf[off[t]:off[t + 1]], lo[t])
-    for t in range(nt):
-        for r in range(hi[t] - lo[t]):
-            for u in range(npar):
-                diag[lo[t] + r, u] += buf[off[t] + r, u]
+                diag[s, u] += p * (a[0, u] * a[0, u] + a[1, u] * a[1, u])
 
 
 @njit(cache=True, error_model="numpy")
@@ -281,7 +232,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
                  pt_smax, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                  cams, ctrl_mask, band, rhs, base, max_rays, split, ovf_band,
                  ovf_rhs, cal, bord, ovf_bord, cnn, ccg, cdiag, lam=0.0, behind_ok=False,
-                 st_fixed=None):
+                 st_fixed=None, dg=None, ovf_dg=None):
     """Add points ``j0 .. j_stop-1`` of a chunk into the band-row window.
 
     ``band[r]`` (6 x 6b) and ``rhs[r]`` (6) are the rows of logical station ``base + r``;
@@ -297,6 +248,10 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     ``ovf_band``), ``cnn`` (ng x ng, full) and ``ccg`` (ng) the border's block and
     right-hand side, ``cdiag`` the diagonal of its unreduced block; every point is
     eliminated from them as from the band (docs/theory.md section 1c). ``ng = 0``: no border.
+
+    ``dg`` (rows x npar, beside ``band``; ``ovf_dg`` beside ``ovf_band``): each station's
+    diagonal of the unreduced normal matrix, ``sum p a_u^2`` over its rays (fixed parameters'
+    columns 0), added in: the scaling of the Levenberg-Marquardt damping. None: not kept.
     """
     cap = band.shape[0]
     npar = band.shape[1]
@@ -337,6 +292,12 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
             row = band[r] if r < split else ovf_band[r - split]
             rrow = rhs[r] if r < split else ovf_rhs[r - split]
             _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, row, rrow, g, col, tmp)
+            if dg is not None and dg.shape[0] > 0:
+                drow = dg[r] if r < split else ovf_dg[r - split]
+                pq = w_all[q]
+                for u in range(npar):
+                    drow[u] += pq * (a_all[q, 0, u] * a_all[q, 0, u]
+                                     + a_all[q, 1, u] * a_all[q, 1, u])
             for c in range(3):   # (Nbar transposed: the update below runs along its rows)
                 for v in range(npar):
                     nbt[q, c, v] = nbar[q, v, c]
@@ -469,7 +430,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                           pt_smin, pt_smax, pt_active, obs_station, obs_xy, obs_sigma,
                           obs_active, eo, cam_of_station, cams, ctrl_mask, band, rhs, base,
                           max_rays, ovf_band, ovf_rhs, min_points, cal, bord, ovf_bord, cnn,
-                          ccg, cdiag, lam=0.0, behind_ok=False, st_fixed=None):
+                          ccg, cdiag, lam=0.0, behind_ok=False, st_fixed=None, dg=None,
+                          ovf_dg=None):
     """:func:`build_points` for the points from ``j0`` that fit the window, on
     ``len(ovf_band)`` threads over station ranges.
 
@@ -479,7 +441,9 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
     afterwards. Fewer than ``min_points`` points a thread are built on one thread. Same
     return value as :func:`build_points`. The border (``ng = bord.shape[2]`` columns) goes
     the same way: ``ovf_bord[t]`` beside ``ovf_band[t]``, and thread ``t`` adds into
-    ``cnn[t]``, ``ccg[t]``, ``cdiag[t]`` (the caller sums them).
+    ``cnn[t]``, ``ccg[t]``, ``cdiag[t]`` (the caller sums them). The stations' diagonal
+    ``dg`` (rows x npar, 0 rows: not kept; required, as ``ovf_dg``, threads x b x npar) the
+    same way: ``ovf_dg[t]`` beside ``ovf_band[t]``.
     """
     cap = band.shape[0]
     n_pts = pt_xyz.shape[0]
@@ -492,13 +456,14 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
     empty_b = ovf_band[0, :0]
     empty_r = ovf_rhs[0, :0]
     empty_g = ovf_bord[0, :0]
+    empty_d = ovf_dg[0, :0]
     if nthreads < 2 or j_end - j0 < max(1, min_points) * nthreads:
         j, status, bad = build_points(j0, j_end, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot,
                                       pt_start, pt_nobs, pt_smax, pt_active, obs_station, obs_xy,
                                       obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays, cap,
                                       empty_b, empty_r, cal, bord, empty_g, cnn[0], ccg[0],
-                                      cdiag[0], lam, behind_ok, st_fixed)
+                                      cdiag[0], lam, behind_ok, st_fixed, dg, empty_d)
         if status != OK or j < j_end:
             return j, status, bad
         return j_end, OK, -1
@@ -513,7 +478,9 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
         ovf_band[t] = 0.0
         ovf_rhs[t] = 0.0
         ovf_bord[t] = 0.0
+        ovf_dg[t] = 0.0
         ob = ovf_band[t] if t < nthreads - 1 else empty_b
+        od = ovf_dg[t] if t < nthreads - 1 else empty_d
         orr = ovf_rhs[t] if t < nthreads - 1 else empty_r
         og = ovf_bord[t] if t < nthreads - 1 else empty_g
         j, status, bad = build_points(cut[t], cut[t + 1], pt_xyz, pt_kind, pt_ctrl, pt_csig,
@@ -521,7 +488,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                                       obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays,
                                       split[t], ob, orr, cal, bord, og, cnn[t], ccg[t],
-                                      cdiag[t], lam, behind_ok, st_fixed)
+                                      cdiag[t], lam, behind_ok, st_fixed, dg, od)
         res[t, 0] = j
         res[t, 1] = status
         res[t, 2] = bad
@@ -538,6 +505,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
             band[rr] += ovf_band[t, r]
             rhs[rr] += ovf_rhs[t, r]
             bord[rr] += ovf_bord[t, r]
+            if dg.shape[0] > 0:
+                dg[rr] += ovf_dg[t, r]
     return j_end, OK, -1
 
 
