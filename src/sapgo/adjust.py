@@ -154,7 +154,9 @@ class Options:
     #: Memory budget of the external sorts when the project has to be ordered first (default
     #: 512 MiB) and, on the tree, of the whole adjustment (default 1 GiB): the process's
     #: baseline, the records held in core for the run's passes (at most a quarter), the
-    #: solver's fronts (tiled when they would not fit) and its factor when it fits.
+    #: solver's fronts (tiled when they would not fit) and its factor when it fits. On the
+    #: band a quarter of it (of 1 GiB by default) bounds the factor rows kept in core
+    #: (``factor_storage`` "auto").
     memory: int | str | None = None
     #: Progress bars: True, False, or None for "when stderr is a terminal".
     progress: bool | None = None

@@ -997,8 +997,9 @@ def build_parser():
                         "(default: start from the project's values)")
     a.add_argument("--memory", default=None, metavar="SIZE",
                    help="memory budget, e.g. 2G: of the external sorts when the project is "
-                        "ordered first (default 512M) and, on the partition tree, of the whole "
-                        "adjustment (default 1G; larger fronts are tiled)")
+                        "ordered first (default 512M); on the partition tree, of the whole "
+                        "adjustment (default 1G; larger fronts are tiled); on the band, a "
+                        "quarter of it (of 1G by default) for factor rows kept in core")
     a.add_argument("--keep-scratch", action="store_true",
                    help="keep the work directory NAME.h5.work (band and factor rows; "
                         "default: removed after the run)")
