@@ -75,6 +75,27 @@ def test_records_are_rewritten_in_logical_order(p1_block):
     np.testing.assert_array_equal(after["truth"]["points"]["id"], pt["id"])
 
 
+def test_ordered_records_are_chunked_no_larger_than_they_are(p1_block):
+    """The ordered project's record datasets are chunked to their records (at most a
+    megabyte a chunk): a small block's file is not a megabyte a dataset, read, checksummed
+    and copied whole at every pass."""
+    import h5py
+
+    from sapgo.project import RECORD_DTYPES, TRUTH_DTYPES
+
+    size_before = p1_block.stat().st_size
+    order_project(p1_block)
+    with h5py.File(p1_block, "r") as f:
+        for name in (*RECORD_DTYPES, *TRUTH_DTYPES):
+            if name not in f:
+                continue
+            ds = f[name]
+            assert ds.chunks[0] <= max(1, len(ds)), name
+            assert ds.chunks[0] * ds.dtype.itemsize <= 1 << 20, name
+            assert ds.id.get_storage_size() <= max(1, len(ds)) * ds.dtype.itemsize + 64, name
+    assert p1_block.stat().st_size < size_before / 2
+
+
 def test_band_width_from_edges_matches_definition():
     # three points: on stations {0, 1, 2}, {2, 5}, {4, 5}
     starts = np.array([0, 3, 5])

@@ -688,6 +688,33 @@ def test_bordered_tree_solve_equals_dense(tmp_path):
         sol.close()
 
 
+def test_a_block_whose_band_beats_the_trees_fixed_cost_is_not_partitioned(monkeypatch):
+    """``choose_solver`` "auto": when the band's predicted factorisation takes no longer
+    than the tree's fixed cost alone, no tree is built (none could predict less), and the
+    choice is the one the whole tree gives; forced, the tree is still built."""
+    import sapgo.ordering as ordering
+    import sapgo.solve.partition as partition
+
+    calls = []
+    real = partition.best_tree
+
+    def counting(pos, active, *a, **kw):
+        calls.append(int(np.count_nonzero(active)))
+        return real(pos, active, *a, **kw)
+
+    monkeypatch.setattr(partition, "best_tree", counting)
+    pos, edges = grid_graph(30, 30)   # 900 stations, square: band width about 31
+    b = ordering.band_width_of(np.arange(900), edges)
+    tree, _, pred = ordering.choose_solver(pos, np.ones(900, bool), edges, b)
+    assert pred["band"] <= ordering.TREE_FIXED_SECONDS
+    assert tree is None and calls == [] and "tree" not in pred
+    whole, _, _ = real(pos, np.ones(900, bool), edges, partition.LEAF_STATIONS)
+    full = ordering.predict_solver(900, b, whole)   # (what the comparison would have been)
+    assert full["tree"] >= full["band"] == pred["band"]
+    tree, _, _ = ordering.choose_solver(pos, np.ones(900, bool), edges, b, solver="tree")
+    assert calls == [900] and tree is not None
+
+
 def test_large_strip_block_keeps_the_band_without_partitioning_it(monkeypatch):
     """``choose_solver`` on a block above ``SCREEN_STATIONS``: a long strip block is settled
     by the tree of a window of the band order (the whole block is never partitioned, and
@@ -698,6 +725,7 @@ def test_large_strip_block_keeps_the_band_without_partitioning_it(monkeypatch):
     monkeypatch.setattr(ordering, "SCREEN_STATIONS", 1000)
     monkeypatch.setattr(ordering, "WINDOW_STATIONS", 600)
     monkeypatch.setattr(ordering, "MIN_WINDOW_STATIONS", 100)
+    monkeypatch.setattr(ordering, "TREE_FIXED_SECONDS", 0.0)   # (the band of 4 strips: less)
     calls = []
     real = partition.best_tree
 

@@ -50,6 +50,8 @@ from .project import (
     Project,
     ProjectWriter,
     PHOTO_CAMERA_NARROW,
+    RECORD_DTYPES,
+    TRUTH_DTYPES,
     append_history,
     solution_dataset,
 )
@@ -945,6 +947,8 @@ def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stati
     if solver == "band" or n_active == 0:
         return None, None, predicted
     band = predicted["band"]
+    if solver == "auto" and band <= TREE_FIXED_SECONDS:   # (no tree can predict less)
+        return None, None, predicted
     if solver == "auto" and band_perm is not None and n_active > SCREEN_STATIONS:
         predicted["tree_window"] = _window_tree_seconds(
             pos, active, edges, band_perm, leaf_stations or LEAF_STATIONS, k)
@@ -1014,7 +1018,9 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
 
     with ExternalSorter(pt_dtype, ["kmin", "kmax", "id", "old"], memory // 2, work,
                         "points") as pts_sort, \
-            ProjectWriter(out or p.path, attrs, truth=has_truth, tmp_suffix=".order.tmp") as w:
+            ProjectWriter(out or p.path, attrs, truth=has_truth, tmp_suffix=".order.tmp",
+                          sizes={n: len(p.file[n]) for n in (*RECORD_DTYPES, *TRUTH_DTYPES)
+                                 if n in p.file}) as w:
         # 1. points keyed by (min, max) logical station of their active rays
         for a, b_ in p.chunks("points", chunk):
             c = _Chunk(p, a, b_, st_active, fields=("station", "status"), reset=reset)

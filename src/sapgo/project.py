@@ -313,9 +313,13 @@ class ProjectWriter:
             w.append("stations", chunk)
             ...
             w.finish()
+
+    ``sizes``: the records each dataset will hold (by name), where known: a dataset's
+    chunks then hold no more records than that (one chunk of about a megabyte otherwise,
+    read, checksummed and copied whole however few records it holds).
     """
 
-    def __init__(self, path, attrs=None, truth=False, tmp_suffix=".tmp"):
+    def __init__(self, path, attrs=None, truth=False, tmp_suffix=".tmp", sizes=None):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.path.is_dir():
@@ -346,6 +350,8 @@ class ProjectWriter:
             names.update(TRUTH_DTYPES)
         for name, dtype in names.items():
             rows = max(1, min(CHUNK_RECORDS, (1 << 20) // dtype.itemsize))
+            if sizes is not None and name in sizes:
+                rows = max(1, min(rows, int(sizes[name])))
             f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows,),
                              **CHECKSUM)
 
@@ -434,7 +440,13 @@ def write_project(path, cameras, stations, points, observations, priors=None, tr
     format's own groups (:data:`KEYED_GROUPS`) into the new file. Large blocks are written
     with :class:`ProjectWriter`.
     """
-    with ProjectWriter(path, attrs, truth=truth is not None) as w:
+    sizes = {"cameras": len(cameras), "stations": len(stations), "points": len(points),
+             "observations": len(observations),
+             "station_priors": 0 if priors is None else len(priors)}
+    if truth is not None:
+        sizes.update({"truth/stations": len(truth["stations"]),
+                      "truth/points": len(truth["points"])})
+    with ProjectWriter(path, attrs, truth=truth is not None, sizes=sizes) as w:
         w.append("cameras", cameras)
         w.append("stations", stations)
         w.append("station_priors", priors if priors is not None else np.zeros(0, PRIOR_DTYPE))

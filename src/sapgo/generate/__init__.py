@@ -72,7 +72,8 @@ def generate_block(path, preset=None, progress=None, force=False, **overrides):
     enabled = sys.stderr.isatty() if progress is None else progress
     with ProjectWriter(Path(path), {"creator": json.dumps(creator),
                                     "history": append_history("[]", creator)},
-                       truth=True) as w, \
+                       truth=True, sizes={"cameras": 1, "stations": spec.n_photos,
+                                          "truth/stations": spec.n_photos}) as w, \
             tqdm(total=spec.n_cols, desc="generate", unit="col", leave=False,
                  disable=not enabled, dynamic_ncols=True) as bar, \
             paging.paged(Path(path).resolve().parent, spec.n_photos > paging.PAGE_STATIONS):
