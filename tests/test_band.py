@@ -196,13 +196,19 @@ def test_cholesky_banded_names_the_leading_minor_like_scipy():
         cholesky_banded(np.full((2, 3), np.nan))
 
 
+@pytest.mark.parametrize("small", [True, False])
 @pytest.mark.parametrize("step, n, bw", [(1, 23, 5), (5, 23, 5), (1000, 23, 5), (7, 90, 3),
-                                         (3, 12, 12)])
-def test_covariance_blocks_equal_the_dense_inverse(step, n, bw):
+                                         (3, 12, 12), (4, 40, 11)])
+def test_covariance_blocks_equal_the_dense_inverse(step, n, bw, small, monkeypatch):
     """Takahashi's selected inversion from the factor rows, streamed backwards in blocks of
     any size (the window shifted many times for the longer block), gives the diagonal blocks
-    of the dense inverse."""
+    of the dense inverse, with the rows taken 2 stations at a time (a small band) or 8."""
+    import sapgo.solve.band as band
     from sapgo.solve.band import covariance_blocks
+
+    if not small:
+        monkeypatch.setattr(band, "SMALL_GEMM", 0)
+    assert band.inverse_stations(6, bw) == min(bw, 2 if small else 8)
 
     a = random_block_banded(n, bw, seed=11)
     band = dense_to_band(a, bw)
@@ -217,6 +223,30 @@ def test_covariance_blocks_equal_the_dense_inverse(step, n, bw):
     var = covariance_blocks(fac, n, bw, step=step, out=out)
     np.testing.assert_array_equal(out, blocks)
     np.testing.assert_array_equal(var, np.diagonal(blocks, axis1=1, axis2=2))
+
+
+@pytest.mark.parametrize("small", [True, False])
+def test_covariance_blocks_do_not_depend_on_the_blas_threads(monkeypatch, small):
+    """The selected inversion gives the same blocks bit for bit with its BLAS on one
+    thread and on two (the kernels' threads follow the machine's load)."""
+    import numba
+
+    import sapgo.solve.band as band
+    from sapgo import threads as sapgo_threads
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one thread")
+    if not small:
+        monkeypatch.setattr(band, "SMALL_GEMM", 0)
+    n, bw = 60, 12
+    a = random_block_banded(n, bw, seed=13)
+    fac = dense_to_band(a, bw)
+    solve_out_of_core(fac, np.zeros((n, 6)), bw, chunk_rows=5)
+    got = []
+    for threads in ("1", "2"):
+        monkeypatch.setattr(sapgo_threads, "_setting", threads)
+        got.append(band.covariance_blocks(fac, n, bw, step=16))
+    np.testing.assert_array_equal(got[0], got[1])
 
 
 @pytest.mark.parametrize("threads", [1, 2])

@@ -688,11 +688,8 @@ def test_bordered_tree_solve_equals_dense(tmp_path):
         sol.close()
 
 
-def test_a_block_whose_band_beats_the_trees_fixed_cost_is_not_partitioned(monkeypatch):
-    """``choose_solver`` "auto": when the band's predicted factorisation takes no longer
-    than the tree's fixed cost alone, no tree is built (none could predict less), and the
-    choice is the one the whole tree gives; forced, the tree is still built."""
-    import sapgo.ordering as ordering
+def count_trees(monkeypatch):
+    """``best_tree`` counting its calls (the active stations of each): ``(calls, real)``."""
     import sapgo.solve.partition as partition
 
     calls = []
@@ -703,6 +700,17 @@ def test_a_block_whose_band_beats_the_trees_fixed_cost_is_not_partitioned(monkey
         return real(pos, active, *a, **kw)
 
     monkeypatch.setattr(partition, "best_tree", counting)
+    return calls, real
+
+
+def test_a_block_whose_band_beats_the_trees_fixed_cost_is_not_partitioned(monkeypatch):
+    """``choose_solver`` "auto": when the band's predicted factorisation takes no longer
+    than the tree's fixed cost alone, no tree is built (none could predict less), and the
+    choice is the one the whole tree gives; forced, the tree is still built."""
+    import sapgo.ordering as ordering
+    import sapgo.solve.partition as partition
+
+    calls, real = count_trees(monkeypatch)
     pos, edges = grid_graph(30, 30)   # 900 stations, square: band width about 31
     b = ordering.band_width_of(np.arange(900), edges)
     tree, _, pred = ordering.choose_solver(pos, np.ones(900, bool), edges, b)
@@ -720,20 +728,12 @@ def test_large_strip_block_keeps_the_band_without_partitioning_it(monkeypatch):
     by the tree of a window of the band order (the whole block is never partitioned, and
     the choice is the one the whole tree gives); a square block goes on to its tree."""
     import sapgo.ordering as ordering
-    import sapgo.solve.partition as partition
 
     monkeypatch.setattr(ordering, "SCREEN_STATIONS", 1000)
     monkeypatch.setattr(ordering, "WINDOW_STATIONS", 600)
     monkeypatch.setattr(ordering, "MIN_WINDOW_STATIONS", 100)
     monkeypatch.setattr(ordering, "TREE_FIXED_SECONDS", 0.0)   # (the band of 4 strips: less)
-    calls = []
-    real = partition.best_tree
-
-    def counting(pos, active, *a, **kw):
-        calls.append(int(np.count_nonzero(active)))
-        return real(pos, active, *a, **kw)
-
-    monkeypatch.setattr(partition, "best_tree", counting)
+    calls, _ = count_trees(monkeypatch)
 
     def band_order(nx, ny):   # across the strips: photo j of every strip, then j + 1
         return np.arange(nx * ny).reshape(ny, nx).T.ravel()

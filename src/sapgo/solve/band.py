@@ -993,23 +993,28 @@ def _back_substitute(band_ds, rhs_ds, n_st, step, block=6):
 
 
 @njit(cache=True, nogil=True)
-def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, margin, sb, uh, ut, w, s):
+def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, margin, sb, uh, ut, w, s, g):
     """Takahashi's recurrence for the stations ``i0 ..`` of the diagonal-first factor rows
     ``fac`` (in reverse), ``sb`` stations (``nb = k sb`` scalar rows ``H``) at a time:
-    with ``T`` the ``u`` scalar rows after ``H`` (``u`` the scalar band width) and
-    ``Z = M^-1 = U^-1 U'^-1``,
+    with ``T`` the ``u`` scalar rows after ``H`` (``u`` the scalar band width),
+    ``Z = M^-1 = U^-1 U'^-1`` and ``V = U[H, H]^-1`` (dtrsm of the identity, nb x nb),
 
-        W = U[H, T] Z[T, T]                               (dgemm)
-        Z[H, T] = -U[H, H]^-1 W                           (dtrsm)
-        Z[H, H] = U[H, H]^-1 (I + W U[H, T]') U[H, H]^-T   (dgemm, two dtrsm)
+        G = V U[H, T]                                     (dgemm)
+        Z[H, T] = -G Z[T, T]                              (dgemm)
+        Z[H, H] = V V' - Z[H, T] G'                       (two dgemm)
 
     (from ``U Z = U'^-1``, lower triangular, and ``Z`` symmetric; the rows of ``H`` a
-    block of ``U``'s upper triangle). ``zb`` (B x B, ``B >= nb + u + margin``) holds ``Z``
+    block of ``U``'s upper triangle). The same as ``Z[H, T] = -V (U[H, T] Z[T, T])``, with
+    no triangular solve of ``nb x u``: OpenBLAS's dtrsm of that shape ran at a sixth of
+    dgemm's rate (measured; the inversion 0.44 s against 0.22 at 10 000 stations of band
+    width 42, one thread). Only dgemm and dtrsm: OpenBLAS's dtrtri, dlauum and dtrmm round
+    differently on one thread and on two, so the results would follow the machine's load
+    (:mod:`sapgo.threads`). ``zb`` (B x B, ``B >= nb + u + margin``) holds ``Z``
     of the scalar rows and columns ``base .. base + B`` (``state[0] = base``), shifted
     when the rows reach its start (the band of ``Z`` only: nothing reads further), so that
     the block the rows need is contiguous;
     ``out_blocks[i - i0]`` receives the k x k diagonal block of station ``i``. Work space:
-    ``uh`` (nb x nb), ``ut``, ``w`` (nb x u) and ``s`` (nb x nb), F order, flat."""
+    ``uh`` (nb x nb), ``ut``, ``w``, ``g`` (nb x u) and ``s`` (nb x nb), F order, flat."""
     width = fac.shape[2]
     kb = fac.shape[1]
     u = width - 1
@@ -1035,7 +1040,6 @@ def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, margin, sb, uh, ut, w,
         p = h0 - base
         for c in range(nb * nb):
             uh[c] = 0.0
-            s[c] = 0.0
         for c in range(nb * t):
             ut[c] = 0.0
         for a in range(nb):   # U[H, H] and U[H, T] from the diagonal-first rows
@@ -1047,19 +1051,23 @@ def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, margin, sb, uh, ut, w,
                     uh[col * nb + a] = fac[ii, r, d]
                 else:
                     ut[(col - nb) * nb + a] = fac[ii, r, d]
+        for c in range(nb * nb):
+            s[c] = 0.0
         for a in range(nb):
             s[a * nb + a] = 1.0
+        trsm(fns.dtrsm, L, U, N, N, nb, nb, 1.0, uh, nb, s, nb)   # V
+        for c in range(nb * nb):
+            uh[c] = s[c]
+        gemm(fns.dgemm, N, T, nb, nb, nb, 1.0, uh, nb, uh, nb, 0.0, s, nb)   # V V'
         if t > 0:
             q = (p + nb) * bsz + p + nb
-            gemm(fns.dgemm, N, N, nb, t, t, 1.0, ut, nb, flat[q:], bsz, 0.0, w, nb)
-            gemm(fns.dgemm, N, T, nb, nb, t, 1.0, w, nb, ut, nb, 1.0, s, nb)
-            trsm(fns.dtrsm, L, U, N, N, nb, t, -1.0, uh, nb, w, nb)
+            gemm(fns.dgemm, N, N, nb, t, nb, 1.0, uh, nb, ut, nb, 0.0, g, nb)   # G
+            gemm(fns.dgemm, N, N, nb, t, t, -1.0, g, nb, flat[q:], bsz, 0.0, w, nb)
+            gemm(fns.dgemm, N, T, nb, nb, t, -1.0, w, nb, g, nb, 1.0, s, nb)
             for c in range(t):
                 for a in range(nb):
                     zb[p + a, p + nb + c] = w[c * nb + a]
                     zb[p + nb + c, p + a] = w[c * nb + a]
-        trsm(fns.dtrsm, L, U, N, N, nb, nb, 1.0, uh, nb, s, nb)
-        trsm(fns.dtrsm, R, U, T, N, nb, nb, 1.0, uh, nb, s, nb)
         for c in range(nb):
             for a in range(c + 1):
                 zb[p + a, p + c] = s[c * nb + a]
@@ -1074,6 +1082,24 @@ def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, margin, sb, uh, ut, w,
 
 #: Stations a block of rows of the selected inversion (:func:`_inverse_rows`) at most.
 INVERSE_STATIONS = 8
+#: Stations a block where its main product (``nb x u`` by ``u x u``) stays below
+#: ``SMALL_GEMM`` multiply-adds (else 1 station, if that does): there OpenBLAS multiplies
+#: without packing, and blocks of 2 stations ran 1.5-1.7 times faster than blocks of 8
+#: (band widths 8-42, one thread: 0.092 s against 0.154 at 3 936 stations of band width 42),
+#: blocks of 1 station 5-9 % faster at 50-60; above that blocks of 8 were as fast as any
+#: (band widths 80-150).
+SMALL_INVERSE_STATIONS = 2
+SMALL_GEMM = 1_000_000
+
+
+def inverse_stations(kb, band_width):
+    """Stations a block of rows of the selected inversion, for ``kb`` parameters a station
+    and band width ``band_width`` (stations)."""
+    u = kb * band_width - 1
+    for sb in (SMALL_INVERSE_STATIONS, 1):
+        if kb * sb * u * u <= SMALL_GEMM:
+            return max(1, min(sb, band_width))
+    return max(1, min(INVERSE_STATIONS, band_width))
 
 #: Bytes of the selected inversion's window of ``Z`` at most, when a larger block of stations
 #: (their points' precision at once, :func:`covariance_blocks`' ``on_block``) asks for more
@@ -1096,7 +1122,7 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     """The 6x6 diagonal blocks of ``M^-1`` (the stations' cofactor matrices) from the factor
     rows of :class:`BandSolver` (diagonal-first, ``factor_ds`` n x 6 x 6b), by Takahashi's
     recurrence streamed backwards ``step`` stations at a time, by blocks of
-    ``INVERSE_STATIONS`` stations (BLAS-3, :func:`_inverse_rows`): in core ``Z`` of a window
+    :func:`inverse_stations` stations (BLAS-3, :func:`_inverse_rows`): in core ``Z`` of a window
     of at least ``4 (6b) + 6`` scalar rows and columns (``(24 b)^2`` doubles) and one block of
     factor rows. Returns the
     blocks (n x 6 x 6), or writes them to ``out`` (a direct-access file, dataset or array)
@@ -1119,7 +1145,7 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     width = kb * band_width
     u = width - 1
     n = kb * n_st
-    sb = max(1, min(INVERSE_STATIONS, band_width))
+    sb = inverse_stations(kb, band_width)
     nb = kb * sb
     threads = _threads.parts()
     # with two threads or more and enough observations for on_block (above), on_block on a
@@ -1145,7 +1171,7 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     bases = [max(0, n - bsz)] * len(wins)
     busy = [None] * len(wins)   # the on_block still reading each window
     uh, s = np.empty(nb * nb), np.empty(nb * nb)
-    ut, w = np.empty(nb * max(u, 1)), np.empty(nb * max(u, 1))
+    ut, w, g = (np.empty(nb * max(u, 1)) for _ in range(3))
     keep = out is None
     blocks_all = np.empty((n_st, kb, kb)) if keep else None
     var = paging.empty((n_st, kb))
@@ -1170,7 +1196,7 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
             others = _threads.adapt() == 1 < threads   # (another process running)
             with blas_limits(1 if overlap or others else threads):
                 _inverse_rows(FNS, fac, start, n, wins[cur], state, blocks, margin, sb, uh, ut,
-                              w, s)
+                              w, s, g)
             bases[cur] = int(state[0])   # (shifted, on one window; never on two)
             var[start:stop] = np.diagonal(blocks, axis1=1, axis2=2)
             if overlap and start > 0:
