@@ -159,8 +159,16 @@ def main(argv=None):
         sapgo.generate_block(warm, strips=4, photos_per_strip=10, points_per_photo=50,
                              control_points=6, progress=False)
         sapgo.adjust(warm, sapgo.Options(progress=False))
+        # each child's own warm-up block (shape.py's warm_path): fixed control, as the blocks
+        sapgo.generate_block(workdir / "warm0.h5", strips=12, photos_per_strip=12,
+                             control_points=8, control_sigma=0.0, progress=False)
         for name in args.blocks.split(","):
             rows.append(bench_block(name, workdir, args.rounds, args.colmap_max_observations))
+    failed = [(r["block"], tool) for r in rows for tool, rs in r["runs"].items()
+              for run in rs if run.get("error")]
+    if failed:   # (the recorded results stay as they were)
+        raise SystemExit(f"density.py: {len(failed)} runs failed (first: {failed[0]}); "
+                         f"{args.output} not written")
     result = {
         "benchmark": "realistic tie-point density: sapgo against COLMAP best",
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
