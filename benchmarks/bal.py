@@ -78,6 +78,39 @@ configuration, in turn, the machine's load average recorded before each round; a
 configuration whose run took over 10 s runs once): each row gives the median time to
 solution and per iteration with the spread (min-max) of its runs; the fastest COLMAP
 configuration is the one of lowest median. The exact functor runs once.
+
+COLMAP doing sapgo's work. sapgo's time to solution includes reading its project, writing the
+adjusted one and (by default) the precision pass; COLMAP's includes none of them. So in every
+round, after the solve of the first COLMAP configuration (SPARSE_SCHUR; the covariance does
+not depend on the linear solver that reached the solution) and outside its timing, two more
+figures are measured as colmap.py measures them (see there):
+
+- COLMAP's covariance, ``pycolmap.estimate_ba_covariance(BACovarianceOptions(params=ALL),
+  rec, ba)``: the marginal covariances of the poses (and of f, k1, k2 with free intrinsics)
+  from a dense inverse of the factor of their Schur complement (8 (6 + 3 with free
+  intrinsics)^2 cameras^2 bytes; not run where that exceeds half the physical memory), and
+  the points' covariances *conditional* on all other variables held (each point's own 3 x 3
+  block inverted), cheaper than sapgo's marginal point covariances; checked (not None, every
+  pose 6 x 6, finite, positive diagonal). A BAL problem has no datum (no control, no gauge
+  fixed by the adjuster), so its Schur complement on the poses is singular: on the adjuster
+  that solved, COLMAP refuses it (None, "rank deficient": dubrovnik-3-7) or, its rank test
+  counting exactly zero pivots only, inverts it into numbers without meaning
+  (problem-49-7776). That attempt is timed and kept (``free_network``); the covariance
+  counted is timed on a second CeresBundleAdjuster built, not solved, on the adjusted
+  Reconstruction with COLMAP's ``THREE_POINTS`` gauge (three points held, every pose keeps its
+  6 x 6; building it, ``gauge_problem_setup_s``, not counted). dubrovnik-3-7 with free
+  intrinsics has no redundancy (sapgo refuses it; no summary row).
+- COLMAP's file work: the starting Reconstruction written once per problem as a binary model
+  (``write_binary``, outside any timing); each round times reading it
+  (``pycolmap.Reconstruction(dir)``) and writing the adjusted one into an empty directory.
+
+The SPARSE_SCHUR rows hold them (``colmap_covariance``, ``colmap_file_work``: the runs, their
+medians and spreads); the summary adds ``colmap_best_file_to_file_s`` = read + the fastest
+configuration's median time to solution + write, against sapgo with ``precision="none"``
+(``ratio_file_to_file_precision_none``), and ``colmap_best_plus_covariance_s`` = the fastest
+configuration's median + the median covariance (None, with
+``colmap_best_plus_covariance_note``, where it was not run or failed), against sapgo with its
+precision pass (``ratio_to_solution_with_covariance``); ratios sapgo / COLMAP like the others.
 """
 
 from __future__ import annotations
@@ -96,7 +129,10 @@ import sapgo
 from sapgo.formats.bal import bal_cost, export_bal, import_bal, read_bal, rodrigues
 
 sys.path.insert(0, str(Path(__file__).parent))
-from colmap import capture_stdout, load_average, median_of, parse_progress  # noqa: E402
+from colmap import (capture_stdout, colmap_covariance, colmap_file_work,  # noqa: E402
+                    covariance_plan, load_average, median_of,
+                    parse_progress, same_work, span_runs, summarize_covariance,
+                    summarize_file_work, write_model)
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEMS = {"problem-49-7776": "problem-49-7776-pre.txt",
@@ -179,7 +215,10 @@ def colmap_cost(rec, d):
     return 0.5 * total
 
 
-def run_ceres(d, pycolmap, solver, tol, refine_intrinsics, threads=2):
+def run_ceres(d, pycolmap, solver, tol, refine_intrinsics, threads=2, keep=False):
+    """COLMAP's adjuster on the BAL problem ``d``; with ``keep`` returns ``(row,
+    reconstruction, bundle adjuster, options, config)``: the adjusted Reconstruction and the
+    CeresBundleAdjuster that solved it, for :func:`colmap_extras`."""
     import pycolmap.pyceres as pc
 
     rec, config = reconstruction(d, pycolmap)
@@ -208,15 +247,50 @@ def run_ceres(d, pycolmap, solver, tol, refine_intrinsics, threads=2):
     cs = summary.ceres_summary
     its = cs.num_successful_steps + cs.num_unsuccessful_steps
     termination = str(cs.termination_type).split(".")[-1]
-    return {"tool": "ceres", "solver": solver, "intrinsics": "free" if refine_intrinsics
-            else "fixed", "threads": threads, "tolerances": dict(tol),
-            "initial_cost": cs.initial_cost,
-            "final_cost": cs.final_cost, "final_cost_recomputed": colmap_cost(rec, d),
-            "iterations": its, "successful_steps": cs.num_successful_steps,
-            "termination": termination, "converged": termination == "CONVERGENCE",
-            "time_to_solution_s": t3 - t1,
-            "s_per_iteration": cs.minimizer_time_in_seconds / max(its, 1),
-            "log": parse_progress(out["text"])}
+    row = {"tool": "ceres", "solver": solver, "intrinsics": "free" if refine_intrinsics
+           else "fixed", "threads": threads, "tolerances": dict(tol),
+           "initial_cost": cs.initial_cost,
+           "final_cost": cs.final_cost, "final_cost_recomputed": colmap_cost(rec, d),
+           "iterations": its, "successful_steps": cs.num_successful_steps,
+           "termination": termination, "converged": termination == "CONVERGENCE",
+           "time_to_solution_s": t3 - t1,
+           "s_per_iteration": cs.minimizer_time_in_seconds / max(its, 1),
+           "log": parse_progress(out["text"])}
+    return (row, rec, ba, opts, config) if keep else row
+
+
+def colmap_extras(d, pycolmap, solver, tol, refine_intrinsics, plan, model_dir, scratch):
+    """:func:`run_ceres`, then, outside its timing, COLMAP's covariance of its solution and
+    COLMAP's file work (colmap.py's ``colmap_covariance`` and ``colmap_file_work``), under
+    the row's private keys ``_covariance`` and ``_file_work`` (taken out by main).
+
+    A BAL problem has no datum (COLMAP's adjuster fixes no gauge here, nor does the
+    problem), so the Schur complement on the poses is singular (7 degrees of freedom). On the
+    adjuster that solved, ``estimate_ba_covariance`` either refuses it (None: dubrovnik-3-7)
+    or, its rank test counting exactly zero pivots only, returns the inverse of a singular
+    matrix, numbers without meaning (problem-49-7776). That attempt is timed and kept
+    (``free_network``); the covariance counted is taken on a second CeresBundleAdjuster built
+    (not solved) on the adjusted Reconstruction with COLMAP's ``THREE_POINTS`` gauge (three
+    points held: every pose keeps its 6 x 6 covariance): ``gauge``, the time to build it
+    ``gauge_problem_setup_s``, not counted."""
+    row, rec, ba, opts, config = run_ceres(d, pycolmap, solver, tol, refine_intrinsics,
+                                           keep=True)
+    cov = colmap_covariance(rec, ba, pycolmap, plan, solver, wait=False)
+    if "skipped" not in plan:
+        gauged = pycolmap.BundleAdjustmentConfig()
+        for image_id in config.images:
+            gauged.add_image(image_id)
+        gauged.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+        t0 = time.perf_counter()
+        ba3 = pycolmap.create_default_ceres_bundle_adjuster(opts, gauged, rec)
+        setup = time.perf_counter() - t0
+        cov = dict(colmap_covariance(rec, ba3, pycolmap, plan, solver, wait=False),
+                   gauge="THREE_POINTS (for the covariance only)",
+                   gauge_problem_setup_s=setup, free_network=dict(cov, gauge="none"))
+        del ba3
+    row["_covariance"] = cov
+    row["_file_work"] = colmap_file_work(model_dir, rec, scratch, pycolmap, wait=False)
+    return row
 
 
 def _stopped_by(s, tol_cost):
@@ -449,7 +523,42 @@ def summary_rows(rows):
                         ceres_iterations=c["iterations"], ceres_final_cost=c["final_cost"],
                         ratio_to_solution=_ratio(r["time_to_solution_s"],
                                                  c["time_to_solution_s"]),
-                        ratio_per_iteration=_ratio(r["s_per_iteration"], c["s_per_iteration"])))
+                        ratio_per_iteration=_ratio(r["s_per_iteration"], c["s_per_iteration"]),
+                        **same_work_row(r, bare, c, ceres)))
+    return out
+
+
+def same_work_row(sap, bare, c, ceres):
+    """COLMAP doing sapgo's work (the summary's added figures): its file work and covariance
+    (medians and runs, from the row of the configuration they followed), the fastest
+    configuration ``c`` read + to solution + write (``colmap_best_file_to_file_s``) against
+    sapgo with ``precision="none"`` (``bare``, its rows) and ``c`` + covariance
+    (``colmap_best_plus_covariance_s``) against sapgo with its precision pass (``sap``);
+    ratios sapgo / COLMAP like every ratio here."""
+    x = next((x for x in ceres if "colmap_file_work" in x), None)
+    if x is None:
+        return {}
+    cov, files = x["colmap_covariance"], x["colmap_file_work"]
+    gauge = next((run["gauge"] for run in cov.get("runs", []) if "gauge" in run), None)
+    out = {"colmap_read_s": files.get("median_read_s"),
+           "colmap_runs_read_s": files.get("runs_read_s"),
+           "colmap_write_s": files.get("median_write_s"),
+           "colmap_runs_write_s": files.get("runs_write_s"),
+           "colmap_covariance_s": cov.get("median_covariance_s"),
+           "colmap_runs_covariance_s": cov.get("runs_covariance_s"),
+           "colmap_covariance_after": cov.get("after_configuration"),
+           "colmap_covariance_gauge": gauge,
+           "colmap_covariance_dense_matrix_bytes": cov["dense_matrix_bytes"]}
+    for k in ("skipped", "error"):
+        if k in cov:
+            out[f"colmap_covariance_{k}"] = cov[k]
+    out.update(same_work(c["time_to_solution_s"], files, cov))
+    f2f, plus = out["colmap_best_file_to_file_s"], out["colmap_best_plus_covariance_s"]
+    none_ok = bare and "error" not in bare[0]
+    out["ratio_file_to_file_precision_none"] = (
+        _ratio(bare[0]["time_to_solution_s"], f2f) if none_ok and f2f is not None else None)
+    out["ratio_to_solution_with_covariance"] = (
+        None if plus is None else _ratio(sap["time_to_solution_s"], plus))
     return out
 
 
@@ -553,14 +662,25 @@ def main(argv=None):
             rec, _ = reconstruction(d, pycolmap)
             check = colmap_cost(rec, d)
             assert abs(check - ref) <= 1e-9 * ref, (check, ref)
+            # the starting values as COLMAP's binary model, read in every round
+            model_dir = Path(tmp) / f"{name}-colmap-model"
+            model = write_model(rec, model_dir)
+            del rec
+            n_cams = len(d["cameras"])
             for tol_name, tol in TOLERANCES.items():
                 for intrinsics in ("fixed", "adjusted"):
                     free = intrinsics == "adjusted"
                     tag = dict(problem=name, tolerance=tol_name, file=PROBLEMS[name],
                                file_initial_cost=ref)
+                    # COLMAP's covariance: 6 pose parameters a camera, with free
+                    # intrinsics f, k1, k2 too (the principal point held)
+                    plan = covariance_plan(n_cams, other_params=3 * n_cams if free else 0)
                     confs = [lambda p=precision: run_sapgo(path, tmp, tol_name, intrinsics, p)
                              for precision in ("full", "none")]
-                    confs += [lambda v=solver: run_ceres(d, pycolmap, v, tol, free)
+                    # after the first COLMAP configuration's solve: its covariance, file work
+                    confs += [lambda v=solver: colmap_extras(d, pycolmap, v, tol, free, plan,
+                                                             model_dir, tmp)
+                              if v == COLMAP_SOLVERS[0] else run_ceres(d, pycolmap, v, tol, free)
                               for solver in COLMAP_SOLVERS]
                     runs, loads = [[] for _ in confs], []
                     for _ in range(max(1, args.rounds)):   # interleaved rounds
@@ -570,7 +690,28 @@ def main(argv=None):
                                          > REPEAT_BELOW_S):
                                 continue
                             done.append(fn())
-                    block = [dict(median_run(done), load_before_rounds=loads) for done in runs]
+                    block = []
+                    for done in runs:
+                        cov = [x.pop("_covariance") for x in done if "_covariance" in x]
+                        files = [x.pop("_file_work") for x in done if "_file_work" in x]
+                        row = dict(median_run(done), load_before_rounds=loads)
+                        if files:
+                            free_net = [c.pop("free_network") for c in cov
+                                        if "free_network" in c]
+                            row["colmap_covariance"] = summarize_covariance(cov, plan)
+                            if free_net:  # the attempt on the adjuster that solved
+                                row["colmap_covariance"]["free_network"] = \
+                                    summarize_covariance(free_net, {"gauge": "none"})
+                            row["colmap_file_work"] = summarize_file_work(files, model)
+                            c, f = row["colmap_covariance"], row["colmap_file_work"]
+                            gauge = next((x["gauge"] for x in cov if "gauge" in x), "-")
+                            what = (c.get("skipped") or c.get("error") or
+                                    f"{c['median_covariance_s']:.4f} s, gauge {gauge}")
+                            print(f"  {name} {tol_name} COLMAP covariance (after "
+                                  f"{c.get('after_configuration')}) {row['intrinsics']}: "
+                                  f"{what}; read {f['median_read_s']:.4f} s, write "
+                                  f"{f['median_write_s']:.4f} s", file=sys.stderr, flush=True)
+                        block.append(row)
                     if args.exact and (not free or tol_name == "default" or args.exact_tight):
                         block.append(run_pyceres(d, free, tol))
                     for r in block:
@@ -611,15 +752,32 @@ def main(argv=None):
               f"{spread(r, 'time_to_solution_s')} |")
 
     print("\nsapgo against the fastest COLMAP configuration (medians; sapgo's time with its "
-          "precision pass, and without it: the work Ceres does):\n")
+          "precision pass, and without it: the work Ceres does; and COLMAP doing sapgo's "
+          "work: reading and writing its model, and its covariance):\n")
     print("| problem | tolerance | intrinsics | sapgo to solution | sapgo --precision none "
           "| sapgo per iteration | sapgo iterations | Ceres (fastest) | Ceres to solution "
           "| Ceres per iteration | Ceres iterations | to solution, sapgo / Ceres | the same, "
-          "--precision none | per iteration, sapgo / Ceres |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "--precision none | per iteration, sapgo / Ceres | COLMAP read model ms | COLMAP "
+          "write model ms | COLMAP best file to file | sapgo --precision none / that | "
+          "COLMAP covariance ms | COLMAP best + covariance | sapgo / that |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    ms = (lambda v: None if v is None else [1000 * x for x in v])
+    sec = (lambda v: "-" if v is None else f"{v:.4f} s")
     for r in summary:
         none_s = r.get("sapgo_precision_none_time_to_solution_s")
         none_r = r.get("ratio_to_solution_precision_none")
+        if "colmap_covariance_s" not in r:
+            cov_ms = "-"
+        elif r.get("colmap_covariance_skipped"):
+            cov_ms = f"skipped ({r['colmap_covariance_dense_matrix_bytes'] / 1e9:.1f} GB)"
+        elif r["colmap_covariance_s"] is None:
+            cov_ms = f"failed: {r.get('colmap_covariance_error', 'not run')}"
+        else:
+            cov_ms = span_runs(ms(r["colmap_runs_covariance_s"]), 2)
+        plus = r.get("colmap_best_plus_covariance_s")
+        plus = sec(plus) if plus is not None else r.get("colmap_best_plus_covariance_note", "-")
+        f2f_r, cov_r = (r.get("ratio_file_to_file_precision_none"),
+                        r.get("ratio_to_solution_with_covariance"))
         print(f"| {r['problem']} | {r['tolerance']} | {r['intrinsics']} | "
               f"{r['sapgo_time_to_solution_s']:.3f} s | "
               f"{'-' if none_s is None else f'{none_s:.3f} s'} | "
@@ -627,7 +785,28 @@ def main(argv=None):
               f"{r['ceres_solver']} | {r['ceres_time_to_solution_s']:.3f} s | "
               f"{r['ceres_s_per_iteration'] * 1000:.1f} ms | {r['ceres_iterations']} | "
               f"{r['ratio_to_solution']:.2f} | {'-' if none_r is None else f'{none_r:.2f}'} | "
-              f"{r['ratio_per_iteration']:.2f} |")
+              f"{r['ratio_per_iteration']:.2f} | "
+              f"{span_runs(ms(r.get('colmap_runs_read_s')), 2)} | "
+              f"{span_runs(ms(r.get('colmap_runs_write_s')), 2)} | "
+              f"{sec(r.get('colmap_best_file_to_file_s'))} | "
+              f"{'-' if f2f_r is None else f'{f2f_r:.2f}'} | {cov_ms} | {plus} | "
+              f"{'-' if cov_r is None else f'{cov_r:.2f}'} |")
+    gauges = sorted({r["colmap_covariance_gauge"] for r in summary
+                     if r.get("colmap_covariance_gauge")})
+    print("\nCOLMAP best file to file: reading the starting binary model "
+          "(`pycolmap.Reconstruction(dir)`) + the fastest configuration's median time to "
+          "solution + writing the adjusted model (`write_binary`), medians. COLMAP covariance: "
+          "`estimate_ba_covariance(params=ALL)` after each round's "
+          f"{COLMAP_SOLVERS[0]} solve (gauge: {'; '.join(gauges) or '-'}"
+          + ("; a BAL problem has no datum: on the adjuster that solved COLMAP refuses its "
+             "singular Schur complement or inverts it into numbers without meaning, so the "
+             "covariance counted is taken with three points held, that attempt's time in the "
+             "JSON as free_network" if any("THREE_POINTS" in g for g in gauges) else "")
+          + "): pose (and free intrinsics) covariances marginal, "
+          "from a dense inverse of the factor of their Schur complement; point covariances "
+          "*conditional* on all other variables held, cheaper than sapgo's marginal ones. "
+          "COLMAP best + covariance: fastest median time to solution + median covariance, "
+          "against sapgo with its precision pass.")
 
     print("\nsapgo's final cost with free intrinsics against Ceres' "
           f"(target: within {100 * TARGET:g} % of exact Ceres, default tolerances; COLMAP's "

@@ -12,6 +12,7 @@ import pytest
 
 import naive
 import sapgo
+import sapgo.freenet
 from conftest import read_records, rewrite
 from sapgo.geometry import attitude_jacobians
 from sapgo.project import CONTROL_MASK, Project
@@ -148,11 +149,15 @@ def compare_solution(run, rec, ref):
     return eo, ssig, xyz, psig, so, ro, po, rpo
 
 
-@pytest.mark.parametrize("solver", ["band", "tree"])
+@pytest.mark.parametrize("solver,keep", [("band", True), ("tree", True), ("band", False)])
 def test_free_network_equals_the_dense_inner_constraints(free_block, reference, tmp_path,
-                                                         solver):
+                                                         solver, keep, monkeypatch):
+    """... with the points' datum columns kept between the S-transform's passes, and
+    worked out again in a third pass (``keep`` False: no room to keep them)."""
     path, rec = free_block
     assert reference["null"] < 1e-9   # (H spans the normals' null space)
+    if not keep:
+        monkeypatch.setattr(sapgo.freenet, "KEEP_COLUMNS_BYTES", 0)
     run = tmp_path / f"{solver}.h5"
     shutil.copy(path, run)
     s = sapgo.adjust(run, sapgo.Options(progress=False, solver=solver, tol_position=1e-10,

@@ -301,6 +301,50 @@ def test_the_fold_kernel_finds_the_first_fold_the_plain_loop_finds():
     assert 0 < found < 12
 
 
+def test_every_cameras_fold_in_one_kernel_as_one_camera_at_a_time():
+    """validate's fold check of all cameras at once (one parallel kernel) against the grid
+    of each camera walked alone (:func:`_fold_at` over ``linspace(-h, h, 41)``), on cameras
+    without distortion, mild, folding, backward and of different formats; and the camera
+    check names the first camera that folds, by record and id."""
+    from sapgo.errors import DataError
+    from sapgo.project import CAMERA_DTYPE
+    from sapgo.validate import FOLD_GRID, _distortion_folds, _fold_at, check_values
+
+    recs = np.zeros(8, CAMERA_DTYPE)
+    recs["id"] = np.arange(10, 18)
+    recs["focal_length"], recs["sigma_image"] = 152.0, 0.005
+    recs["format_x"] = [230, 230, 230, 100, 230, 60, 230, 230]
+    recs["format_y"] = [230, 230, 230, 80, 230, 90, 230, 230]
+    recs["k1"] = [0.0, DIST[0], -4e-5, -4e-5, 1e-5, -1.5e-5, -1e-6, 0.0]
+    recs["p1"] = [0.0, 0.0, 1e-6, 0.0, 0.0, 1e-6, 0.0, 0.0]
+    recs["distortion_model"] = [0, 0, 0, 1, 1, 0, 0, 0]
+    got = _distortion_folds(recs)
+    folding = 0
+    for rec, fold in zip(recs, got):
+        row = camera_array(np.asarray(rec).reshape(1))[0]
+        xs = np.linspace(-0.5 * rec["format_x"], 0.5 * rec["format_x"], FOLD_GRID)
+        ys = np.linspace(-0.5 * rec["format_y"], 0.5 * rec["format_y"], FOLD_GRID)
+        i = _fold_at(xs, ys, row, rec["distortion_model"] == 1) if rec["k1"] else -1
+        if i < 0:
+            assert fold is None
+        else:
+            folding += 1
+            np.testing.assert_allclose(fold, (xs[i // FOLD_GRID], ys[i % FOLD_GRID]),
+                                       rtol=1e-12, atol=1e-12)
+    assert 0 < folding < len(recs) - 2
+    first = next(i for i, f in enumerate(got) if f is not None)
+
+    class Cameras:   # (check_values reads the cameras before anything else)
+        path, n_cameras, n_stations, n_points = "p.h5", len(recs), 1, 0
+
+        def cameras(self):
+            return recs
+
+    with pytest.raises(DataError, match=rf"cameras record {first} \(id {10 + first}\): the "
+                                        r"lens distortion .* folds the image over"):
+        check_values(Cameras())
+
+
 def test_in_angles_kernel_against_the_matrix_products():
     """sapgo.quality.in_angles (one numba kernel) against ``T Q T'`` with numpy's products
     and :func:`attitude_jacobians`, for 6 and 9 parameters a station, with fixed parameters'

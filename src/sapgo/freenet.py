@@ -38,12 +38,18 @@ cofactors are the same in both datums (a similarity moves no camera).
 
 from __future__ import annotations
 
+import types
+
 import numpy as np
 
-from .normals import PointChunk, datum_columns
+from . import threads as _threads
+from .normals import PointChunk, datum_columns, datum_columns_parallel
 
 #: The station parameters held for a free network's adjustment: all six of one photo.
 ALL_SIX = 0b111111
+#: :func:`inner_precision` keeps the points' datum columns of its second pass for its third
+#: (2 x 21 doubles a point) up to this many bytes, else works them out again.
+KEEP_COLUMNS_BYTES = 64 << 20
 
 
 def minimal_constraints(blk):
@@ -206,10 +212,15 @@ def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g):
         h = point_rows(c.xyz, centre)
         h[c.active != 0] = 0.0
         b_pt = np.zeros_like(h)
-        bad = datum_columns(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
-                            c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active,
-                            blk.eo, blk.camera, blk.cams, blk.ctrl_mask, c.max_rays, h, x_st,
-                            r_st, b_pt, blk.behind_ok, blk.fixed, cal, r_g, x_g)
+        args = (c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
+                c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, blk.camera,
+                blk.cams, blk.ctrl_mask, c.max_rays, h, x_st, r_st, b_pt, blk.behind_ok,
+                blk.fixed, cal, r_g, x_g)
+        if x_st is None:   # (sums into the stations' rows: one thread)
+            bad = datum_columns(*args)
+        else:
+            _threads.adapt()
+            bad = datum_columns_parallel(_threads.parts(), *args)
         if bad:
             raise _point_error(p, c, bad - 1, BEHIND_CAMERA, blk)
         on_chunk(a, b, c, h, b_pt)
@@ -249,9 +260,14 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
         x_g = np.asarray(blk.border_cov) @ (r_g - np.einsum("nkg,nkc->gc", xb, r_st))
         x_st = np.ascontiguousarray(x_st - np.einsum("nkg,gc->nkc", xb, x_g))
     gb = np.zeros((7, 7))
+    # the points' columns of this pass serve the points' precision below too: kept when
+    # they take at most KEEP_COLUMNS_BYTES, else worked out again in a third pass
+    kept = [] if psig is not None and 2 * 21 * 8 * p.n_points <= KEEP_COLUMNS_BYTES else None
 
     def add_gb(a, b, c, h, b_pt):
         gb[:] += np.einsum("irc,ird->cd", h, b_pt)
+        if kept is not None:
+            kept.append((a, b, types.SimpleNamespace(active=c.active), h, b_pt))
 
     _point_pass(p, work, blk, opts, centre, x_st, r_st, add_gb, r_g, x_g)
     def delta(h, bq):   # -H K B' - B K H' + H K (G B) K H'
@@ -266,7 +282,10 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
         s[on] = np.sqrt(np.maximum(s[on] ** 2 + sigma0 ** 2 * d[on], 0.0))
         psig[a:b] = s
 
-    if psig is not None:   # (None: the stations' precision alone)
+    if kept is not None:
+        for args in kept:
+            fix_points(*args)
+    elif psig is not None:   # (None: the stations' precision alone)
         _point_pass(p, work, blk, opts, centre, x_st, r_st, fix_points, r_g, x_g)
     act = blk.station_active
     hs = station_rows(blk.eo[act], centre, k)

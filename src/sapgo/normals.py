@@ -1113,6 +1113,40 @@ def point_costs(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt
     return vpv_img, vpv_ctl
 
 
+@njit(cache=True, error_model="numpy", nogil=True, parallel=True)
+def datum_columns_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start,
+                           pt_nobs, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
+                           cam_of_station, cams, ctrl_mask, max_rays, h_pt, x_st, r_st, b_pt,
+                           behind_ok, st_fixed, cal, r_g, x_g):
+    """:func:`datum_columns` with the stations' solution ``x_st`` (the pass that writes the
+    points' own columns ``b_pt`` and nothing shared) on ``nthreads`` threads, the points cut
+    into runs of about equal observations as :func:`point_sigmas_parallel` cuts them; the
+    first point that cannot be linearised (index + 1), else 0."""
+    n = pt_xyz.shape[0]
+    nt = max(1, min(nthreads, n))
+    for j in range(1, n):
+        if pt_start[j] < pt_start[j - 1] + pt_nobs[j - 1]:
+            nt = 1
+    cut = _runs(pt_start, pt_nobs, nt)
+    bad = np.zeros(nt, np.int64)
+    for t in prange(nt):
+        a, b = cut[t], cut[t + 1]
+        if b > a:
+            o0, o1 = pt_start[a], pt_start[b - 1] + pt_nobs[b - 1]
+            k = datum_columns(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b],
+                              pt_rot[a:b], pt_start[a:b] - o0, pt_nobs[a:b], pt_active[a:b],
+                              obs_station[o0:o1], obs_xy[o0:o1], obs_sigma[o0:o1],
+                              obs_active[o0:o1], eo, cam_of_station, cams, ctrl_mask,
+                              max_rays, h_pt[a:b], x_st, r_st, b_pt[a:b], behind_ok,
+                              st_fixed, cal, r_g, x_g)
+            if k > 0:
+                bad[t] = a + k
+    for t in range(nt):
+        if bad[t] > 0:
+            return bad[t]
+    return 0
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,

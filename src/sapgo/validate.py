@@ -7,7 +7,7 @@ Each problem is reported as one line naming the dataset, the record number and t
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from .errors import DataError
 from .apsets import AP_SETS, N_TERMS
@@ -94,7 +94,8 @@ def check_values(project: Project, ordered_layout=True):
             raise DataError(f"cameras record {i} (id {c['id']}): focal length must be positive")
         if c["sigma_image"] <= 0:
             raise DataError(f"cameras record {i} (id {c['id']}): sigma_image must be positive")
-        fold = _distortion_fold(c)
+    # (every camera's fold in one kernel, once their fields are checked)
+    for i, (c, fold) in enumerate(zip(cams, _distortion_folds(cams))):
         if fold is not None:
             raise DataError(
                 f"cameras record {i} (id {c['id']}): the lens distortion (k1 {c['k1']:g}, "
@@ -308,21 +309,51 @@ def _check_station_spread(project):
                         f"coordinates (units, columns, frame)")
 
 
+#: The grid over the format on which :func:`_distortion_fold` looks for a fold.
+FOLD_GRID = 41
+
+
 def _distortion_fold(cam):
     """The first image point (x, y) inside the format (a grid of 41 x 41 over it, from the
     principal point: ideal points for the forward model, measured ones for the backward)
     where the distortion mapping stops being one-to-one (Jacobian determinant <= 0), else
     None."""
-    if (all(cam[k] == 0 for k in ("k1", "k2", "k3", "p1", "p2", "b1", "b2"))
-            and cam["ap_set"] == 0):
-        return None
-    row = camera_array(np.asarray(cam).reshape(1))[0]
-    hx, hy = 0.5 * cam["format_x"], 0.5 * cam["format_y"]
-    xs, ys = np.linspace(-hx, hx, 41), np.linspace(-hy, hy, 41)
-    i = _fold_at(xs, ys, row, cam["distortion_model"] == BACKWARD)
-    if i < 0:
-        return None
-    return xs[i // len(ys)], ys[i % len(ys)]
+    return _distortion_folds(np.asarray(cam).reshape(1))[0]
+
+
+def _distortion_folds(cams):
+    """:func:`_distortion_fold` of every camera record of ``cams``: a list, one kernel
+    (a BAL problem has a camera a photo: one call a camera took 0.5 ms)."""
+    names = cams.dtype.names
+    dist = np.zeros(len(cams), bool)
+    for k in ("k1", "k2", "k3", "p1", "p2", "b1", "b2", "ap_set"):
+        if k in names:
+            dist |= cams[k] != 0
+    out = [None] * len(cams)
+    which = np.flatnonzero(dist)
+    if len(which) == 0:
+        return out
+    sub = cams[which]
+    rows = camera_array(sub)
+    half = 0.5 * np.column_stack([sub["format_x"], sub["format_y"]]).astype(np.float64)
+    backward = np.asarray(sub["distortion_model"] == BACKWARD)
+    grid = np.linspace(-1.0, 1.0, FOLD_GRID)
+    first = _folds_at(grid, half, rows, backward)
+    for j, i in enumerate(which):
+        if first[j] >= 0:
+            out[i] = (grid[first[j] // FOLD_GRID] * half[j, 0],
+                      grid[first[j] % FOLD_GRID] * half[j, 1])
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _folds_at(grid, half, rows, backward):
+    """:func:`_fold_at` of camera row ``rows[c]`` on the grid ``grid`` (-1 .. 1) scaled to
+    its half format ``half[c]``, for every camera (threads over the cameras)."""
+    first = np.empty(rows.shape[0], np.int64)
+    for c in prange(rows.shape[0]):
+        first[c] = _fold_at(grid * half[c, 0], grid * half[c, 1], rows[c], backward[c])
+    return first
 
 
 @njit(cache=True)

@@ -1009,7 +1009,8 @@ def _inverse_rows(fns, fac, i0, n, zb, state, out_blocks, margin, sb, uh, ut, w,
     dgemm's rate (measured; the inversion 0.44 s against 0.22 at 10 000 stations of band
     width 42, one thread). Only dgemm and dtrsm: OpenBLAS's dtrtri, dlauum and dtrmm round
     differently on one thread and on two, so the results would follow the machine's load
-    (:mod:`sapgo.threads`). ``zb`` (B x B, ``B >= nb + u + margin``) holds ``Z``
+    (:mod:`sapgo.threads`); dgemm does too where it splits its work (band widths of about
+    100 stations and more: the last bit, docs/theory.md). ``zb`` (B x B, ``B >= nb + u + margin``) holds ``Z``
     of the scalar rows and columns ``base .. base + B`` (``state[0] = base``), shifted
     when the rows reach its start (the band of ``Z`` only: nothing reads further), so that
     the block the rows need is contiguous;
