@@ -585,7 +585,8 @@ def test_a_killed_run_with_a_point_set_aside_resumes_alike(small_block, tmp_path
     _, bad, _ = _aside_block(small_block, tmp_path)
     ref = tmp_path / "ref.h5"
     shutil.copy(bad, ref)
-    run = "import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False))"
+    run = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "
+           "work_files='always'))")
     subprocess.run([sys.executable, "-c", run, str(ref)], check=True, timeout=300,
                    capture_output=True)
     r = subprocess.run([sys.executable, "-c", run, str(bad)], timeout=300,
@@ -799,7 +800,7 @@ def test_batch_snooping_killed_while_confirming_resumes_to_the_same_result(block
     killed = tmp_path / "killed.h5"
     shutil.copy(src, killed)
     code = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "
-            "snooping=True, snooping_batch=True))")
+            "snooping=True, snooping_batch=True, work_files='always'))")
     r = subprocess.run([sys.executable, "-c", code, str(killed)], capture_output=True,
                        text=True, timeout=300,
                        env=dict(os.environ, SAPGO_FAULT=f"checkpoint:{a.iterations - 6}"))

@@ -250,7 +250,7 @@ def test_calibrate_from_the_command_line_and_bad_options(miscalibrated, tmp_path
 
 RUN = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "
        "chunk_points=7, chunk_rows=2, max_iterations=30, calibrate=('f', 'k1', 'p1'), "
-       "calibrate_per_photo=tuple(sys.argv[2:])))")
+       "calibrate_per_photo=tuple(sys.argv[2:]), work_files='always'))")
 
 
 @pytest.mark.parametrize("fault, per_photo", [("solve:3", ()), ("checkpoint:4", ()),

@@ -162,7 +162,8 @@ def test_killed_unordered_run_resumes_on_its_ordered_copy(small_block, tmp_path,
     ordered copy beside it; --resume goes on from the checkpoint on that copy."""
     before = digest(small_block)
     env = dict(os.environ, SAPGO_FAULT=fault)
-    cmd = [sys.executable, "-m", "sapgo.cli", "adjust", str(small_block), "--no-progress"]
+    cmd = [sys.executable, "-m", "sapgo.cli", "adjust", str(small_block), "--no-progress",
+           "--work-files", "always"]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True)
     assert r.returncode == -signal.SIGKILL
     assert digest(small_block) == before

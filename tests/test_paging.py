@@ -125,7 +125,7 @@ def test_paging_threshold(prior_block, tmp_path):  # noqa: F811
 
 RUN = ("import sys, sapgo; "
        "sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, chunk_points=40, "
-       "chunk_rows=2, page_stations=0, resume=len(sys.argv) > 2))")
+       "chunk_rows=2, page_stations=0, resume=len(sys.argv) > 2, work_files='always'))")
 
 
 @pytest.mark.parametrize("fault", ["update:2", "checkpoint:1"])

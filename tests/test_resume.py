@@ -22,7 +22,7 @@ from sapgo.work import work_path
 from sapgo.project import Project
 
 RUN = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "
-       "chunk_points=40, chunk_rows=4, max_iterations=int(sys.argv[2])))")
+       "chunk_points=40, chunk_rows=4, max_iterations=int(sys.argv[2]), work_files='always'))")
 
 
 
@@ -130,7 +130,8 @@ def test_killed_from_outside_mid_run_and_resumed_from_the_command_line(block_cac
     sapgo.adjust(ref, sapgo.Options(progress=False))
     before = digest(path)
     proc = subprocess.Popen([sys.executable, "-m", "sapgo.cli", "adjust", str(path),
-                             "--no-progress", "--quiet"], stderr=subprocess.PIPE)
+                             "--no-progress", "--quiet", "--work-files", "always"],
+                            stderr=subprocess.PIPE)
     ck = work_path(path) / "checkpoint.json"
     t0 = time.monotonic()
     while time.monotonic() - t0 < 120:  # kill once the first iteration is on disk
@@ -192,7 +193,7 @@ def test_robust_run_killed_in_its_reweighting_phase_resumes_to_the_same_result(t
     first_robust = next(r["iteration"] for r in s_ref.iteration_log if r["robust_downweighted"])
     assert s_ref.converged and s_ref.iterations > first_robust + 1
     run = ("import sys, sapgo; sapgo.adjust(sys.argv[1], sapgo.Options(progress=False, "
-           "robust='cauchy', max_iterations=30))")
+           "robust='cauchy', max_iterations=30, work_files='always'))")
     r = subprocess.run([sys.executable, "-c", run, str(path)], capture_output=True, text=True,
                        env=dict(os.environ, SAPGO_FAULT=f"update:{first_robust + 1}"), timeout=300)
     assert r.returncode == -signal.SIGKILL, r.stderr

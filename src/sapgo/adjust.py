@@ -92,6 +92,8 @@ from .project import (
     disk_full_error,
     ensure_free,
     is_disk_full,
+    memory_image,
+    write_image,
 )
 from .report import (
     HighCorrelations,
@@ -113,6 +115,11 @@ ARCSEC = math.pi / (180 * 3600)
 METHODS = ("auto", "gauss-newton", "levenberg-marquardt")
 #: Where the band's factor rows live (``Options.factor_storage``).
 FACTOR_STORAGES = ("auto", "core", "file", "replay")
+#: Whether a run has work files (``Options.work_files``).
+WORK_FILES = ("auto", "always", "never")
+#: ``work_files`` "auto": a project file up to this size (and a sixteenth of the memory
+#: budget) is adjusted in memory, without work files or checkpoints (a run of seconds).
+IN_MEMORY_BYTES = 64 << 20
 #: The datums ``--datum`` names (:attr:`Options.datum`; None: the project's).
 DATUMS = (None, "control", "priors", "free")
 #: Iterations of a run without ``max_iterations``: Gauss-Newton converges in a few, the
@@ -228,6 +235,14 @@ class Options:
     #: exceed half the machine's memory, :func:`factor_file_limit`, or nine tenths of the
     #: free disk; else the file). Self-calibration's border cannot be replayed.
     factor_storage: str = "auto"
+    #: The run's scratch: "always" (the work directory ``NAME.h5.work`` beside the project,
+    #: and an unordered project's ordered copy beside it: checkpointed every iteration, so
+    #: ``resume`` continues an interrupted run), "never" (all in memory: the ordered copy,
+    #: the buffers and the factor; no checkpoint, an interrupted run starts again; the
+    #: commit writes the adjusted project in one write) or "auto" (never for a project file
+    #: up to :data:`IN_MEMORY_BYTES` and a sixteenth of the memory budget, a run of seconds;
+    #: always beyond, on Dask, with ``keep_scratch``, or to resume a run).
+    work_files: str = "auto"
     #: Above this many stations the per-station vectors of the run (orientations, step,
     #: variances: 48 bytes a station each) are memory-mapped from scratch files whose pages
     #: go back to the page cache as the passes move on (:mod:`sapgo.paging`;
@@ -326,6 +341,9 @@ class Options:
         if self.factor_storage not in FACTOR_STORAGES:
             raise ParameterError(f"factor storage {self.factor_storage!r}: choose "
                                  f"{', '.join(FACTOR_STORAGES)}")
+        if self.work_files not in WORK_FILES:
+            raise ParameterError(f"work files {self.work_files!r}: choose "
+                                 f"{', '.join(WORK_FILES)}")
         if self.page_stations is not None and self.page_stations < 0:
             raise ParameterError(f"page stations {self.page_stations}: a number of stations, "
                                  f"0 or more")
@@ -1853,13 +1871,17 @@ def factor_core_limit(opts: Options):
     return int(FACTOR_CORE_FRACTION * total)
 
 
-def _choose_storage(blk: _Block, opts: Options, work_dir):
+def _choose_storage(blk: _Block, opts: Options, work_dir, in_memory=False):
     """Where the band's factor rows go, by ``opts.factor_storage``: sets ``blk.replay``
     and ``blk.core``. "auto" keeps them in core up to :func:`factor_core_limit`, replays a
     factor beyond :func:`factor_file_limit` or beyond nine tenths of the free space where
-    the work files go, and writes the file between the two."""
+    the work files go, and writes the file between the two; a run ``in_memory`` keeps them
+    in core."""
     blk.replay = blk.core = False
     if blk.tree is not None:
+        return
+    if in_memory:
+        blk.core = True
         return
     if opts.factor_storage == "replay":
         if blk.n_border:
@@ -1898,7 +1920,17 @@ def adjust(path, options: Options | None = None) -> Summary:
     t_start = time.perf_counter()
     timings = {"order": 0.0, "build": 0.0, "solve": 0.0, "update": 0.0, "commit": 0.0}
     wpath = work_path(path)
-    with Project(path, "r") as p:
+    checkpoint = Work.load_checkpoint(wpath) if opts.resume else None
+    in_memory = _in_memory(path, opts, checkpoint)
+    order_info = mem = None   # (mem: in memory, the project or its ordered copy, HDF5)
+    # an unordered project is ordered into a copy beside it (NAME.h5.ordered), which the
+    # commit makes the project: a run that fails leaves the project as it was
+    ordered = ordered_path(path)
+    src = path
+    p = Project(path, "r")
+    try:
+        if in_memory:   # (its records read once, for the checks and the ordering)
+            p.hold(None, max_bytes=IN_MEMORY_BYTES)
         n_rejected = check_values(p)["rejected"]
         check_datum(p, fixed=bool(opts.fix), datum=opts.datum)
         if opts.fix:   # (refused before the implicit ordering rewrites the project)
@@ -1909,29 +1941,29 @@ def adjust(path, options: Options | None = None) -> Summary:
                 station_active=p.read_field("stations", "status") == STATUS_ACTIVE), p, opts)
         needs_order = _needs_order(p, opts) or bool(opts.reset_rejections and n_rejected)
         source_uuid = p.attr("uuid", "")
-    order_info = None
-    checkpoint = Work.load_checkpoint(wpath) if opts.resume else None
-    # an unordered project is ordered into a copy beside it (NAME.h5.ordered), which the
-    # commit makes the project: a run that fails leaves the project as it was
-    ordered = ordered_path(path)
-    src = path
-    if needs_order:
-        src = ordered
-        if checkpoint is None or not _ordered_copy_of(ordered, source_uuid,
-                                                       opts.reset_rejections):
-            checkpoint = None  # (a run on another ordered copy cannot be resumed)
-            t0 = time.perf_counter()
-            order_info = order_project(path, opts.ordering, memory=opts.memory,
-                                       solver=opts.solver, out=ordered,
-                                       reset_rejections=opts.reset_rejections, checked=True,
-                                       page_stations=opts.page_stations)
-            timings["order"] = time.perf_counter() - t0
-    else:
-        ordered.unlink(missing_ok=True)   # (an interrupted run's, of an older project)
-    try:
+        if needs_order:
+            src = ordered
+            if in_memory or checkpoint is None or not _ordered_copy_of(
+                    ordered, source_uuid, opts.reset_rejections):
+                checkpoint = None  # (a run on another ordered copy cannot be resumed)
+                if in_memory:
+                    ordered.unlink(missing_ok=True)   # (an interrupted run's)
+                t0 = time.perf_counter()
+                order_info = order_project(path, opts.ordering, memory=opts.memory,
+                                           solver=opts.solver, out=ordered,
+                                           reset_rejections=opts.reset_rejections,
+                                           checked=True, page_stations=opts.page_stations,
+                                           in_memory=in_memory, project=p)
+                mem = order_info.file
+                timings["order"] = time.perf_counter() - t0
+        p.close()
+        if not needs_order:
+            ordered.unlink(missing_ok=True)   # (an interrupted run's, of an older project)
+            if in_memory:
+                mem = memory_image(path)
         earlier = (0, n_rejected) if opts.reset_rejections else (n_rejected, 0)
         summary = _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings,
-                                  t_start, earlier)
+                                  t_start, earlier, mem=mem, in_memory=in_memory)
     except SapgoError:
         ordered.unlink(missing_ok=True)
         raise
@@ -1941,8 +1973,36 @@ def adjust(path, options: Options | None = None) -> Summary:
         ordered.unlink(missing_ok=True)
         shutil.rmtree(wpath, ignore_errors=True)
         raise disk_full_error(path, exc) from None
+    finally:
+        p.close()
+        if mem is not None:
+            mem.close()
     ordered.unlink(missing_ok=True)
     return summary
+
+
+def _in_memory(path, opts: Options, checkpoint):
+    """Is the run on ``path`` held in memory, without work files (``opts.work_files``)?"""
+    if opts.work_files == "always":
+        return False
+    if opts.work_files == "never":
+        clash = ("Dask (a client)" if getattr(opts, "client", None) is not None else
+                 f"--factor-storage {opts.factor_storage}"
+                 if opts.factor_storage in ("file", "replay") else
+                 "--keep-scratch" if opts.keep_scratch else
+                 "--resume" if opts.resume else None)
+        if clash:
+            raise ParameterError(f"--work-files never: {clash} needs the work files; use "
+                                 f"--work-files auto or always")
+        return True
+    budget = DEFAULT_CORE_BUDGET if opts.memory is None else parse_memory(opts.memory)
+    try:
+        size = os.path.getsize(path)
+    except OSError:   # (no such file: opening it says so)
+        return False
+    return (getattr(opts, "client", None) is None and not opts.keep_scratch
+            and opts.factor_storage in ("auto", "core") and checkpoint is None
+            and size <= min(IN_MEMORY_BYTES, budget // 16))
 
 
 
@@ -1967,16 +2027,21 @@ def _ordered_copy_of(ordered, source_uuid, reset):
 
 
 def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_start,
-                    earlier=(0, 0)):
+                    earlier=(0, 0), mem=None, in_memory=False):
     """:func:`adjust` on the ordered project ``src`` (``path`` itself, or its ordered copy);
     the results are committed to ``path``. ``earlier``: the observations an earlier run
-    rejected, (kept out, brought back), for the report."""
+    rejected, (kept out, brought back), for the report. ``in_memory``: no work files;
+    ``mem``: ``src`` as an HDF5 file in memory (the commit writes it out, adjusted), or
+    None (the file itself)."""
     looks = dict(_threads.STATS)   # (what sapgo.threads finds during the run: the report)
     log = []
     resumed_from = None
-    with Project(src, "r", shown=path) as p, paging.paged(
+    held = getattr(order_info, "records", None) if mem is not None else None
+    with Project(src, "r", shown=path, memory=mem, held=held) as p, paging.paged(
             wpath.parent, _paged(p, opts), 0 if opts.page_stations == 0 else
             paging.MIN_PAGED_BYTES):
+        if in_memory:   # (every pass slices the records in memory)
+            p.hold(None, max_bytes=IN_MEMORY_BYTES)
         blk = _load_block(p)
         _set_calibration(blk, p, opts)
         _set_fixed(blk, p, opts)
@@ -2015,7 +2080,7 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                              f"starting from the beginning\n")
         converged = False
         work = None
-        _choose_storage(blk, opts, wpath)
+        _choose_storage(blk, opts, wpath, in_memory)
         if checkpoint is not None:
             try:
                 work = Work(wpath, p, _work_band(blk), create=False, block=blk.npar,
@@ -2027,7 +2092,8 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                 checkpoint = None
         if work is None:
             work = Work(wpath, p, _work_band(blk), create=True, block=blk.npar,
-                        n_border=blk.n_border, replay=blk.replay, core=blk.core)
+                        n_border=blk.n_border, replay=blk.replay, core=blk.core,
+                        files=not in_memory)
         if blk.tree is not None:   # (the factor's pages mapped meanwhile, when in core)
             from .solve.tree import start_arena
 
@@ -2104,8 +2170,7 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                                  f"{opts.max_iterations} and a checkpoint at iteration "
                                  f"{work.state})")
             summary = _commit(path, p, work, blk, log, converged, opts, order_info, run,
-                              looks,
-                              timings, t_start, resumed_from, earlier)
+                              looks, timings, t_start, resumed_from, earlier, mem)
         except SapgoError:
             # the data cannot be adjusted: nothing worth resuming
             work.close()
@@ -2524,12 +2589,13 @@ class ReportSums:
 
 
 def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts, order_info,
-            run, looks, timings, t_start, resumed_from, earlier=(0, 0)):
+            run, looks, timings, t_start, resumed_from, earlier=(0, 0), mem=None):
     """Write the adjusted values and the report into a copy of the project, then replace it.
 
     The project is never opened for writing: the copy gets ``/solution`` and the history and
     is renamed over the project when complete, so a kill at any moment leaves either the old
-    or the new project, both whole.
+    or the new project, both whole. ``mem``: the run's project (or ordered copy) in memory,
+    which takes the results there and is written out whole in one write.
     """
     t_commit = time.perf_counter()
     accepted = _accepted(log)
@@ -2658,11 +2724,12 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
 
     tmp = path.with_name(path.name + ".commit.tmp")
     try:
-        ensure_free(tmp, os.path.getsize(p_read.file_path) + solution_bytes,
-                    f"the adjusted copy of {path.name}")
-        shutil.copyfile(p_read.file_path, tmp)   # (the project, or the run's ordered copy of it)
+        if mem is None:
+            ensure_free(tmp, os.path.getsize(p_read.file_path) + solution_bytes,
+                        f"the adjusted copy of {path.name}")
+            shutil.copyfile(p_read.file_path, tmp)   # (the project, or its ordered copy)
         _fault("commit-copy")
-        with Project(tmp, "r+") as q:
+        with Project(tmp, "r+", memory=mem) as q:
             for key in ("ordered_from", "rejections_reset"):   # (the run's copy's own)
                 if key in q.file.attrs:
                     del q.file.attrs[key]
@@ -2707,6 +2774,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
             q.commit_solution()
             q.add_history({"command": "adjust", "iterations": len(log),
                            "converged": converged, "sigma0": last["sigma0"]})
+            if mem is not None:
+                write_image(mem, tmp)
         _fault("commit-replace")
         os.replace(tmp, path)
     finally:

@@ -289,6 +289,7 @@ def cmd_adjust(args):
         snooping_alpha=args.alpha, reset_rejections=args.reset_rejections,
         precision=args.precision,
         factor_storage=args.factor_storage,
+        work_files=args.work_files,
         page_stations=args.page_stations,
         method=args.method,
         tol_cost=args.tol_cost,
@@ -939,6 +940,14 @@ def build_parser():
                         "band, not the photos) or auto (core up to a quarter of --memory, "
                         "default 1 GiB; replay beyond half the machine's memory or nine "
                         "tenths of the free disk; else file; the default)")
+    a.add_argument("--work-files", choices=("auto", "always", "never"), default="auto",
+                   help="the run's scratch: always (NAME.h5.work beside the project, "
+                        "checkpointed every iteration: --resume continues an interrupted "
+                        "run), never (everything in memory, the ordered copy too; no "
+                        "checkpoint: an interrupted run starts again; the adjusted project "
+                        "written in one write) or auto (never for a project file up to 64 MB "
+                        "and a sixteenth of --memory, a run of seconds; always beyond, with "
+                        "--keep-scratch or to --resume a run; the default)")
     a.add_argument("--page-stations", type=int, default=None, metavar="N",
                    help="above N stations keep the per-station vectors (orientations, step, "
                         "variances: 48 bytes a photo each) in memory-mapped scratch files "

@@ -179,9 +179,7 @@ def _border_x(work, blk, opts):
     back again."""
     n, k, ng = len(blk.station_ids), blk.npar, blk.n_border
     if blk.tree is None:
-        from .rawfile import RawArray
-
-        xb = RawArray(work.dir / "xborder.bin", (n, k, ng), mode="r")
+        xb = work.array("xborder.bin", (n, k, ng), "r")
         try:
             return np.asarray(xb[0:n], dtype=np.float64).reshape(n, k, ng)
         finally:

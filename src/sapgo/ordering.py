@@ -21,6 +21,7 @@ stations go to the end of the order, excluded points after all active ones.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import shutil
 from pathlib import Path
@@ -772,7 +773,7 @@ SOLVERS = ("auto", "band", "tree")
 @writes_project("order", "path")
 def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver="auto",
                   leaf_stations=None, out=None, reset_rejections=False, checked=False,
-                  page_stations=None):
+                  page_stations=None, in_memory=False, project=None):
     """Order a project: exclusions, station order, point order, records rewritten.
 
     ``method`` is ``"best"`` (smallest band width of all candidates) or one candidate name
@@ -794,7 +795,11 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
     ``page_stations``: above this many stations (default
     :data:`sapgo.paging.PAGE_STATIONS`; 0: always) the per-station vectors, the station
     graph's edges (sorted externally within ``memory``) and the candidate orders are
-    memory-mapped (:mod:`sapgo.paging`).
+    memory-mapped (:mod:`sapgo.paging`). ``in_memory``: the ordered project (``out``'s
+    name) is built in memory, never written, and returned open as the result's ``file``
+    (an h5py File the caller closes; ``sapgo adjust`` on a small project), its records as
+    the result's ``records`` (arrays by dataset). ``project``:
+    ``path`` open already (a :class:`~sapgo.project.Project` read only; the caller's).
     """
     import time
 
@@ -804,7 +809,7 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
     memory = DEFAULT_MEMORY if memory is None else parse_memory(memory)
     path = Path(path)
     work = path.with_name(path.name + ".order.work")
-    with Project(path, "r") as p:
+    with contextlib.nullcontext(project) if project is not None else Project(path, "r") as p:
         if not checked:   # (sapgo adjust has checked them just before)
             check_values(p, ordered_layout=False)
         if solver not in SOLVERS:
@@ -815,7 +820,7 @@ def order_project(path, method="best", memory=None, chunk=CHUNK_RECORDS, solver=
             with paging.paged(path.resolve().parent, p.n_stations > limit or limit == 0,
                               0 if limit == 0 else paging.MIN_PAGED_BYTES):
                 result = _order(p, work, method, memory, chunk, solver, leaf_stations, out,
-                                reset_rejections)
+                                reset_rejections, in_memory)
         finally:
             shutil.rmtree(work, ignore_errors=True)
     result.seconds = time.perf_counter() - t0
@@ -963,7 +968,7 @@ def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stati
 
 
 def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, out=None,
-           reset=False):
+           reset=False, in_memory=False):
 
     stations = paging.records(p, "stations")
     n_st, n_pt = p.n_stations, p.n_points
@@ -1020,7 +1025,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
                         "points") as pts_sort, \
             ProjectWriter(out or p.path, attrs, truth=has_truth, tmp_suffix=".order.tmp",
                           sizes={n: len(p.file[n]) for n in (*RECORD_DTYPES, *TRUTH_DTYPES)
-                                 if n in p.file}) as w:
+                                 if n in p.file}, memory=in_memory) as w:
         # 1. points keyed by (min, max) logical station of their active rays
         for a, b_ in p.chunks("points", chunk):
             c = _Chunk(p, a, b_, st_active, fields=("station", "status"), reset=reset)
@@ -1149,8 +1154,9 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
             g.attrs["method"] = tree.method
             for key, arr in tree.to_arrays().items():
                 g.create_dataset(key, data=arr, **(CHECKSUM if np.size(arr) else {}))
-        w.finish()  # replaces the project (still open here for reading: POSIX keeps it)
-    return OrderResult(
+        # replaces the project (still open here for reading: POSIX keeps it), or in memory
+        written = w.finish()
+    result = OrderResult(
         band_width_before=b_before,
         band_width=b,
         ordering=name,
@@ -1164,3 +1170,6 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
         tree=tree.figures(k_par) if tree is not None else None,
         predicted=predicted,
     )
+    # (not fields: not in the report) the ordered project in memory, and its records
+    result.file, result.records = (written, w.records) if in_memory else (None, None)
+    return result

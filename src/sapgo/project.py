@@ -317,16 +317,27 @@ class ProjectWriter:
     ``sizes``: the records each dataset will hold (by name), where known: a dataset's
     chunks then hold no more records than that (one chunk of about a megabyte otherwise,
     read, checksummed and copied whole however few records it holds).
+
+    ``memory``: the file is built in memory (HDF5's core driver, nothing written) and
+    :meth:`finish` hands over the open file instead (``sapgo adjust``'s ordered copy of a
+    small project, :func:`memory_image`).
     """
 
-    def __init__(self, path, attrs=None, truth=False, tmp_suffix=".tmp", sizes=None):
+    def __init__(self, path, attrs=None, truth=False, tmp_suffix=".tmp", sizes=None,
+                 memory=False):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.path.is_dir():
-            raise IsADirectoryError(21, "Is a directory", str(self.path))
+        self.memory = memory
         self.tmp = self.path.with_name(self.path.name + tmp_suffix)
-        ensure_free(self.path.parent, 0, f"the new project {self.path.name}")
-        self._f = h5py.File(self.tmp, "w")
+        #: (memory) the records appended, by dataset: the run reads them, not the file
+        self.records = {}
+        if memory:
+            self._f = h5py.File(self.tmp, "w", driver="core", backing_store=False)
+        else:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            if self.path.is_dir():
+                raise IsADirectoryError(21, "Is a directory", str(self.path))
+            ensure_free(self.path.parent, 0, f"the new project {self.path.name}")
+            self._f = h5py.File(self.tmp, "w")
         f = self._f
         f.attrs["format"] = FORMAT_NAME
         f.attrs["schema_version"] = SCHEMA_VERSION
@@ -366,11 +377,14 @@ class ProjectWriter:
         """Append records to dataset ``name``; returns the record number of the first."""
         ds = self._f[name]
         records = np.asarray(records, dtype=ds.dtype)
-        ensure_free(self.tmp, 2 * records.nbytes, f"the new project {self.path.name}")
+        if not self.memory:
+            ensure_free(self.tmp, 2 * records.nbytes, f"the new project {self.path.name}")
         n = ds.shape[0]
         if len(records):
             ds.resize((n + len(records),))
             ds[n:] = records
+        if self.memory:   # (a copy: the caller may reuse its buffer)
+            self.records.setdefault(name, []).append(records.copy())
         return n
 
     def set_attrs(self, **attrs):
@@ -378,7 +392,13 @@ class ProjectWriter:
             self._f.attrs[k] = v
 
     def finish(self):
-        """Close the file and move it into place."""
+        """Close the file and move it into place (in memory: the open file, handed over)."""
+        if self.memory:
+            f, self._f = self._f, None
+            f.flush()
+            self.records = {name: np.concatenate(parts) if len(parts) > 1 else parts[0]
+                            for name, parts in self.records.items()}
+            return f
         self._f.close()
         self._f = None
         os.replace(self.tmp, self.path)
@@ -391,7 +411,8 @@ class ProjectWriter:
                 f.close()
             except (OSError, RuntimeError):   # (a full disk: the file goes anyway)
                 pass
-        self.tmp.unlink(missing_ok=True)
+        if not self.memory:
+            self.tmp.unlink(missing_ok=True)
 
     def __enter__(self):
         return self
@@ -504,13 +525,33 @@ class Project:
             print(p.n_stations, p.band_width)
     """
 
-    def __init__(self, path, mode="r", shown=None):
+    def __init__(self, path, mode="r", shown=None, memory=None, held=None):
         # ``shown``: the name messages give (``sapgo adjust`` reads an unordered project's
-        # ordered copy, ``file_path``, under the project's own name)
+        # ordered copy, ``file_path``, under the project's own name). ``memory``: an open
+        # HDF5 file in memory (:func:`memory_image`) that the caller validated or wrote and
+        # closes: ``path`` only names it; ``held``: its records by dataset, as written
+        # (:class:`ProjectWriter` in memory), held for the reads
         self.file_path = Path(path)
         self.path = self.file_path
         if mode not in ("r", "r+"):
             raise ValueError("mode must be 'r' or 'r+'")
+        self._own = memory is None
+        if memory is None:
+            self._open_file(mode)
+        else:
+            self._f = memory
+        self._read_only = mode == "r"
+        self._held = dict(held or {})
+        self._open = {}   # datasets kept open (read only): their chunk caches stay
+        self._lengths = {}   # (read only) datasets' lengths
+        self._types = {}   # (read only) (dataset, field): memory dtype and HDF5 type of reads
+        self.point_chunks = None   # :meth:`keep_point_chunks`
+        self.point_chunk_room = 0
+        if shown is not None:
+            self.path = Path(shown)
+
+    def _open_file(self, mode):
+        """Open and validate the file (a read-only open of an unchanged file once)."""
         if not self.path.exists():
             raise ProjectFormatError(f"{self.path}: no such file")
         if self.path.is_dir():
@@ -519,30 +560,21 @@ class Project:
             raise ProjectFormatError(
                 f"{self.path}: not a sapgo project (the file is not HDF5)"
             )
-        self._held = {}
-        self._open = {}   # datasets kept open (read only): their chunk caches stay
-        self._lengths = {}   # (read only) datasets' lengths
-        self._types = {}   # (read only) (dataset, field): memory dtype and HDF5 type of reads
-        self.point_chunks = None   # :meth:`keep_point_chunks`
-        self.point_chunk_room = 0
         try:
             self._f = h5py.File(self.file_path, mode, **CHUNK_CACHE)
         except OSError as exc:
             raise ProjectFormatError(f"{self.path}: cannot open as HDF5 ({exc})") from None
-        self._read_only = mode == "r"
         try:
             key = _file_key(self.file_path)
-            if not self._read_only or key not in _VALIDATED:
+            if mode != "r" or key not in _VALIDATED:
                 self._validate_structure()
-                if self._read_only and key is not None:
+                if mode == "r" and key is not None:
                     _VALIDATED[key] = None
                     while len(_VALIDATED) > 64:
                         del _VALIDATED[next(iter(_VALIDATED))]
         except Exception:
             self._f.close()
             raise
-        if shown is not None:
-            self.path = Path(shown)
 
     # -- validation ---------------------------------------------------------------------
     def _validate_structure(self):
@@ -611,7 +643,8 @@ class Project:
         self._types = {}
         self.point_chunks = None
         if self._f is not None:
-            self._f.close()
+            if self._own:
+                self._f.close()
             self._f = None
 
     @property
@@ -710,21 +743,27 @@ class Project:
     # -- record access ------------------------------------------------------------------
     def record_bytes(self, names=("points", "observations")):
         """Bytes of the records of datasets ``names``."""
-        return sum(self.file[n].size * self.file[n].dtype.itemsize for n in names)
+        return sum(ds.shape[0] * ds.id.get_type().get_size()
+                   for ds in map(self._dataset, names))
 
     def hold(self, names=("points", "observations"), max_bytes=256 << 20):
         """Read the records of datasets ``names`` into core once, when together they take at
         most ``max_bytes``, so that the many passes of an adjustment slice memory instead of
         reading the file (a project opened read only: the records cannot change under it).
-        Returns the bytes held (0: the records stay in the file)."""
+        ``names`` None: every record dataset. Returns the bytes held (0: the records stay
+        in the file)."""
         if not self._read_only:
             return 0
+        if names is None:   # (every record dataset of the file)
+            names = [n for n in (*RECORD_DTYPES, *TRUTH_DTYPES) if n in self.file]
         size = self.record_bytes(names)
         if size > max_bytes:
             return 0
         for n in names:
-            ds = self.file[n]
-            self._held[n] = self._checked(ds, 0, ds.shape[0], lambda: ds[...])
+            if n not in self._held:
+                ds = self._dataset(n)
+                rows = ds.shape[0]
+                self._held[n] = self._checked(ds, 0, rows, lambda: self._rows(n, ds, 0, rows))
         return size
 
     def keep_point_chunks(self, expected_bytes, max_bytes):
@@ -882,6 +921,26 @@ class Project:
             del f["solution"]
         f.move("solution.new", "solution")
         return f["solution"]
+
+
+def memory_image(path):
+    """The project file ``path`` read whole into memory as an HDF5 file that takes writes
+    and never writes them back (HDF5's core driver without a backing store): ``sapgo
+    adjust`` on a small project commits from it (:func:`write_image`). None when the file
+    cannot be opened so (then the run reads the file itself)."""
+    try:
+        return h5py.File(path, "r+", driver="core", backing_store=False)
+    except OSError:
+        return None
+
+
+def write_image(f, path):
+    """Write the HDF5 file ``f`` held in memory to ``path`` (a new file) in one write."""
+    f.flush()
+    image = f.id.get_file_image()
+    ensure_free(path, len(image), f"the adjusted copy of {Path(path).name}")
+    with open(path, "wb") as out:
+        out.write(image)
 
 
 def open_project(path, mode="r"):

@@ -18,7 +18,6 @@ from . import paging
 from . import threads as _threads
 from .normals import PointChunk, point_sigmas_parallel
 from .project import STATUS_ACTIVE
-from .rawfile import RawArray
 from .report import station_correlations
 from .solve.band import border_back_substitute, covariance_blocks
 
@@ -101,13 +100,12 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
     ng = blk.n_border
     cal = sig_b = xb_ds = None
     if ng:  # self-calibration: X = M^-1 B (its own file: W stays, the sweep can run again)
-        xb_ds = RawArray(work.dir / "xborder.bin", (n_st, blk.npar, ng), mode="w")
+        xb_ds = work.array("xborder.bin", (n_st, blk.npar, ng))
         border_back_substitute(work.band_factor()[0], work.border, n_st, blk.band_width, opts.chunk_rows,
                                out=xb_ds)
         cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
-    psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
-    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
-                       mode="w")
+    psig = work.array("point_sigma.bin", (p_read.n_points, 3))
+    quality = work.array("quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)))
 
     def points_of(start, stop, zb, base, alone=False):
         p0, p1 = int(first[start]), int(first[stop])
@@ -119,7 +117,7 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
                            threads=_threads.parts() if alone else 1)
 
     k = blk.npar
-    cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
+    cov = work.array("cov.bin", (n_st, k, k))
     try:
         var = covariance_blocks(work.band_factor()[0], n_st, blk.band_width, opts.chunk_rows, out=cov,
                                 on_block=points_of if opts.precision == "full" else None,
@@ -277,10 +275,9 @@ def _quality_tree(p_read, work, blk, opts, sigma0, correlations=None):
     from .solve.tree import tree_quality
 
     n_st, k = len(blk.station_ids), blk.npar
-    psig = RawArray(work.dir / "point_sigma.bin", (p_read.n_points, 3), mode="w")
-    quality = RawArray(work.dir / "quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)),
-                       mode="w")
-    cov = RawArray(work.dir / "cov.bin", (n_st, k, k), mode="w")
+    psig = work.array("point_sigma.bin", (p_read.n_points, 3))
+    quality = work.array("quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)))
+    cov = work.array("cov.bin", (n_st, k, k))
     try:
         var = tree_quality(p_read, work, blk, opts, blk.tree, sigma0, psig, quality, cov,
                            correlations)

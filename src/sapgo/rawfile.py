@@ -19,6 +19,21 @@ from pathlib import Path
 import numpy as np
 
 
+def _row_range(key, n):
+    """``(start, stop)`` of the rows ``key`` (an integer or a contiguous slice) of ``n``."""
+    if isinstance(key, slice):
+        start, stop, step = key.indices(n)
+        if step != 1:
+            raise IndexError("RawArray supports contiguous row ranges only")
+        return start, max(start, stop)
+    if isinstance(key, (int, np.integer)):
+        i = int(key) + (n if key < 0 else 0)
+        if not 0 <= i < n:
+            raise IndexError(f"row {key} out of range for {n} rows")
+        return i, i + 1
+    raise IndexError("RawArray supports integer rows and contiguous row ranges only")
+
+
 class RawArray:
     """A file of ``shape[0]`` records of ``dtype`` with row shape ``shape[1:]``."""
 
@@ -59,17 +74,7 @@ class RawArray:
         return len(self.shape)
 
     def _range(self, key):
-        if isinstance(key, slice):
-            start, stop, step = key.indices(self.shape[0])
-            if step != 1:
-                raise IndexError("RawArray supports contiguous row ranges only")
-            return start, max(start, stop)
-        if isinstance(key, (int, np.integer)):
-            i = int(key) + (self.shape[0] if key < 0 else 0)
-            if not 0 <= i < self.shape[0]:
-                raise IndexError(f"row {key} out of range for {self.shape[0]} rows")
-            return i, i + 1
-        raise IndexError("RawArray supports integer rows and contiguous row ranges only")
+        return _row_range(key, self.shape[0])
 
     def read(self, start, stop, out=None):
         """Rows ``start:stop`` into ``out`` (a new array when None)."""
@@ -133,3 +138,34 @@ class RawArray:
         if getattr(self, "_fd", None) is not None:
             os.close(self._fd)
             self._fd = None
+
+
+class CoreArray(RawArray):
+    """A :class:`RawArray` held in memory (a run without work files,
+    :class:`sapgo.work.Work`): the same reads and writes, copies in and out as the file's
+    are, so that a pass cannot tell them apart; nothing survives the process."""
+
+    def __init__(self, shape, dtype="<f8"):   # (no file: the base's fields, an array)
+        self.path = None
+        self.shape = tuple(int(s) for s in shape)
+        self.dtype = np.dtype(dtype)
+        self.row_shape = self.shape[1:]
+        self.row_bytes = int(np.prod(self.row_shape, dtype=np.int64)) * self.dtype.itemsize
+        self._fd = None
+        self.data = np.zeros(self.shape, self.dtype)
+
+    def read(self, start, stop, out=None):
+        if out is None:
+            return self.data[start:stop].copy()
+        out[...] = self.data[start:stop]
+        return out
+
+    def write(self, start, data):
+        data = np.asarray(data, dtype=self.dtype)
+        n = data.shape[0] if data.ndim else 1
+        if start < 0 or start + n > self.shape[0]:
+            raise IndexError(f"rows {start}:{start + n} out of range for {self.shape[0]} rows")
+        self.data[start:start + n] = data.reshape((n,) + self.row_shape)
+
+    def flush(self):
+        pass

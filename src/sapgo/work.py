@@ -20,7 +20,7 @@ import numpy as np
 
 from . import paging
 from .project import Project
-from .rawfile import RawArray
+from .rawfile import CoreArray, RawArray
 
 
 def work_path(path):
@@ -61,21 +61,29 @@ class Work:
     ``residuals.1.bin`` (vx, vy of every observation), ``eo.K.npy`` (the stations'
     orientation after iteration K) and ``checkpoint.json`` (the last completed iteration K,
     its log, timings and the identity of the project). State K uses buffer ``K % 2``.
+
+    With ``files`` False (a run without work files, ``Options.work_files``) every one of
+    these is an array in memory (:class:`sapgo.rawfile.CoreArray`, the factor with
+    ``core``) and :meth:`save` writes no checkpoint: nothing is written, and an interrupted
+    run starts again. The directory is then made only if a solver asks for :attr:`dir`
+    (the partition tree's factor file when it does not fit in core).
     """
 
     def __init__(self, path, p: Project, band_width, create, block=6, n_border=0,
-                 replay=False, core=False):
-        self.dir = Path(path)
+                 replay=False, core=False, files=True):
+        self._dir = Path(path)
+        self.files = files
+        self._core = {}   # (files False) the scratch arrays by name
         self.n_st, self.n_pt, self.n_obs = p.n_stations, p.n_points, p.n_observations
         self.band_width = band_width
         mode = "w" if create else "r+"
-        if create:
-            if self.dir.exists():
-                shutil.rmtree(self.dir)
-            self.dir.mkdir(parents=True)
+        if create and files:
+            if self._dir.exists():
+                shutil.rmtree(self._dir)
+            self._dir.mkdir(parents=True)
         bw = band_width
         k = self.block = block
-        if create:   # (the files are sparse: the bytes they can come to)
+        if create and files:   # (the files are sparse: the bytes they can come to)
             from .project import ensure_free
 
             rows = 0 if core else k * (k * bw + 1)
@@ -89,7 +97,7 @@ class Work:
             ensure_free(self.dir, need, "the run's work files")
         # (a replayed factor, sapgo.solve.band.FactorReplay, has no factor file: replay.bin)
         self.factor = self.y = None
-        if core:   # in core (``--factor-storage core``): arrays, gone with the process
+        if core or not files:   # in core (``--factor-storage core``): arrays, gone with the process
             self.factor = np.empty((self.n_st, k, k * bw))
             self.y = np.empty((self.n_st, k))
         elif not replay:   # (a run resumed with the file that started replaying makes it:
@@ -101,12 +109,10 @@ class Work:
         #: factorisation (valid until the state changes), or None
         self.replay = None
         # self-calibration: the border columns of the band rows, then W = U'^-1 B
-        self.border = (RawArray(self.dir / "border.bin", (self.n_st, k, n_border), mode=mode)
+        self.border = (self.array("border.bin", (self.n_st, k, n_border), mode)
                        if n_border else None)
-        self.xyz = [RawArray(self.dir / f"xyz.{i}.bin", (self.n_pt, 3), mode=mode)
-                    for i in (0, 1)]
-        self.res = [RawArray(self.dir / f"residuals.{i}.bin", (self.n_obs, 2), mode=mode)
-                    for i in (0, 1)]
+        self.xyz = [self.array(f"xyz.{i}.bin", (self.n_pt, 3), mode) for i in (0, 1)]
+        self.res = [self.array(f"residuals.{i}.bin", (self.n_obs, 2), mode) for i in (0, 1)]
         self.state = 0  # the completed iteration whose buffers are current
         #: the partition tree's factor of the last factorisation
         #: (:class:`sapgo.solve.fronts.FactorFile`, in core or in ``tree_factor.bin``)
@@ -116,8 +122,29 @@ class Work:
         # robust estimation: the observations' redundancy (r_x, r_y, r_xy) of the
         # least-squares solution, once that phase is over
         self.robust_r = None
-        if not create and (self.dir / "robust_r.bin").exists():
-            self.robust_r = RawArray(self.dir / "robust_r.bin", (self.n_obs, 3), mode="r")
+        if files and not create and (self._dir / "robust_r.bin").exists():
+            self.robust_r = RawArray(self._dir / "robust_r.bin", (self.n_obs, 3), mode="r")
+
+    @property
+    def dir(self):
+        """The work directory (made on first use by a run without work files)."""
+        if not self.files and not self._dir.is_dir():
+            self._dir.mkdir(parents=True)
+        return self._dir
+
+    def array(self, name, shape, mode="w", dtype="<f8"):
+        """The scratch array ``name`` of ``shape``: the file ``name`` in the work directory
+        (:class:`~sapgo.rawfile.RawArray`, opened with ``mode``), or without work files an
+        array in memory kept by name (``mode`` "w" makes it anew, zeroed; "r" and "r+" find
+        the one made before)."""
+        if self.files:
+            return RawArray(self.dir / name, shape, dtype, mode)
+        a = self._core.get(name)
+        if mode == "w" or a is None:
+            if mode != "w":
+                raise FileNotFoundError(f"no scratch array {name} in this run")
+            a = self._core[name] = CoreArray(shape, dtype)
+        return a
 
     def band_factor(self):
         """``(factor rows, y)`` of the last band factorisation: the files, or the replay's
@@ -155,7 +182,12 @@ class Work:
 
     def save(self, iteration, eo, record, cams=None):
         """Make iteration ``iteration`` the checkpoint (its buffers must be complete);
-        ``cams``: the camera rows when the photos' intrinsics are adjusted."""
+        ``cams``: the camera rows when the photos' intrinsics are adjusted. Without work
+        files iteration ``iteration`` becomes the current state, and nothing is written."""
+        if not self.files:
+            _fault("checkpoint", iteration)
+            self.state = iteration
+            return
         eo_file = self.dir / f"eo.{iteration}.npy"
         tmp = self.dir / f"eo.{iteration}.npy.tmp"
         with open(tmp, "wb") as f:
@@ -195,6 +227,11 @@ class Work:
 
     def start_robust(self, quality, chunk):
         """Keep the least-squares redundancy numbers for the robust phase."""
+        if not self.files:
+            self.robust_r = self.array("robust_r.bin", (self.n_obs, 3))
+            for a in range(0, self.n_obs, chunk):
+                self.robust_r[a:a + chunk] = quality[a:a + chunk][:, :3]
+            return
         tmp = self.dir / "robust_r.bin.tmp"
         r = RawArray(tmp, (self.n_obs, 3), mode="w")
         for a in range(0, self.n_obs, chunk):
