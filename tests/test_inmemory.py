@@ -152,3 +152,22 @@ def test_core_array_reads_and_writes_as_the_file_does(tmp_path):
         m[0:50:2]
     f.close()
     m.close()
+
+
+def test_ctrl_c_says_what_was_kept(p1_block, capsys, monkeypatch):
+    """Interrupted in memory: nothing to resume, and the message says so; with work files
+    (a checkpoint beside the project) it says how to resume."""
+    module = sys.modules["sapgo.adjust"]   # (the command imports adjust from it)
+
+    def interrupted(path, opts):
+        if opts.work_files == "always":
+            work_path(path).mkdir()
+            (work_path(path) / "checkpoint.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(module, "adjust", interrupted)
+    code, _, err = run_cli(capsys, "adjust", p1_block, "--no-progress")
+    assert code == 130 and "held in memory and nothing was written" in err
+    assert "--resume" not in err
+    code, _, err = run_cli(capsys, "adjust", p1_block, "--no-progress", "--work-files", "always")
+    assert code == 130 and f"sapgo adjust --resume {p1_block}" in err

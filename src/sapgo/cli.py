@@ -320,8 +320,15 @@ def cmd_adjust(args):
                     opts.solver = "tree"
             summary = adjust(args.project, opts)
     except KeyboardInterrupt:
-        print(f"sapgo: interrupted; the last completed iteration is kept: continue with "
-              f"'sapgo adjust --resume {args.project}'", file=sys.stderr)
+        from .work import work_path
+
+        if (work_path(args.project) / "checkpoint.json").exists():
+            print(f"sapgo: interrupted; the last completed iteration is kept: continue with "
+                  f"'sapgo adjust --resume {args.project}'", file=sys.stderr)
+        else:   # (a run in memory: --work-files)
+            print(f"sapgo: interrupted; the run was held in memory and nothing was written: "
+                  f"{args.project} is as it was (run again, or with --work-files always to "
+                  f"keep every iteration)", file=sys.stderr)
         return 130
     if not ordered:
         _report_exclusions(summary.excluded_points, summary.excluded_stations,
