@@ -506,6 +506,9 @@ def _file_key(path):
     return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
 
 
+_MISSING = object()   # (an attribute the file does not have: Project.attr)
+
+
 def _span(start, stop, n):
     """``start:stop`` of ``n`` rows as numpy slices them (None, negative, beyond the end)."""
     start, stop, _ = slice(start, stop).indices(n)
@@ -547,6 +550,8 @@ class Project:
         self._types = {}   # (read only) (dataset, field): memory dtype and HDF5 type of reads
         self.point_chunks = None   # :meth:`keep_point_chunks`
         self.point_chunk_room = 0
+        self._attrs = {}   # (read only) attributes read
+        self._cameras = None   # (read only) the camera records as CAMERA_DTYPE
         if shown is not None:
             self.path = Path(shown)
 
@@ -637,6 +642,8 @@ class Project:
         self.close()
 
     def close(self):
+        self._attrs = {}
+        self._cameras = None
         self._held = {}
         self._open = {}
         self._lengths = {}
@@ -725,8 +732,16 @@ class Project:
         return "solution" in self.file
 
     def attr(self, name, default=None):
-        v = self.file.attrs.get(name, default)
-        return v.decode() if isinstance(v, bytes) else v
+        if not self._read_only:
+            v = self.file.attrs.get(name, default)
+            return v.decode() if isinstance(v, bytes) else v
+        if name not in self._attrs:   # (read only: fixed; an attribute read takes 0.1 ms)
+            v = self.file.attrs.get(name, _MISSING)
+            self._attrs[name] = v.decode() if isinstance(v, bytes) else v
+        v = self._attrs[name]
+        if v is _MISSING:
+            return default
+        return v.copy() if isinstance(v, np.ndarray) else v
 
     def history(self):
         return json.loads(self.attr("history", "[]"))
@@ -869,14 +884,18 @@ class Project:
     def cameras(self):
         """The camera records as :data:`CAMERA_DTYPE` (fields an older version's file lacks:
         0, the forward model without affinity)."""
-        cams = self.read("cameras")
-        if cams.dtype != CAMERA_DTYPE:
-            out = np.zeros(len(cams), CAMERA_DTYPE)
-            for name in cams.dtype.names:
-                if name in CAMERA_DTYPE.names:
-                    out[name] = cams[name]
-            cams = out
-        return cams
+        cams = self._cameras
+        if cams is None:
+            cams = self.read("cameras")
+            if cams.dtype != CAMERA_DTYPE:
+                out = np.zeros(len(cams), CAMERA_DTYPE)
+                for name in cams.dtype.names:
+                    if name in CAMERA_DTYPE.names:
+                        out[name] = cams[name]
+                cams = out
+            if self._read_only:   # (fixed: kept)
+                self._cameras = cams
+        return cams.copy() if self._read_only else cams
 
     # -- solution -----------------------------------------------------------------------
     def solution(self, name, start=0, stop=None):
