@@ -171,3 +171,32 @@ def test_ctrl_c_says_what_was_kept(p1_block, capsys, monkeypatch):
     assert "--resume" not in err
     code, _, err = run_cli(capsys, "adjust", p1_block, "--no-progress", "--work-files", "always")
     assert code == 130 and f"sapgo adjust --resume {p1_block}" in err
+
+
+def test_a_factor_beyond_the_budget_goes_to_a_file_in_memory_too(block_cache, tmp_path,
+                                                                  monkeypatch):
+    """In memory the factor follows --memory as with work files: with a 4 MiB budget the
+    factor of SAPGO-P-4 (3.8 MB, band width 26) is not kept in core but written to the work
+    directory made for it; the results as with work files, and nothing left."""
+    work_module = sys.modules["sapgo.work"]
+    made = []
+    real = work_module.Work.__init__
+
+    def spy(self, *args, **kwargs):
+        real(self, *args, **kwargs)
+        made.append(self)
+
+    monkeypatch.setattr(work_module.Work, "__init__", spy)
+    src = block_cache("p4", preset="sapgo-p-4")
+    a, b = tmp_path / "a.h5", tmp_path / "b.h5"
+    shutil.copy(src, a)
+    shutil.copy(src, b)
+    opts = dict(progress=False, memory="4M")
+    sapgo.adjust(a, sapgo.Options(work_files="never", **opts))
+    sapgo.adjust(b, sapgo.Options(work_files="always", **opts))
+    assert not made[0].files and made[1].files
+    for w in made:
+        assert type(w.factor) is RawArray and w.factor.path.name == "factor.bin"
+    assert type(made[0].xyz[0]) is CoreArray
+    assert_same(results(a), results(b))
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["a.h5", "b.h5"]

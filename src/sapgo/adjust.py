@@ -1871,17 +1871,15 @@ def factor_core_limit(opts: Options):
     return int(FACTOR_CORE_FRACTION * total)
 
 
-def _choose_storage(blk: _Block, opts: Options, work_dir, in_memory=False):
+def _choose_storage(blk: _Block, opts: Options, work_dir):
     """Where the band's factor rows go, by ``opts.factor_storage``: sets ``blk.replay``
     and ``blk.core``. "auto" keeps them in core up to :func:`factor_core_limit`, replays a
     factor beyond :func:`factor_file_limit` or beyond nine tenths of the free space where
-    the work files go, and writes the file between the two; a run ``in_memory`` keeps them
-    in core."""
+    the work files go, and writes the file between the two (a run ``in_memory`` too: a
+    factor beyond the memory budget is a file, or replayed, in the work directory made for
+    it)."""
     blk.replay = blk.core = False
     if blk.tree is not None:
-        return
-    if in_memory:
-        blk.core = True
         return
     if opts.factor_storage == "replay":
         if blk.n_border:
@@ -2080,7 +2078,7 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                              f"starting from the beginning\n")
         converged = False
         work = None
-        _choose_storage(blk, opts, wpath, in_memory)
+        _choose_storage(blk, opts, wpath)
         if checkpoint is not None:
             try:
                 work = Work(wpath, p, _work_band(blk), create=False, block=blk.npar,

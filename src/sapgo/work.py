@@ -63,10 +63,10 @@ class Work:
     its log, timings and the identity of the project). State K uses buffer ``K % 2``.
 
     With ``files`` False (a run without work files, ``Options.work_files``) every one of
-    these is an array in memory (:class:`sapgo.rawfile.CoreArray`, the factor with
-    ``core``) and :meth:`save` writes no checkpoint: nothing is written, and an interrupted
-    run starts again. The directory is then made only if a solver asks for :attr:`dir`
-    (the partition tree's factor file when it does not fit in core).
+    these but the factor is an array in memory (:class:`sapgo.rawfile.CoreArray`; the
+    factor with ``core``, as with files) and :meth:`save` writes no checkpoint: an
+    interrupted run starts again. The directory is then made only for a factor beyond the
+    memory budget (its file, or the replay's) or the partition tree's factor file.
     """
 
     def __init__(self, path, p: Project, band_width, create, block=6, n_border=0,
@@ -83,7 +83,8 @@ class Work:
             self._dir.mkdir(parents=True)
         bw = band_width
         k = self.block = block
-        if create and files:   # (the files are sparse: the bytes they can come to)
+        core = core or (not files and bw == 0)   # (the tree's run: no band rows to keep)
+        if create:   # (the files are sparse: the bytes they can come to)
             from .project import ensure_free
 
             rows = 0 if core else k * (k * bw + 1)
@@ -92,12 +93,13 @@ class Work:
 
                 seg = max(1, REPLAY_SEGMENT_BYTES // (8 * k * k * bw))
                 rows = (k * bw) * (k * bw + 64) / seg
-            need = 8 * (self.n_st * (rows + k * n_border) + 2 * self.n_pt * 3
-                        + 2 * self.n_obs * 2)
-            ensure_free(self.dir, need, "the run's work files")
+            rest = self.n_st * k * n_border + 2 * self.n_pt * 3 + 2 * self.n_obs * 2
+            need = 8 * (self.n_st * rows + (rest if files else 0))
+            if need:   # (without work files: only a factor beyond the budget is written)
+                ensure_free(self.dir, need, "the run's work files")
         # (a replayed factor, sapgo.solve.band.FactorReplay, has no factor file: replay.bin)
         self.factor = self.y = None
-        if core or not files:   # in core (``--factor-storage core``): arrays, gone with the process
+        if core:   # in core (``--factor-storage core``): arrays, gone with the process
             self.factor = np.empty((self.n_st, k, k * bw))
             self.y = np.empty((self.n_st, k))
         elif not replay:   # (a run resumed with the file that started replaying makes it:
