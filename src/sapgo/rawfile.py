@@ -39,10 +39,7 @@ class RawArray:
 
     def __init__(self, path, shape, dtype="<f8", mode="r+"):
         self.path = Path(path)
-        self.shape = tuple(int(s) for s in shape)
-        self.dtype = np.dtype(dtype)
-        self.row_shape = self.shape[1:]
-        self.row_bytes = int(np.prod(self.row_shape, dtype=np.int64)) * self.dtype.itemsize
+        self._layout(shape, dtype)
         size = self.shape[0] * self.row_bytes
         if mode == "w":
             flags = os.O_RDWR | os.O_CREAT | os.O_TRUNC
@@ -61,6 +58,20 @@ class RawArray:
             self._fd = None
             raise ValueError(f"{self.path}: {actual} bytes, expected {size} for shape "
                              f"{self.shape} of {self.dtype}")
+
+    def _layout(self, shape, dtype):
+        self.shape = tuple(int(s) for s in shape)
+        self.dtype = np.dtype(dtype)
+        self.row_shape = self.shape[1:]
+        self.row_bytes = int(np.prod(self.row_shape, dtype=np.int64)) * self.dtype.itemsize
+
+    def _rows_to_write(self, start, data):
+        """``data`` as rows of this array's type, checked to fit from row ``start``."""
+        data = np.ascontiguousarray(data, dtype=self.dtype)
+        n = data.shape[0] if data.ndim else 1
+        if start < 0 or start + n > self.shape[0]:
+            raise IndexError(f"rows {start}:{start + n} out of range for {self.shape[0]} rows")
+        return data, n
 
     @classmethod
     def create(cls, path, shape, dtype="<f8"):
@@ -93,10 +104,7 @@ class RawArray:
         return out
 
     def write(self, start, data):
-        data = np.ascontiguousarray(data, dtype=self.dtype)
-        n = data.shape[0] if data.ndim else 1
-        if start < 0 or start + n > self.shape[0]:
-            raise IndexError(f"rows {start}:{start + n} out of range for {self.shape[0]} rows")
+        data, _ = self._rows_to_write(start, data)
         buf = memoryview(data.reshape(-1).view(np.uint8))
         off = start * self.row_bytes
         done = 0
@@ -147,10 +155,7 @@ class CoreArray(RawArray):
 
     def __init__(self, shape, dtype="<f8"):   # (no file: the base's fields, an array)
         self.path = None
-        self.shape = tuple(int(s) for s in shape)
-        self.dtype = np.dtype(dtype)
-        self.row_shape = self.shape[1:]
-        self.row_bytes = int(np.prod(self.row_shape, dtype=np.int64)) * self.dtype.itemsize
+        self._layout(shape, dtype)
         self._fd = None
         self.data = np.zeros(self.shape, self.dtype)
 
@@ -161,10 +166,7 @@ class CoreArray(RawArray):
         return out
 
     def write(self, start, data):
-        data = np.asarray(data, dtype=self.dtype)
-        n = data.shape[0] if data.ndim else 1
-        if start < 0 or start + n > self.shape[0]:
-            raise IndexError(f"rows {start}:{start + n} out of range for {self.shape[0]} rows")
+        data, n = self._rows_to_write(start, data)
         self.data[start:start + n] = data.reshape((n,) + self.row_shape)
 
     def flush(self):
