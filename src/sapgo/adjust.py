@@ -237,11 +237,12 @@ class Options:
     factor_storage: str = "auto"
     #: The run's scratch: "always" (the work directory ``NAME.h5.work`` beside the project,
     #: and an unordered project's ordered copy beside it: checkpointed every iteration, so
-    #: ``resume`` continues an interrupted run), "never" (all in memory: the ordered copy,
-    #: the buffers and the factor; no checkpoint, an interrupted run starts again; the
-    #: commit writes the adjusted project in one write) or "auto" (never for a project file
-    #: up to :data:`IN_MEMORY_BYTES` and a sixteenth of the memory budget, a run of seconds;
-    #: always beyond, on Dask, with ``keep_scratch``, or to resume a run).
+    #: ``resume`` continues an interrupted run), "never" (all in memory: the ordered copy
+    #: and the buffers, the band's factor within ``factor_storage``'s core budget; no
+    #: checkpoint, an interrupted run starts again; the commit writes the adjusted project
+    #: in one write) or "auto" (never for a project file up to :data:`IN_MEMORY_BYTES` and
+    #: a sixteenth of the memory budget, a run of seconds; always beyond, on Dask, with
+    #: ``keep_scratch``, or to resume a run).
     work_files: str = "auto"
     #: Above this many stations the per-station vectors of the run (orientations, step,
     #: variances: 48 bytes a station each) are memory-mapped from scratch files whose pages

@@ -950,8 +950,9 @@ def build_parser():
     a.add_argument("--work-files", choices=("auto", "always", "never"), default="auto",
                    help="the run's scratch: always (NAME.h5.work beside the project, "
                         "checkpointed every iteration: --resume continues an interrupted "
-                        "run), never (everything in memory, the ordered copy too; no "
-                        "checkpoint: an interrupted run starts again; the adjusted project "
+                        "run), never (in memory: the ordered copy and the buffers, the factor "
+                        "as --factor-storage auto says; no checkpoint: an interrupted run "
+                        "starts again; the adjusted project "
                         "written in one write) or auto (never for a project file up to 64 MB "
                         "and a sixteenth of --memory, a run of seconds; always beyond, with "
                         "--keep-scratch or to --resume a run; the default)")
