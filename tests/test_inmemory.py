@@ -167,7 +167,7 @@ def test_ctrl_c_says_what_was_kept(p1_block, capsys, monkeypatch):
 
     monkeypatch.setattr(module, "adjust", interrupted)
     code, _, err = run_cli(capsys, "adjust", p1_block, "--no-progress")
-    assert code == 130 and "held in memory and nothing was written" in err
+    assert code == 130 and "held in memory and kept no checkpoint" in err
     assert "--resume" not in err
     code, _, err = run_cli(capsys, "adjust", p1_block, "--no-progress", "--work-files", "always")
     assert code == 130 and f"sapgo adjust --resume {p1_block}" in err

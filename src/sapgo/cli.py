@@ -326,7 +326,7 @@ def cmd_adjust(args):
             print(f"sapgo: interrupted; the last completed iteration is kept: continue with "
                   f"'sapgo adjust --resume {args.project}'", file=sys.stderr)
         else:   # (a run in memory: --work-files)
-            print(f"sapgo: interrupted; the run was held in memory and nothing was written: "
+            print(f"sapgo: interrupted; the run was held in memory and kept no checkpoint: "
                   f"{args.project} is as it was (run again, or with --work-files always to "
                   f"keep every iteration)", file=sys.stderr)
         return 130
