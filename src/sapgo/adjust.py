@@ -1154,6 +1154,14 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             band_ds[base:base + len(rows)] = rows
             rhs_ds[base:base + len(rows)] = rhs_rows
     xyz_ds = work.xyz_current if xyz is None else xyz
+    # each point's system kept for the update of this state (work.kept, :func:`_kept_systems`;
+    # a full build replaces them, a replay's rows leave them)
+    keep = None
+    if xyz is None and rows is None and state is None:
+        work.kept = None
+        keep = _kept_systems(p, blk, opts)
+    keep_pt, keep_nbar = keep if keep is not None else (
+        np.empty((0, normals.KEPT_POINT)), np.empty((0, k, 3)))
     priors = _PriorCursor(p, opts.chunk_points, blk)
     base = 0
     ranges = p.chunks("points", opts.chunk_points)
@@ -1224,7 +1232,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
                     blk.camera, blk.cams, blk.ctrl_mask, band, rhs, base,
                     c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS, blk.cal,
                     bord, ovf_bord, cnn_t, ccg_t, cdiag_t, lam, blk.behind_ok, blk.fixed,
-                    dg, ovf_dg,
+                    dg, ovf_dg, keep_pt[a:b], keep_nbar[c.o0:c.o1],
                 )
                 if status != OK:
                     raise _point_error(p, c, bad, status, blk)
@@ -1237,6 +1245,8 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
     end = n if rows is None else hi_row
     while base < end:
         advance(min(end, base + cap))
+    if keep is not None:
+        work.kept = (keep_pt, keep_nbar, lam)
     border = None
     if ng:
         cnn, ccg, cdiag = cnn_t.sum(axis=0), ccg_t.sum(axis=0), cdiag_t.sum(axis=0)
@@ -1244,6 +1254,28 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
             cnn[np.arange(ng), np.arange(ng)] += lam * np.clip(cdiag, 1e-6, 1e32)
         border = (cnn, ccg, cdiag)
     return (diag if lam > 0.0 else None), border
+
+
+#: Bytes of the points' systems the build keeps for the update at most (and a sixteenth of
+#: the memory budget): :func:`_kept_systems`.
+KEPT_SYSTEMS_BYTES = 64 << 20
+
+
+def _kept_systems(p, blk: _Block, opts: Options):
+    """Arrays for the build to keep every point's system in (chunk points x
+    :data:`sapgo.normals.KEPT_POINT` and observations x npar x 3, :func:`sapgo.normals.
+    build_points`), so that the update back-solves from them instead of linearising each
+    point again (the same numbers; about two thirds of the update's time); None where they
+    would take more than :data:`KEPT_SYSTEMS_BYTES` or a sixteenth of ``--memory``, and
+    for robust estimation (whose weights the update works out again)."""
+    if opts.robust is not None:
+        return None
+    size = 8 * (p.n_points * normals.KEPT_POINT + p.n_observations * blk.npar * 3)
+    budget = DEFAULT_CORE_BUDGET if opts.memory is None else parse_memory(opts.memory)
+    if size > min(KEPT_SYSTEMS_BYTES, budget // 16):
+        return None
+    return (np.empty((p.n_points, normals.KEPT_POINT)),
+            np.empty((p.n_observations, blk.npar, 3)))
 
 
 def _moved_cameras(blk: _Block, delta, dtheta=None):
@@ -1304,6 +1336,10 @@ def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, st
     xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
     if eo_next is None:
         eo_next = next_orientations(blk.eo, delta)
+    # the build's systems of this state and damping (:func:`_kept_systems`)
+    kept = getattr(work, "kept", None)
+    if kept is None or kept[2] != lam or dtheta is not None:
+        kept = (np.empty((0, normals.KEPT_POINT)), np.empty((0, blk.npar, 3)))
     for a in range(a0, b0, opts.chunk_points):
         b = min(b0, a + opts.chunk_points)
         c = PointChunk(p, a, b, xyz_in[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
@@ -1321,6 +1357,7 @@ def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, st
             c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
             blk.cams, blk.ctrl_mask, c.max_rays, xyz_out, res_out,
             stats, lam, blk.behind_ok, cams_new, dtheta, blk.fixed, eo_next,
+            kept[0][a:b], kept[1][c.o0:c.o1],
         )
         if stats[7]:
             raise _point_error(p, c, int(stats[7]) - 1, int(stats[8]), blk)

@@ -16,6 +16,7 @@ are too many for the budget).
 from __future__ import annotations
 
 import os
+import math
 import re
 import shutil
 import tempfile
@@ -49,7 +50,21 @@ def parse_memory(text):
 
 
 def _key_order(arrays):
-    """Stable lexicographic order of key arrays (first array most significant)."""
+    """Stable lexicographic order of key arrays (first array most significant).
+
+    Integer keys whose ranges multiply to less than 2^62 are combined into one int64 key,
+    sorted once (stable): the order ``np.lexsort`` gives, in half its time (one sort
+    instead of one a key)."""
+    if len(arrays) > 1 and len(arrays[0]) and all(np.asarray(a).dtype.kind == "i"
+                                                  for a in arrays):
+        lo = [int(a.min()) for a in arrays]
+        span = [int(a.max()) - m + 1 for a, m in zip(arrays, lo)]
+        if math.prod(span) < (1 << 62):
+            key = np.asarray(arrays[0], np.int64) - lo[0]
+            for a, m, r in zip(arrays[1:], lo[1:], span[1:]):
+                key *= r
+                key += np.asarray(a, np.int64) - m
+            return np.argsort(key, kind="stable")
     return np.lexsort(tuple(reversed(arrays)))
 
 

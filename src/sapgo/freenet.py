@@ -273,8 +273,12 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
         return (np.einsum("irc,cd,isd->irs", hk, gb, hk)
                 - np.einsum("irc,isc->irs", hk, bq) - np.einsum("irc,isc->irs", bq, hk))
 
+    def delta_diagonal(h, bq):   # delta's diagonal alone (a point's 3 variances)
+        hk = h @ kk
+        return np.einsum("ird,ird->ir", hk @ gb, hk) - 2.0 * np.einsum("ird,ird->ir", hk, bq)
+
     def fix_points(a, b, c, h, b_pt):
-        d = np.diagonal(delta(h, b_pt), axis1=1, axis2=2)
+        d = delta_diagonal(h, b_pt)
         s = np.asarray(psig[a:b], np.float64)
         on = c.active == 0
         s[on] = np.sqrt(np.maximum(s[on] ** 2 + sigma0 ** 2 * d[on], 0.0))

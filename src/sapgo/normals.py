@@ -227,12 +227,56 @@ def _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, diag, rhs_row, g, col,
             g[q, u, c] = tmp[c]
 
 
+#: Doubles of a point's kept system (:func:`_keep_point`): the Cholesky factor of its
+#: (damped) 3 x 3 block, its right-hand side, its coordinates and the block's diagonal.
+KEPT_POINT = 18
+
+
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
+def _keep_point(j, keep_pt, keep_nbar, lo, cc, xyz, nn, nbar, pt_start, pt_nobs, obs_active):
+    """Point ``j``'s system as :func:`_point_system` linearised it into ``keep_pt[j]``
+    (``lo`` by rows, ``cc``, ``xyz``, the diagonal of ``nn``) and its active rays' ``Nbar``
+    into ``keep_nbar`` at their observations' rows."""
+    for r in range(3):
+        for c in range(3):
+            keep_pt[j, 3 * r + c] = lo[r, c]
+        keep_pt[j, 9 + r] = cc[r]
+        keep_pt[j, 12 + r] = xyz[r]
+        keep_pt[j, 15 + r] = nn[r, r]
+    q = 0
+    for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+        if obs_active[i]:
+            keep_nbar[i] = nbar[q]
+            q += 1
+
+
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
+def _kept_point(j, keep_pt, keep_nbar, pt_start, pt_nobs, obs_station, obs_active, lo, cc,
+                xyz, nn, nbar, st_all):
+    """:func:`_keep_point` read back into the workspace of :func:`_point_system` (``nn``:
+    its diagonal alone); the number of active rays."""
+    for r in range(3):
+        for c in range(3):
+            lo[r, c] = keep_pt[j, 3 * r + c]
+        cc[r] = keep_pt[j, 9 + r]
+        xyz[r] = keep_pt[j, 12 + r]
+        nn[r, r] = keep_pt[j, 15 + r]
+    k = 0
+    for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+        if obs_active[i]:
+            nbar[k] = keep_nbar[i]
+            st_all[k] = obs_station[i]
+            k += 1
+    return k
+
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
                  pt_smax, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
                  cams, ctrl_mask, band, rhs, base, max_rays, split, ovf_band,
                  ovf_rhs, cal, bord, ovf_bord, cnn, ccg, cdiag, lam=0.0, behind_ok=False,
-                 st_fixed=None, dg=None, ovf_dg=None):
+                 st_fixed=None, dg=None, ovf_dg=None, keep_pt=None, keep_nbar=None):
     """Add points ``j0 .. j_stop-1`` of a chunk into the band-row window.
 
     ``band[r]`` (6 x 6b) and ``rhs[r]`` (6) are the rows of logical station ``base + r``;
@@ -252,6 +296,11 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     ``dg`` (rows x npar, beside ``band``; ``ovf_dg`` beside ``ovf_band``): each station's
     diagonal of the unreduced normal matrix, ``sum p a_u^2`` over its rays (fixed parameters'
     columns 0), added in: the scaling of the Levenberg-Marquardt damping. None: not kept.
+
+    ``keep_pt`` (chunk points x :data:`KEPT_POINT`) and ``keep_nbar`` (chunk observations x
+    npar x 3), when given with rows: each point's system as linearised here
+    (:func:`_keep_point`), for :func:`update_points` to back-solve from instead of
+    linearising the point again.
     """
     cap = band.shape[0]
     npar = band.shape[1]
@@ -287,6 +336,9 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
         if not _chol3(nn, lo):
             return j, SINGULAR_POINT, j
         _solve3(lo, cc, h)
+        if keep_pt is not None and keep_pt.shape[0] > 0:
+            _keep_point(j, keep_pt, keep_nbar, lo, cc, xyz, nn, nbar, pt_start, pt_nobs,
+                        obs_active)
         for q in range(k):
             r = st_all[q] - base
             row = band[r] if r < split else ovf_band[r - split]
@@ -431,7 +483,7 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                           obs_active, eo, cam_of_station, cams, ctrl_mask, band, rhs, base,
                           max_rays, ovf_band, ovf_rhs, min_points, cal, bord, ovf_bord, cnn,
                           ccg, cdiag, lam=0.0, behind_ok=False, st_fixed=None, dg=None,
-                          ovf_dg=None):
+                          ovf_dg=None, keep_pt=None, keep_nbar=None):
     """:func:`build_points` for the points from ``j0`` that fit the window, on
     ``len(ovf_band)`` threads over station ranges.
 
@@ -443,7 +495,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
     the same way: ``ovf_bord[t]`` beside ``ovf_band[t]``, and thread ``t`` adds into
     ``cnn[t]``, ``ccg[t]``, ``cdiag[t]`` (the caller sums them). The stations' diagonal
     ``dg`` (rows x npar, 0 rows: not kept; required, as ``ovf_dg``, threads x b x npar) the
-    same way: ``ovf_dg[t]`` beside ``ovf_band[t]``.
+    same way: ``ovf_dg[t]`` beside ``ovf_band[t]``. ``keep_pt``, ``keep_nbar``: as
+    :func:`build_points` (every thread writes its own points' rows).
     """
     cap = band.shape[0]
     n_pts = pt_xyz.shape[0]
@@ -463,7 +516,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                                       obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays, cap,
                                       empty_b, empty_r, cal, bord, empty_g, cnn[0], ccg[0],
-                                      cdiag[0], lam, behind_ok, st_fixed, dg, empty_d)
+                                      cdiag[0], lam, behind_ok, st_fixed, dg, empty_d,
+                                      keep_pt, keep_nbar)
         if status != OK or j < j_end:
             return j, status, bad
         return j_end, OK, -1
@@ -488,7 +542,8 @@ def build_points_parallel(j0, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_star
                                       obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                                       ctrl_mask, band, rhs, base, max_rays,
                                       split[t], ob, orr, cal, bord, og, cnn[t], ccg[t],
-                                      cdiag[t], lam, behind_ok, st_fixed, dg, od)
+                                      cdiag[t], lam, behind_ok, st_fixed, dg, od, keep_pt,
+                                      keep_nbar)
         res[t, 0] = j
         res[t, 1] = status
         res[t, 2] = bad
@@ -515,15 +570,20 @@ def update_points_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, 
                            pt_nobs, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
                            delta, cam_of_station, cams, ctrl_mask, max_rays, xyz_out,
                            resid_out, stats, lam=0.0, behind_ok=False, cams_new=None,
-                           dtheta=None, st_fixed=None, eo_next=None):
+                           dtheta=None, st_fixed=None, eo_next=None, keep_pt=None,
+                           keep_nbar=None):
     """:func:`update_points` on ``nthreads`` threads: the points cut into that many runs of
     about equal observations, each with its own statistics, added in run order afterwards
     (the maximum for ``stats[5]``, the first run's bad point for ``stats[7:9]``). A point
-    writes only its own coordinates and its own observations' residuals."""
+    writes only its own coordinates and its own observations' residuals. ``keep_pt``,
+    ``keep_nbar``: the chunk's points' systems as the build kept them (see
+    :func:`update_points`; no rows: none)."""
     n = pt_xyz.shape[0]
     nt = max(1, min(nthreads, n))
     cut = _runs(pt_start, pt_nobs, nt)
     part = np.zeros((nt, stats.shape[0]))
+    kp = np.empty((0, KEPT_POINT)) if keep_pt is None else keep_pt
+    kn = np.empty((0, delta.shape[1], 3)) if keep_nbar is None else keep_nbar
     for t in prange(nt):
         a, b = cut[t], cut[t + 1]
         if b > a:
@@ -531,7 +591,7 @@ def update_points_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, 
                           pt_start[a:b], pt_nobs[a:b], pt_active[a:b], obs_station, obs_xy,
                           obs_sigma, obs_active, eo, delta, cam_of_station, cams, ctrl_mask,
                           max_rays, xyz_out[a:b], resid_out, part[t], lam, behind_ok,
-                          cams_new, dtheta, st_fixed, eo_next)
+                          cams_new, dtheta, st_fixed, eo_next, kp[a:b], kn)
     for t in range(nt):
         if part[t, 7] != 0.0 and stats[7] == 0.0:
             stats[7] = part[t, 7] + cut[t]
@@ -547,7 +607,8 @@ def update_points_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, 
 def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, delta, cam_of_station, cams,
                   ctrl_mask, max_rays, xyz_out, resid_out, stats, lam=0.0,
-                  behind_ok=False, cams_new=None, dtheta=None, st_fixed=None, eo_next=None):
+                  behind_ok=False, cams_new=None, dtheta=None, st_fixed=None, eo_next=None,
+                  keep_pt=None, keep_nbar=None):
     """Back-solve point corrections and compute residuals for a chunk of points.
 
     ``eps_j = Ndd_j^-1 (cdd_j - sum_s Nbar_s' delta_s)`` with the system linearised at the
@@ -563,6 +624,9 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     ``dtheta`` (camera rows x N_CALIBRATION): the self-calibration step of each camera's border parameters
     (:func:`sapgo.geometry.camera_partials`; zero where not adjusted), which enters the
     back-solution as ``- Nbar_g' dtheta``; ``cams_new`` then holds the moved cameras.
+    ``keep_pt``, ``keep_nbar`` (with rows, and no ``dtheta``): each point's system as the
+    build of the same state and damping kept it (:func:`_keep_point`), read instead of
+    linearising the point again: the same numbers.
     """
     npar = delta.shape[1]
     e = np.empty((2, N_CALIBRATION))
@@ -577,15 +641,20 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             for f in range(N_CALIBRATION):
                 if dtheta[c, f] != 0.0:
                     moved[c] = f + 1
+    kept = dtheta is None and keep_pt is not None and keep_pt.shape[0] > 0
     for j in range(pt_xyz.shape[0]):
         if pt_active[j] != 0:
             xyz_out[j] = pt_xyz[j]
             continue
-        k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
-                          obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
-                          cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
-                          st_all, nn, cc, b_all, o_all, lam, behind_ok, st_fixed)
-        if k < 0 or not _chol3(nn, lo):
+        if kept:
+            k = _kept_point(j, keep_pt, keep_nbar, pt_start, pt_nobs, obs_station, obs_active,
+                            lo, cc, xyz, nn, nbar, st_all)
+        else:
+            k = _point_system(j, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs,
+                              obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station,
+                              cams, ctrl_mask, xyz, nbar, a_all, l_all, w_all,
+                              st_all, nn, cc, b_all, o_all, lam, behind_ok, st_fixed)
+        if k < 0 or not (kept or _chol3(nn, lo)):
             stats[7] = j + 1
             stats[8] = BEHIND_CAMERA if k < 0 else SINGULAR_POINT
             return
@@ -752,6 +821,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     qpp = np.empty((3, 3))
     qsp = np.empty((npar, 3))
     zn = np.empty((npar, 3))
+    zn_all = np.empty((max_rays, npar, 3))   # W of each ray of the point
     e = np.empty(3)
     col = np.empty(3)
     a = np.empty((2, npar))
@@ -787,18 +857,26 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
             _solve3(lo, e, col)
             for r in range(3):
                 g[r, c] = col[r]
-        t[:, :] = 0.0
+        # W_q = sum_r Z[s_q, s_r] Nbar_r for every ray (npar x 3; the observations' Q_sp
+        # below takes it too), then T = sum_q Nbar_q' W_q: k^2 products of 6 x 6 by 6 x 3
         for q in range(k):
             sq = npar * st_all[q] - base
+            zq = zn_all[q]
+            zq[:, :] = 0.0
             for r in range(k):
                 sr = npar * st_all[r] - base
                 for a6 in range(npar):
                     for b6 in range(npar):
                         z = zb[sq + a6, sr + b6]
-                        for c1 in range(3):
-                            za = z * nbar[q, a6, c1]
-                            for c2 in range(3):
-                                t[c1, c2] += za * nbar[r, b6, c2]
+                        for c in range(3):
+                            zq[a6, c] += z * nbar[r, b6, c]
+        t[:, :] = 0.0
+        for q in range(k):
+            for a6 in range(npar):
+                for c1 in range(3):
+                    nq = nbar[q, a6, c1]
+                    for c2 in range(3):
+                        t[c1, c2] += nq * zn_all[q, a6, c2]
         if ng > 0:
             vb[:, :] = 0.0
             for q in range(k):  # V: X' Nbar over the rays, minus Nbar_g (direct terms)
@@ -860,15 +938,10 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                     b[0, c] = 0.0
                     b[1, c] = 0.0
             sq = npar * s - base
-            # Q_sp = -(sum_r Z[s, s_r] Nbar_r) G
-            zn[:, :] = 0.0
-            for r in range(k):
-                sr = npar * st_all[r] - base
-                for a6 in range(npar):
-                    for b6 in range(npar):
-                        z = zb[sq + a6, sr + b6]
-                        for c in range(3):
-                            zn[a6, c] += z * nbar[r, b6, c]
+            # Q_sp = -(sum_r Z[s, s_r] Nbar_r) G: W of this ray (s = st_all[q])
+            for a6 in range(npar):
+                for c in range(3):
+                    zn[a6, c] = zn_all[q, a6, c]
             if ng > 0:  # zn += X_s S^-1 V; the border's partials of the observation
                 xr = s - xbase
                 for a6 in range(npar):
