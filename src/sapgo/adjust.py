@@ -2756,6 +2756,11 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     width = N_CAMERA if blk.cams[:, AP_SET].any() else PHOTO_CAMERA_NARROW
     solution_bytes = 8 * (p_read.n_stations * (18 + 2 * width) + p_read.n_points * 6
                           + p_read.n_observations * 6)
+    # a run in memory: the cameras, stations and points the run holds (the image's own,
+    # not read from it again)
+    held = None if mem is None else {"cameras": p_read.cameras(),
+                                     "eo": p_read.read_field("stations", "eo"),
+                                     "xyz": p_read.read_field("points", "xyz")}
     p_read.close()
 
     tmp = path.with_name(path.name + ".commit.tmp")
@@ -2769,10 +2774,13 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
             for key in ("ordered_from", "rejections_reset"):   # (the run's copy's own)
                 if key in q.file.attrs:
                     del q.file.attrs[key]
-            g = q.new_solution()
+            cams = q.cameras() if held is None else held["cameras"]
+            g = q.new_solution(cams)
             for a, b in q.chunks("stations", opts.chunk_points):
-                g["station_corr"][a:b] = blk.eo[a:b] - q.read_field("stations", "eo", a, b)
-            cams0 = camera_array(q.cameras())
+                eo = (q.read_field("stations", "eo", a, b) if held is None
+                      else held["eo"][a:b])
+                g["station_corr"][a:b] = blk.eo[a:b] - eo
+            cams0 = camera_array(cams)
             n_cam = len(cams0)
             g["camera_corr"][:] = blk.cams[:n_cam] - cams0
             # each photo's camera row as adjusted (its own with per-photo calibration)
@@ -2782,7 +2790,9 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
                 rows = blk.camera[a:b].astype(np.int64)
                 pcc[a:b] = (blk.cams[rows] - cams0[rc[rows]])[:, :pcc.shape[1]]
             for a, b in q.chunks("points", opts.chunk_points):
-                g["point_corr"][a:b] = xyz_ds[a:b] - q.read_field("points", "xyz", a, b)
+                xyz = (q.read_field("points", "xyz", a, b) if held is None
+                       else held["xyz"][a:b])
+                g["point_corr"][a:b] = xyz_ds[a:b] - xyz
             for a, b in q.chunks("observations", opts.chunk_points):
                 g["residuals"][a:b] = res_ds[a:b]
             for a, b in q.chunks("stations", opts.chunk_points):

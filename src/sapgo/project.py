@@ -913,17 +913,18 @@ class Project:
             data = full
         return data
 
-    def new_solution(self):
+    def new_solution(self, cameras=None):
         """A new, zeroed result group ``/solution.new`` sized to the current records.
 
         Fill it, then :meth:`commit_solution` puts it in place of ``/solution``: an old
-        solution stays readable until the new one is complete.
+        solution stays readable until the new one is complete. ``cameras``: the camera
+        records, when the caller has them.
         """
         f = self.file
         if "solution.new" in f:
             del f["solution.new"]
         g = f.create_group("solution.new")
-        narrow = not self.cameras()["ap_set"].any()
+        narrow = not (self.cameras() if cameras is None else cameras)["ap_set"].any()
         for name, (parent, _) in SOLUTION_LAYOUT.items():
             solution_dataset(g, name, len(f[parent]),
                              PHOTO_CAMERA_NARROW if narrow and name == "photo_camera_corr"
