@@ -24,8 +24,9 @@ CASES = {
     "self-calibration": dict(calibrate=("f", "k1"), max_iterations=30),
     "robust": dict(robust="cauchy", max_iterations=30),
 }
-#: cases whose updates never read kept systems (the step moves the border: the update needs
-#: the rays' partials; robust weights: the systems are not kept)
+#: cases whose updates never read kept systems (self-calibration: the step moves the border,
+#: the update needs the rays' partials; robust weights: the update works them out again;
+#: neither keeps them)
 LINEARISED = {"self-calibration", "robust"}
 
 
@@ -85,7 +86,8 @@ def test_bal_problem_with_kept_systems_equals_linearising_again(tmp_path, monkey
 
 def test_systems_kept_only_within_the_budget(p1_block, monkeypatch):
     """The systems take 8 (18 a point + 3 npar an observation) bytes: kept up to
-    KEPT_SYSTEMS_BYTES and a sixteenth of --memory, never for robust estimation."""
+    KEPT_SYSTEMS_BYTES and a sixteenth of --memory, never for robust estimation or
+    self-calibration."""
     from sapgo.adjust import _kept_systems
     from sapgo.project import Project
 
@@ -93,12 +95,17 @@ def test_systems_kept_only_within_the_budget(p1_block, monkeypatch):
 
     class Blk:
         npar = 6
+        n_border = 0
+
+    class Calibrating(Blk):
+        n_border = 7
 
     with Project(p1_block) as p:
         size = 8 * (18 * p.n_points + 18 * p.n_observations)
         kept = _kept_systems(p, Blk, sapgo.Options())
         assert kept[0].shape == (p.n_points, 18) and kept[1].shape == (p.n_observations, 6, 3)
         assert _kept_systems(p, Blk, sapgo.Options(robust="huber")) is None
+        assert _kept_systems(p, Calibrating, sapgo.Options()) is None
         monkeypatch.setattr(module, "KEPT_SYSTEMS_BYTES", size)
         assert _kept_systems(p, Blk, sapgo.Options()) is not None
         monkeypatch.setattr(module, "KEPT_SYSTEMS_BYTES", size - 1)

@@ -1266,9 +1266,10 @@ def _kept_systems(p, blk: _Block, opts: Options):
     :data:`sapgo.normals.KEPT_POINT` and observations x npar x 3, :func:`sapgo.normals.
     build_points`), so that the update back-solves from them instead of linearising each
     point again (the same numbers; about two thirds of the update's time); None where they
-    would take more than :data:`KEPT_SYSTEMS_BYTES` or a sixteenth of ``--memory``, and
-    for robust estimation (whose weights the update works out again)."""
-    if opts.robust is not None:
+    would take more than :data:`KEPT_SYSTEMS_BYTES` or a sixteenth of ``--memory``, for
+    robust estimation (whose weights the update works out again) and for self-calibration
+    (whose update needs each ray's partials: the step moves the border)."""
+    if opts.robust is not None or blk.n_border:
         return None
     size = 8 * (p.n_points * normals.KEPT_POINT + p.n_observations * blk.npar * 3)
     budget = DEFAULT_CORE_BUDGET if opts.memory is None else parse_memory(opts.memory)
