@@ -52,13 +52,15 @@ def test_tables_agree_with_the_solution(snooped, tmp_path, capsys):
     flagged = {(int(o["photo_id"]), int(o["point_id"])) for o in obs
                if o["flag"] == "rejected"}
     assert flagged == {(r["photo_id"], r["point_id"]) for r in s.rejected}
-    for o in obs:
+    for i, o in enumerate(obs):
         if o["flag"] == "rejected":
-            assert o["t"] == "" and float(o["weight"]) == 0
-            # the rejected observation keeps its residual: a planted blunder of 80-100 um
+            assert o["r_x"] == "" and o["mdb_um"] == "" and float(o["weight"]) == 0
+            # the rejected observation keeps its residual: a planted blunder of 80-100 um;
+            # and gets the test it would have brought back alone, above the critical 3.72
             if (int(o["photo_id"]), int(o["point_id"])) in {
                     (r["photo_id"], r["point_id"]) for r in s.rejected if r["by"] == "test"}:
                 assert math.hypot(float(o["vx_um"]), float(o["vy_um"])) > 30
+                assert float(o["t"]) == pytest.approx(q[i, 5], abs=1e-3) and q[i, 5] > 3.72
         else:
             assert float(o["mdb_um"]) > 6 * math.sqrt(s.reliability["lambda0"])
     # per photo: RMS and count recomputed from the residuals

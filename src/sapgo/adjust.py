@@ -487,6 +487,9 @@ class _Block:
     rejections: list = dataclasses.field(default_factory=list)
     #: observations batch snooping rejected and brought back when confirmed (record numbers)
     reinstated: list = dataclasses.field(default_factory=list)
+    #: data snooping's last precision pass: ``(key, result, correlations)``
+    #: (:func:`_snooping_pass`), which the commit takes if nothing changed since
+    last_pass: tuple | None = None
     #: planted blunders (generated blocks): their observations and non-centrality parameters
     #: in the adjustment with every observation (None: not computed yet)
     planted: dict | None = None
@@ -2165,7 +2168,8 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                 blk.reinstated = list(checkpoint.get("reinstated", []))
                 for key in ("robust_tol", "method", "mu", "nu", "cost", "initial_cost",
                             "border_cov", "reinstated", "snooping_confirmed",
-                            "snooping_group"):
+                            "snooping_rounds",
+                            "snooping_group"):   # (the last: a version's before 2026-11-27)
                     if checkpoint.get(key) is not None:
                         run[key] = checkpoint[key]
                 run["rejected_points"] = blk.rejected_points.tolist()
@@ -2199,7 +2203,10 @@ def _adjust_ordered(path, src, wpath, opts, checkpoint, order_info, timings, t_s
                 converged = _iterate(p, work, blk, opts, timings, log, run,
                                      limit=len(log) + opts.max_iterations, reject=False)
             elif not converged:
-                converged = _iterate(p, work, blk, opts, timings, log, run)
+                # (resumed inside snooping: the adjustment after its last round goes on)
+                rounds = opts.snooping and run.get("snooping_rounds", 0) > 0
+                converged = _iterate(p, work, blk, opts, timings, log, run,
+                                     limit=len(log) + opts.max_iterations if rounds else None)
             if opts.snooping and log:
                 converged = _snoop(p, work, blk, opts, timings, log, run, converged)
             if not log:
@@ -2276,17 +2283,20 @@ def _snoop(p, work, blk, opts, timings, log, run, converged):
     observation whose neighbourhood -- the photos that see its point -- shares no photo
     with one taken already in the round: a blunder moves the tests of its own point's rays
     and of the photos that see it most. When no test is significant any more, the batch
-    rejections are confirmed (:func:`_confirm_start`, :func:`_confirm_finish`): a group of them with disjoint
-    neighbourhoods is brought back, the block adjusted, and each tested again among the
-    active observations; one whose test is no longer significant (it had taken the blame
-    of a blunder beside it) stays in, the others go again; then the rounds go on."""
+    rejections are confirmed (:func:`_confirm`) from the same precision pass: each
+    rejection's residual predicted from the adjustment without it gives the test it would
+    have brought back alone; one no longer significant (it had taken the blame of a
+    blunder beside it) is brought back, and the rounds go on."""
+    group = run.pop("snooping_group", None)
+    if group:   # (a checkpoint of a version that confirmed by groups brought back: in)
+        blk.reinstated.extend(int(i) for i in group)
+        run["reinstated"] = blk.reinstated
+        run["snooping_confirmed"] = sorted(set(run.get("snooping_confirmed", [])) |
+                                           {int(i) for i in group})
     while True:
-        if run.get("snooping_group"):   # a group brought back, the block adjusted with it
-            _confirm_finish(p, work, blk, opts, timings, log, run)
-            converged = _iterate(p, work, blk, opts, timings, log, run,
-                                 limit=len(log) + opts.max_iterations)
-        converged = _snoop_rounds(p, work, blk, opts, timings, log, run, converged)
-        if not opts.snooping_batch or not _confirm_start(p, work, blk, opts, run):
+        converged, quality = _snoop_rounds(p, work, blk, opts, timings, log, run, converged)
+        if not opts.snooping_batch or not _confirm(p, work, blk, opts, timings, log, run,
+                                                   quality):
             return converged
         converged = _iterate(p, work, blk, opts, timings, log, run,
                              limit=len(log) + opts.max_iterations)
@@ -2308,79 +2318,98 @@ def _neighbourhood(p, i):
     return j, o0, o1, ob, set(ob["station"].tolist())
 
 
-def _confirm_start(p, work, blk, opts, run):
-    """One confirmation pass of batch snooping: of the rejections by test not yet confirmed
-    (``run["snooping_confirmed"]``) whose point keeps two rays without them, the largest
-    first, a group whose neighbourhoods (the photos that see the point) share no photo is
-    brought back, the block
-    adjusted, and each tested again: significant, it is rejected again; not, it stays in
-    (``blk.reinstated``; :func:`_confirm_finish`, once the block is adjusted with the group,
-    ``run["snooping_group"]`` meanwhile, so that a resumed run finishes it). Either way it
-    is confirmed (never brought back twice). Returns whether a group was brought back."""
+def _confirm(p, work, blk, opts, timings, log, run, quality):
+    """Confirm batch snooping's rejections by test not yet confirmed
+    (``run["snooping_confirmed"]``), the block adjusted without them and no test
+    significant: a rejection whose point keeps two rays without it is tested as if brought
+    back alone. The precision pass predicts its residual from the others (``v``, cofactor
+    ``Q_v = sigma^2 I + [A B] Q [A B]'``; ``quality``'s column t holds
+    ``sqrt(v' Q_v^-1 v) / sigma0``, :func:`sapgo.normals.point_sigmas`); brought back, the
+    adjustment's ``v' P v`` would grow by ``T^2 = v' Q_v^-1 v`` and its redundancy by 2, and
+    its own test would be ``T / sigma0'`` with ``sigma0'^2 = (v' P v + T^2) / (r + 2)``
+    (the linear model's identity). Significant, it stays out; not, it is brought back
+    (``blk.reinstated``). Either way it is confirmed (never brought back twice); a point
+    gone with it keeps it out. ``quality``: the pass of the current state (None: one is
+    made). Returns whether any was brought back."""
     confirmed = set(run.get("snooping_confirmed", []))
     rejected = set(blk.rejected.tolist())
     gone = set(blk.rejected_points.tolist())
-    group, taken = [], set()
-    for r in sorted(blk.rejections, key=lambda r: -r["w"]):
+    todo = []
+    for r in blk.rejections:
         i = int(r["observation"])
         if r["by"] != "test" or i in confirmed:
             continue
-        j, o0, o1, ob, photos = _neighbourhood(p, i)
+        confirmed.add(i)
+        j, o0, o1, ob, _ = _neighbourhood(p, i)
         live = [k for k in range(o0, o1) if ob["status"][k - o0] == STATUS_ACTIVE
                 and k not in rejected]
-        if len(live) < 2 or j in gone:
-            confirmed.add(i)   # (its point went with it: it stays out)
-            continue
-        if photos & taken:
-            continue
-        taken |= photos
-        group.append(i)
+        if len(live) >= 2 and j not in gone:   # (else its point went with it: it stays out)
+            todo.append(i)
     run["snooping_confirmed"] = sorted(confirmed)
-    if not group:
+    if not todo:
         return False
-    back = np.array(group, np.int64)
+    sigma0 = _accepted(log)[-1]["sigma0"]
+    if quality is None:
+        t0 = time.perf_counter()
+        quality = _snooping_pass(p, work, blk, opts, sigma0, run, log)
+        timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t0
+    crit = _snooping_critical(opts)
+    vpv, red = sigma0 ** 2 * blk.redundancy, blk.redundancy
+    back = []
+    for i in todo:
+        t2 = (float(quality[i][5]) * sigma0) ** 2
+        if t2 <= crit ** 2 * (vpv + t2) / (red + 2):
+            back.append(i)
+    if not back:
+        return False
     blk.rejected = blk.rejected[~np.isin(blk.rejected, back)]
     blk.n_rays += len(back)
-    blk.rejections = [r for r in blk.rejections if int(r["observation"]) not in group]
+    blk.rejections = [r for r in blk.rejections if int(r["observation"]) not in back]
+    blk.reinstated.extend(back)
+    run["reinstated"] = blk.reinstated
     run["rejections"] = blk.rejections
-    run["snooping_group"] = group
+    run["snooping_rounds"] = run.get("snooping_rounds", 0) + 1
     run["cost"] = _cost(p, work, blk, opts)
     return True
 
 
-def _confirm_finish(p, work, blk, opts, timings, log, run):
-    """The tests of the group :func:`_confirm_start` brought back, the block adjusted with
-    it: each significant one is rejected again, the others stay in."""
-    group = [int(i) for i in run["snooping_group"]]
-    confirmed = set(run.get("snooping_confirmed", []))
-    t0 = time.perf_counter()
-    _, _, quality = _precision(p, work, blk, opts, _accepted(log)[-1]["sigma0"], run=run,
-                               iteration=len(log))
-    timings["precision"] = timings.get("precision", 0.0) + time.perf_counter() - t0
-    crit = _snooping_critical(opts)
-    again = [i for i in group if quality[i][5] > crit]
-    for i in again:
-        blk.rejections.append({"observation": i, "w": float(quality[i][5]), "by": "test"})
-    if again:
-        blk.rejected = np.sort(np.concatenate([blk.rejected, np.array(again, np.int64)]))
-        blk.n_rays -= len(again)
-    blk.reinstated.extend(int(i) for i in group if i not in again)
-    run["reinstated"] = blk.reinstated
-    run["snooping_confirmed"] = sorted(confirmed | set(group))
-    run["snooping_group"] = []
-    run["rejections"] = blk.rejections
-    run["snooping_rounds"] = run.get("snooping_rounds", 0) + 1
-    run["cost"] = _cost(p, work, blk, opts)
+def _snooping_pass(p, work, blk, opts, sigma0, run, log):
+    """A precision pass of data snooping (:func:`_precision`, "full"): its result, with the
+    stations' correlations, kept for the commit (:func:`_kept_pass`) should nothing change
+    before it. Returns the observations' quality."""
+    correlations = HighCorrelations(opts.correlation_threshold)
+    out = _precision(p, work, blk, opts, sigma0, correlations, run=run, iteration=len(log))
+    blk.last_pass = (_pass_key(blk, log), out, correlations)
+    return out[2]
+
+
+def _pass_key(blk, log):
+    """What a precision pass's result depends on, beyond the project: the iterations so far
+    and the observations and points out of the adjustment."""
+    return (len(log), blk.rejected.tobytes(), blk.rejected_points.tobytes(),
+            tuple(sorted(blk.aside)), blk.free)
+
+
+def _kept_pass(blk, log, mode):
+    """The last snooping pass's ``((station_sigma, point_sigma, quality), correlations)``
+    when nothing changed since it and the commit asks for the full precision, else None."""
+    kept = getattr(blk, "last_pass", None)
+    if kept is None or mode != "full" or blk.free or blk.refactor or \
+            kept[0] != _pass_key(blk, log):
+        return None
+    return kept[1], kept[2]
 
 
 def _snoop_rounds(p, work, blk, opts, timings, log, run, converged):
-    """The rounds of :func:`_snoop` until no test is significant."""
+    """The rounds of :func:`_snoop` until no test is significant. Returns converged and the
+    observations' quality of the last precision pass if it is of the final state (None:
+    the rejections reached ``max_rejections`` after it)."""
     crit = _snooping_critical(opts)
     confirmed = set(run.get("snooping_confirmed", []))
+    quality = None
     while len(blk.rejected) < opts.max_rejections:
         t0 = time.perf_counter()
-        _, _, quality = _precision(p, work, blk, opts, _accepted(log)[-1]["sigma0"],
-                                   run=run, iteration=len(log))
+        quality = _snooping_pass(p, work, blk, opts, _accepted(log)[-1]["sigma0"], run, log)
         _note_planted(p, blk, quality, run)
         cand_t, cand_i = [], []
         for a, b in p.chunks("observations", opts.chunk_points):
@@ -2442,7 +2471,8 @@ def _snoop_rounds(p, work, blk, opts, timings, log, run, converged):
         run["cost"] = _cost(p, work, blk, opts)  # the cost function lost observations
         converged = _iterate(p, work, blk, opts, timings, log, run,
                              limit=len(log) + opts.max_iterations)
-    return converged
+        quality = None
+    return converged, quality
 
 
 def _station_index(blk, ids):
@@ -2656,7 +2686,11 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         psig = quality = None
         correlations = reliability = None
     else:
-        station_sigma, psig, quality = _precision(p_read, work, blk, opts,
+        kept = _kept_pass(blk, log, mode) if correlations is not None else None
+        if kept is not None:   # (snooping's last pass: of this state, nothing changed)
+            (station_sigma, psig, quality), correlations = kept
+        else:
+            station_sigma, psig, quality = _precision(p_read, work, blk, opts,
                                                       last["sigma0"], correlations, mode,
                                                       run=run, iteration=len(log))
         if mode != "full":   # (the stations' alone: no points, no observations' quality)

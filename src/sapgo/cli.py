@@ -972,9 +972,10 @@ def build_parser():
     a.add_argument("--snooping-batch", action="store_true",
                    help="data snooping rejects in one round every significant test whose "
                         "photos no other rejection of the round shares, then confirms the "
-                        "rejections (each brought back once and tested again; far fewer "
-                        "rounds on large blocks than the default, the largest test alone "
-                        "each round)")
+                        "rejections (each tested as if brought back alone, its residual "
+                        "predicted from the others; one no longer significant comes back); "
+                        "far fewer rounds on large blocks than the default, the largest test "
+                        "alone each round")
     a.add_argument("--alpha", type=float, default=0.001,
                    help="significance level of data snooping (default 0.001: |w| > 3.29)")
     a.add_argument("--method", choices=("auto", "gauss-newton", "levenberg-marquardt"),

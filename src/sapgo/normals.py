@@ -751,7 +751,7 @@ def point_sigmas_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, p
                           pt_nobs, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
                           cam_of_station, cams, ctrl_mask, max_rays, zb, base, res, out, out_r,
                           out_w, npar=6, cal=None, xw=None, xbase=0, sig_b=None, st_fixed=None,
-                          behind_ok=False):
+                          behind_ok=False, obs_predict=None):
     """:func:`point_sigmas` on ``nthreads`` threads: the points cut into runs of about equal
     observations (:func:`_runs`), each run given its own points' rows and its own
     observations' rows (a point's observations follow each other, the points' in turn);
@@ -766,7 +766,7 @@ def point_sigmas_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, p
         point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                      obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                      ctrl_mask, max_rays, zb, base, res, out, out_r, out_w, npar, cal, xw,
-                     xbase, sig_b, st_fixed, behind_ok)
+                     xbase, sig_b, st_fixed, behind_ok, obs_predict)
         return
     out_r[:, :] = 0.0
     out_w[:, :] = 0.0
@@ -775,19 +775,29 @@ def point_sigmas_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, p
         a, b = cut[t], cut[t + 1]
         if b > a:
             o0, o1 = pt_start[a], pt_start[b - 1] + pt_nobs[b - 1]
-            point_sigmas(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b], pt_rot[a:b],
-                         pt_start[a:b] - o0, pt_nobs[a:b], pt_active[a:b], obs_station[o0:o1],
-                         obs_xy[o0:o1], obs_sigma[o0:o1], obs_active[o0:o1], eo,
-                         cam_of_station, cams, ctrl_mask, max_rays, zb, base, res[o0:o1],
-                         out[a:b], out_r[o0:o1], out_w[o0:o1], npar, cal, xw, xbase, sig_b,
-                         st_fixed, behind_ok)
+            if obs_predict is None:
+                point_sigmas(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b],
+                             pt_rot[a:b], pt_start[a:b] - o0, pt_nobs[a:b], pt_active[a:b],
+                             obs_station[o0:o1], obs_xy[o0:o1], obs_sigma[o0:o1],
+                             obs_active[o0:o1], eo, cam_of_station, cams, ctrl_mask,
+                             max_rays, zb, base, res[o0:o1], out[a:b], out_r[o0:o1],
+                             out_w[o0:o1], npar, cal, xw, xbase, sig_b, st_fixed, behind_ok)
+            else:
+                point_sigmas(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b],
+                             pt_rot[a:b], pt_start[a:b] - o0, pt_nobs[a:b], pt_active[a:b],
+                             obs_station[o0:o1], obs_xy[o0:o1], obs_sigma[o0:o1],
+                             obs_active[o0:o1], eo, cam_of_station, cams, ctrl_mask,
+                             max_rays, zb, base, res[o0:o1], out[a:b], out_r[o0:o1],
+                             out_w[o0:o1], npar, cal, xw, xbase, sig_b, st_fixed, behind_ok,
+                             obs_predict[o0:o1])
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                  obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                  ctrl_mask, max_rays, zb, base, res, out, out_r, out_w, npar=6, cal=None,
-                 xw=None, xbase=0, sig_b=None, st_fixed=None, behind_ok=False):
+                 xw=None, xbase=0, sig_b=None, st_fixed=None, behind_ok=False,
+                 obs_predict=None):
     """Precision of the points of a chunk and the quality of their observations (stations
     of ``npar`` parameters: 6, or 9 with the photo's intrinsics). ``behind_ok``: a point
     behind a camera is a point all the same (BAL problems), as in the build.
@@ -806,7 +816,13 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
     (``Q_sp = -sum_t Z[s, t] Nbar_t G``);
     ``out_w`` (observations x 3): normalised residuals ``v / (sigma sqrt(r))`` of the residuals
     ``res`` and the observation's 2-D statistic ``sqrt(v' Q_vv^+ v)`` (divide by sigma0);
-    inactive observations 0.
+    inactive observations 0, except those ``obs_predict`` marks (observations rejected in
+    the run, their station's rows in ``zb``): their residual predicted from the others,
+    ``Q_v = sigma^2 I + [A B] Q [A B]'`` (the observation outside the adjustment), gives
+    ``out_w`` the normalised residuals ``v / sqrt(q_v)`` and the 2-D statistic
+    ``sqrt(v' Q_v^-1 v)``, which in the linear model equals the statistic the observation
+    would get brought back alone, with sigma0 of that adjustment (docs/theory.md, "Snooping
+    in batches"); ``out_r`` stays 0.
 
     Self-calibration (docs/theory.md section 1c): ``cal`` as in :func:`build_points`,
     ``xw[s - xbase]`` (k x ng) the rows of ``X = M^-1 B`` of the stations, ``sig_b`` (ng x ng)
@@ -927,8 +943,11 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
         # the observations: the k-th active ray of the point is the k-th active observation
         q = 0
         for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+            pred = False
             if not obs_active[i]:
-                continue
+                if obs_predict is None or not obs_predict[i]:
+                    continue
+                pred = True   # (rejected: its residual predicted from the k rays)
             s = obs_station[i]
             linearize(eo[s], xyz, cams[cam_of_station[s]], a, b)
             if st_fixed is not None and s < st_fixed.shape[0]:
@@ -938,10 +957,21 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                     b[0, c] = 0.0
                     b[1, c] = 0.0
             sq = npar * s - base
-            # Q_sp = -(sum_r Z[s, s_r] Nbar_r) G: W of this ray (s = st_all[q])
-            for a6 in range(npar):
-                for c in range(3):
-                    zn[a6, c] = zn_all[q, a6, c]
+            # Q_sp = -(sum_r Z[s, s_r] Nbar_r) G: W of this ray (s = st_all[q]); of a
+            # predicted observation's station, summed here
+            if pred:
+                zn[:, :] = 0.0
+                for r in range(k):
+                    sr = npar * st_all[r] - base
+                    for a6 in range(npar):
+                        for b6 in range(npar):
+                            z = zb[sq + a6, sr + b6]
+                            for c in range(3):
+                                zn[a6, c] += z * nbar[r, b6, c]
+            else:
+                for a6 in range(npar):
+                    for c in range(3):
+                        zn[a6, c] = zn_all[q, a6, c]
             if ng > 0:  # zn += X_s S^-1 V; the border's partials of the observation
                 xr = s - xbase
                 for a6 in range(npar):
@@ -985,10 +1015,11 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
                     if ng > 0:
                         cmm += _border_terms(m, m2, a, b, eb, xw[s - xbase], xs_s, sv, g,
                                              sig_b)
-                    qv[m, m2] = (sig2 if m == m2 else 0.0) - cmm
-                qvv = qv[m, m]
-                out_r[i, m] = qvv / sig2
-            out_r[i, 2] = qv[0, 1] / sig2
+                    qv[m, m2] = (sig2 if m == m2 else 0.0) + (cmm if pred else -cmm)
+                if not pred:
+                    out_r[i, m] = qv[m, m] / sig2
+            if not pred:
+                out_r[i, 2] = qv[0, 1] / sig2
             for m in range(2):
                 qvv = qv[m, m]
                 out_w[i, m] = res[i, m] / math.sqrt(qvv) if qvv > 0.0 else 0.0
@@ -1005,7 +1036,8 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
             else:
                 t2 = 0.0
             out_w[i, 2] = math.sqrt(max(t2, 0.0))
-            q += 1
+            if not pred:
+                q += 1
 
 
 @njit(cache=True, error_model="numpy")

@@ -233,17 +233,24 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
     out = np.empty((b - a, 6))
     out_r = np.empty((c.o1 - c.o0, 3))
     out_w = np.empty((c.o1 - c.o0, 3))
+    predict = rejected_in(blk.rejected, c.o0, c.o1)
+    if predict is not None and stations is None and not callable(zb):
+        # (the band's window holds every station of the point: of its active observations
+        # by the ordering, of a rejected one as it was active then; checked all the same)
+        row = blk.npar * c.obs_station[predict] - base
+        predict[predict] = (row >= 0) & (row + blk.npar <= zb.shape[0])
+    seen = c.obs_active if predict is None else c.obs_active | predict
     if callable(zb):
-        zb, st, eo, camera, xw, fixed = zb(c.obs_station, c.obs_active)
+        zb, st, eo, camera, xw, fixed = zb(c.obs_station, seen)
     else:
         st, eo, camera, fixed = ((c.obs_station, blk.eo, blk.camera, blk.fixed)
                                  if stations is None else
-                                 stations(c.obs_station, c.obs_active))
+                                 stations(c.obs_station, seen))
     point_sigmas_parallel(threads, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
                           c.active, st, c.obs_xy, c.obs_sigma, c.obs_active, eo, camera,
                           blk.cams, blk.ctrl_mask, c.max_rays, zb, base,
                           np.ascontiguousarray(work.res_current[c.o0:c.o1]), out, out_r, out_w,
-                          blk.npar, cal, xw, xlo, sig_b, fixed, blk.behind_ok)
+                          blk.npar, cal, xw, xlo, sig_b, fixed, blk.behind_ok, predict)
     psig[a:b] = sigma0 * out[:, :3]
     if weight is None:
         weight = np.ones(c.o1 - c.o0)
@@ -257,6 +264,21 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
         else:
             with lock:
                 correlations.add("points", ids, rho)
+
+
+def rejected_in(rejected, o0, o1):
+    """The observations ``o0 .. o1`` that ``rejected`` (sorted indices: data snooping's
+    rejections in the run) holds, as a mask, or None when it holds none: the precision pass
+    predicts their residuals from the other observations (:func:`sapgo.normals.point_sigmas`,
+    ``obs_predict``)."""
+    if rejected is None or not len(rejected):
+        return None
+    lo, hi = np.searchsorted(rejected, [o0, o1])
+    if hi == lo:
+        return None
+    mask = np.zeros(o1 - o0, np.bool_)
+    mask[rejected[lo:hi] - o0] = True
+    return mask
 
 
 def station_sigma(blk, sigma0, var):

@@ -177,13 +177,15 @@ def write_tables(project_path, out_dir, chunk=TABLE_CHUNK, alpha=None, power=0.8
                 used = act & adjusted[ob["point"] - a]
                 flag = np.where(used, "ok", np.where(ob["status"] == STATUS_REJECTED,
                                                      "rejected", "excluded"))
+                predicted = (ob["status"] == STATUS_REJECTED) & (q[:, 5] > 0)
                 _write(fo, ["%d", "%d", "%s", "%.6f", "%.6f", "%.3f", "%.3f", "%s", "%s", "%s",
                             "%s", "%s", "%s", "%.4g", "%s"],
                        [st_ids[s], pts["id"][ob["point"] - a],
                         [kind[j] for j in (ob["point"] - a).tolist()],
                         ob["x"], ob["y"], res[:, 0], res[:, 1]]
                        + [_opt(q[:, k], "%.4f", live) for k in range(2)]
-                       + [_opt(q[:, k], "%.3f", live) for k in (3, 4, 5)]
+                       # (rejected by the run's snooping: the test it would get back)
+                       + [_opt(q[:, k], "%.3f", live | predicted) for k in (3, 4, 5)]
                        + [_opt(mdb, "%.1f", live), q[:, 6], flag.tolist()])
                 counts["observations"] += len(ob)
         with open(paths["photos"], "w") as f:
