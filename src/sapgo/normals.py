@@ -876,16 +876,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
         # W_q = sum_r Z[s_q, s_r] Nbar_r for every ray (npar x 3; the observations' Q_sp
         # below takes it too), then T = sum_q Nbar_q' W_q: k^2 products of 6 x 6 by 6 x 3
         for q in range(k):
-            sq = npar * st_all[q] - base
-            zq = zn_all[q]
-            zq[:, :] = 0.0
-            for r in range(k):
-                sr = npar * st_all[r] - base
-                for a6 in range(npar):
-                    for b6 in range(npar):
-                        z = zb[sq + a6, sr + b6]
-                        for c in range(3):
-                            zq[a6, c] += z * nbar[r, b6, c]
+            _station_w(zb, npar * st_all[q] - base, st_all, nbar, k, npar, base, zn_all[q])
         t[:, :] = 0.0
         for q in range(k):
             for a6 in range(npar):
@@ -960,14 +951,7 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
             # Q_sp = -(sum_r Z[s, s_r] Nbar_r) G: W of this ray (s = st_all[q]); of a
             # predicted observation's station, summed here
             if pred:
-                zn[:, :] = 0.0
-                for r in range(k):
-                    sr = npar * st_all[r] - base
-                    for a6 in range(npar):
-                        for b6 in range(npar):
-                            z = zb[sq + a6, sr + b6]
-                            for c in range(3):
-                                zn[a6, c] += z * nbar[r, b6, c]
+                _station_w(zb, sq, st_all, nbar, k, npar, base, zn)
             else:
                 for a6 in range(npar):
                     for c in range(3):
@@ -1038,6 +1022,20 @@ def point_sigmas(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, p
             out_w[i, 2] = math.sqrt(max(t2, 0.0))
             if not pred:
                 q += 1
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _station_w(zb, sq, st_all, nbar, k, npar, base, out):
+    """``out = sum_r Z[s, s_r] Nbar_r`` (npar x 3) over a point's ``k`` rays, ``Z``'s rows of
+    the station ``s`` from ``zb[sq]`` (:func:`point_sigmas`)."""
+    out[:, :] = 0.0
+    for r in range(k):
+        sr = npar * st_all[r] - base
+        for a6 in range(npar):
+            for b6 in range(npar):
+                z = zb[sq + a6, sr + b6]
+                for c in range(3):
+                    out[a6, c] += z * nbar[r, b6, c]
 
 
 @njit(cache=True, error_model="numpy")
