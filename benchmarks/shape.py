@@ -417,6 +417,14 @@ def main(argv=None):
     from colmap import git_state
 
     tools = [t.strip() for t in args.tools.split(",")]
+    if "cholmod" in tools:
+        import importlib.util
+
+        if importlib.util.find_spec("sksparse") is None:
+            raise SystemExit("shape.py: the cholmod tool needs scikit-sparse (pip install "
+                             "'scikit-sparse<0.5', with Debian's libsuitesparse-dev and "
+                             "libopenblas0-pthread); install it, or leave cholmod out of "
+                             "--tools")
     t_all = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=args.dir, prefix="sapgo-shape-") as tmp:
         workdir = Path(tmp)
