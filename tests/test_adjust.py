@@ -1,6 +1,7 @@
 """End-to-end adjustments against an independent dense least-squares solution."""
 
 import dataclasses
+import json
 import shutil
 
 import numpy as np
@@ -8,7 +9,7 @@ import pytest
 
 import naive
 import sapgo
-from conftest import read_records, rewrite
+from conftest import read_records, rewrite, run_cli
 from sapgo.project import CONTROL_MASK, Project
 
 TIGHT = sapgo.Options(tol_position=1e-9, tol_angle=1e-11, max_iterations=25, progress=False)
@@ -728,6 +729,31 @@ def test_batch_snooping_rejects_the_same_blunders(tmp_path):
         out[batch] = (sorted((r["photo_id"], r["point_id"]) for r in s.rejected),
                       s.iterations, s.blunder_check["found"])
     assert out[True][0] == out[False][0] and out[True][2] == out[False][2] >= 2
+
+
+def test_snooping_batch_alone(tmp_path, capsys):
+    """``sapgo adjust --snooping-batch`` without ``--snooping`` snoops in batches (it did
+    nothing before); ``Options(snooping_batch=True)`` without ``snooping`` is refused in one
+    line instead of running a plain adjustment."""
+    from sapgo.errors import ParameterError
+
+    path = tmp_path / "b.h5"
+    sapgo.generate_block(path, strips=3, photos_per_strip=16, control_points=10, blunders=3,
+                         blunder_size=(0.09, 0.1), seed=5)
+    ref = tmp_path / "ref.h5"
+    shutil.copy(path, ref)
+    want = sapgo.adjust(ref, sapgo.Options(progress=False, snooping=True, snooping_batch=True))
+    assert len(want.rejected) >= 2
+    with pytest.raises(ParameterError, match="snooping_batch is a way of data snooping"):
+        sapgo.adjust(path, sapgo.Options(progress=False, snooping_batch=True))
+    code, _, err = run_cli(capsys, "adjust", "--no-progress", "--snooping-batch", path)
+    assert code == 0, err
+    with Project(path) as p, Project(ref) as q:
+        got = json.loads(p.file["solution/report"][()])
+        assert np.array_equal(p.read_field("observations", "status"),
+                              q.read_field("observations", "status"))
+    assert sorted((r["photo_id"], r["point_id"]) for r in got["rejected"]) == \
+        sorted((r["photo_id"], r["point_id"]) for r in want.rejected)
 
 
 def _statistic(path, photo_id, point_id):

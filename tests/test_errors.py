@@ -57,7 +57,7 @@ def test_block_without_control(small_block, capsys):
     with pytest.raises(DatumDefectError, match="datum defect"):
         sapgo.adjust(small_block, sapgo.Options(progress=False))
     code, _, err = run_cli(capsys, "adjust", small_block)
-    assert_one_line_error(code, err, "datum defect", "control points")
+    assert_one_line_error(code, err, "datum defect", "control points", "--datum free")
     assert digest(small_block) == before
     assert not small_block.with_name("small.h5.work").exists()
 

@@ -350,6 +350,9 @@ class Options:
                                  f"0 or more")
         if self.precision not in ("full", "stations", "none"):
             raise ParameterError(f"precision {self.precision!r}: choose full, stations or none")
+        if self.snooping_batch and not self.snooping:
+            raise ParameterError("snooping_batch is a way of data snooping: set snooping too "
+                                 "(sapgo adjust --snooping-batch implies --snooping)")
         if self.datum not in DATUMS:
             raise ParameterError(f"datum {self.datum!r}: choose control, priors or free (or "
                                  f"fix:IDS:PARAMS)")
@@ -965,7 +968,8 @@ def _datum_advice(nh, nv, n_priors):
         f"the block has {nh} horizontal (X, Y) and {nv} vertical (Z) control points and "
         f"{n_priors} station priors; at least 2 horizontal and 3 vertical control points, "
         f"not on one line, or station priors are needed to fix the 7 datum parameters "
-        f"(3 shifts, 3 rotations, scale). Add control points or station priors."
+        f"(3 shifts, 3 rotations, scale). Add control points or station priors, or adjust "
+        f"it as a free network (--datum free)."
     )
 
 

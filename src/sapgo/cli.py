@@ -285,7 +285,7 @@ def cmd_adjust(args):
         progress=False if args.no_progress else None,
         robust=args.robust,
         robust_threshold_um=args.robust_threshold,
-        snooping=args.snooping, snooping_batch=args.snooping_batch,
+        snooping=args.snooping or args.snooping_batch, snooping_batch=args.snooping_batch,
         snooping_alpha=args.alpha, reset_rejections=args.reset_rejections,
         precision=args.precision,
         factor_storage=args.factor_storage,
@@ -970,7 +970,8 @@ def build_parser():
                    help="bring back the observations an earlier run's data snooping rejected "
                         "(default: they stay out, and the report says how many)")
     a.add_argument("--snooping-batch", action="store_true",
-                   help="data snooping rejects in one round every significant test whose "
+                   help="data snooping in batches (implies --snooping): it rejects in one "
+                        "round every significant test whose "
                         "photos no other rejection of the round shares, then confirms the "
                         "rejections (each tested as if brought back alone, its residual "
                         "predicted from the others; one no longer significant comes back); "
