@@ -19,6 +19,11 @@ and their band rows are built by sapgo's own ``build`` pass. On each matrix, in 
   permutations tried;
 - **dense ceiling**: the time the operation count would take at the machine's measured
   dense matrix-multiply rate (DGEMM 2000 x 2000, 2 threads).
+- **selected inversion**: ``covariance_blocks`` (the precision pass's band kernel, Takahashi's
+  recurrence: the band of the inverse, twice the factorisation's flops) from the in-core
+  factor, on every thread and on one (``SAPGO_THREADS=1``: as an adjustment runs it beside
+  the points' kernel), against the factorisation + solve in core; the two agree to the
+  relative difference recorded.
 - **the drop-in call** ``sapgo.solve.band.cholesky_banded(ab, lower=True)`` against
   ``scipy.linalg.cholesky_banded(ab, lower=True)`` on the same C-ordered array: both are
   LAPACK ``dpbtrf`` (the drop-in's own work is SciPy's finiteness check, done once), so the
@@ -58,6 +63,7 @@ from sapgo.solve.band import (  # the private pieces time the kernel without its
     _skewed,
     band_to_dense,
     cholesky_banded,
+    covariance_blocks,
     panel_width,
     solve_out_of_core,
 )
@@ -311,6 +317,21 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
         solves["ooc"].append(ooc())
         solves["lapack"].append(lapack_solve())
     x_in, x_ooc, x_lap = (solves[k][-1][1] for k in ("in", "ooc", "lapack"))
+    # the selected inversion from the in-core factor (covariance_blocks, the precision
+    # pass's kernel without the points): every thread, and one (the adjustment runs its
+    # BLAS on one thread beside the points' kernel), taking turns
+    fac = band.copy()
+    solve_out_of_core(fac, rhs.copy(), bw, chunk_rows=256)
+    inverses = {"all": [], "one": []}
+    blocks = {}
+    for _ in range(ROUNDS):
+        for key in inverses:
+            with sapgo_threads(None if key == "all" else "1"):
+                t0 = time.perf_counter()
+                blocks[key] = covariance_blocks(fac, n_st, bw)
+                inverses[key].append(time.perf_counter() - t0)
+    inv_diff = float(np.abs(blocks["all"] - blocks["one"]).max()
+                     / np.abs(blocks["all"]).max())
     solve_times = {k: [t for t, _ in v] for k, v in solves.items()}
     t_in, t_ooc, t_lapack_solve = (med(solve_times[k]) for k in ("in", "ooc", "lapack"))
     sol_diff = float(np.abs(x_ooc - x_in).max() / np.abs(x_in).max())
@@ -343,6 +364,11 @@ def one_matrix(tmp, band, rhs, bw, gemm, with_sparse=True):
                    "dense_ceiling": gemm},
         "ratio_lapack_over_sapgo": t_lapack / t_ours,
         "ratio_out_of_core_over_in_core": t_ooc / t_in,
+        "inverse_s": {"all_threads": med(inverses["all"]), "one_thread": med(inverses["one"])},
+        "inverse_spread_s": {"all_threads": spread(inverses["all"]),
+                             "one_thread": spread(inverses["one"])},
+        "ratio_inverse_over_solve_in_core": med(inverses["all"]) / t_in,
+        "inverse_max_rel_diff_one_vs_all_threads": inv_diff,
         "factor_max_rel_diff_vs_lapack": diff,
         "drop_in_max_rel_diff_vs_scipy": diff_call,
         "solution_max_rel_diff_out_of_core_vs_in_core": sol_diff,
@@ -436,13 +462,34 @@ def plots(res, out_dir, suffix=""):
     return [str(p1.relative_to(out_dir.parent)), str(p2.relative_to(out_dir.parent))]
 
 
+class sapgo_threads:
+    """``SAPGO_THREADS`` for the block: None (auto, every thread on an idle machine) or a
+    number of threads."""
+
+    def __init__(self, setting):
+        self.setting = setting
+
+    def __enter__(self):
+        from sapgo import threads
+
+        self.old = threads._setting
+        if self.setting is not None:
+            threads._setting = self.setting
+
+    def __exit__(self, *exc):
+        from sapgo import threads
+
+        threads._setting = self.old
+
+
 def table(res):
     out = [f"Medians of {res['by_band_width'][0].get('rounds', '?')} interleaved rounds; "
            "factor times with (min-max).", "",
            "| b | stations | LAPACK dpbtrf s | sapgo s | ratio | GFLOP/s sapgo / LAPACK / "
            "ceiling | drop-in call ratio (min-max of paired calls) | sapgo in core solve s | out of core s | ooc/in-core | "
-           f"{res['sparse_solver']} s | max rel diff |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           f"{res['sparse_solver']} s | max rel diff | selected inversion s, every thread / one "
+           "(x in-core solve) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["by_band_width"]:
         f, s, g = r["factor_s"], r["solve_s"], r["gflops"]
         sp = r.get("spread_s", {})
@@ -460,7 +507,10 @@ def table(res):
             f"{s['sapgo_in_core']:.4f} | "
             f"{s['sapgo_out_of_core']:.4f} | "
             f"{r['ratio_out_of_core_over_in_core']:.2f} | "
-            f"{s.get('sparse', float('nan')):.3f} | {r['factor_max_rel_diff_vs_lapack']:.1e} |")
+            f"{s.get('sparse', float('nan')):.3f} | {r['factor_max_rel_diff_vs_lapack']:.1e} | "
+            + (f"{r['inverse_s']['all_threads']:.4f} / {r['inverse_s']['one_thread']:.4f} "
+               f"({r['ratio_inverse_over_solve_in_core']:.2f}) |" if "inverse_s" in r else
+               "|"))
     out.append("")
     out.append("| photos | band width | sapgo out-of-core solve s |")
     out.append("|---|---|---|")
