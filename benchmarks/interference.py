@@ -1,0 +1,180 @@
+"""What COLMAP's work in colmap.py's rounds does to sapgo's next run.
+
+Run:  python benchmarks/interference.py [--rounds 8] [--photos 1000]
+      (writes results/interference.json and prints the table pasted into
+       benchmarks/README.md)
+
+colmap.py runs sapgo in a long-lived process of its own and COLMAP in its own process, the
+tools taking turns; sapgo's 1 000-photo runs there took about 1.5 times what they take
+alone. This script separates the causes on colmap.py's 1 000-photo block: before each sapgo
+run (in its own process, as colmap.py runs it, after colmap.py's wait for an idle machine)
+the parent does one of
+
+- ``nothing``;
+- ``COLMAP solve``: COLMAP's bundle adjustment in its best configuration;
+- ``COLMAP solve + covariance``: the same, then its covariance estimate
+  (``estimate_ba_covariance``, a dense 6n x 6n matrix), as colmap.py does once a round;
+- ``memory streaming``: 0.1 s of numpy passes over a 512 MB array;
+
+and sapgo runs in two processes in turn: numpy's transparent-huge-page advice on (its
+default) and off (``NUMPY_MADVISE_HUGEPAGE=0`` in that process's environment). Medians and
+spreads over interleaved rounds of sapgo's time to solution and its precision pass, with the
+other processes' CPU time during the run, ``sapgo.threads``' busy looks and the kernel's
+compaction stalls (``/proc/vmstat``) during the run; the machine's huge-page settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+import colmap as C  # noqa: E402  (the same block, COLMAP runs and sapgo process)
+
+import sapgo  # noqa: E402
+
+MODES = ("nothing", "COLMAP solve", "COLMAP solve + covariance", "memory streaming")
+ADVICE = ("on", "off")
+
+
+def vmstat(key):
+    for line in open("/proc/vmstat"):
+        if line.startswith(key + " "):
+            return int(line.split()[1])
+    return None
+
+
+def thp_settings():
+    out = {}
+    for name in ("enabled", "defrag"):
+        try:
+            out[name] = Path(f"/sys/kernel/mm/transparent_hugepage/{name}").read_text().strip()
+        except OSError:
+            out[name] = None
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--rounds", type=int, default=8)
+    ap.add_argument("--photos", type=int, default=1000, choices=sorted(C.BLOCKS))
+    args = ap.parse_args()
+    pycolmap = C.import_pycolmap()
+    t_start = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        wd = Path(tmp)
+        gen = wd / "block.h5"
+        sapgo.generate_block(gen, progress=False, control_sigma=0.0, **C.BLOCKS[args.photos])
+        prob = C.load_problem(gen)
+        cfg = next(c for c in C.solver_configs(args.photos, pycolmap) if "1e16" in c["name"])
+        plan = C.covariance_plan(int(prob["station_active"].sum()), other_params=0)
+        if "skipped" in plan:
+            sys.exit(f"COLMAP's covariance cannot run here: {plan['skipped']}")
+        procs = {}
+        for advice in ADVICE:   # (the child takes the environment at its start)
+            old = os.environ.get("NUMPY_MADVISE_HUGEPAGE")
+            if advice == "off":
+                os.environ["NUMPY_MADVISE_HUGEPAGE"] = "0"
+            try:
+                d = wd / f"warm-{advice}"
+                d.mkdir()
+                procs[advice] = C.SapgoProcess(d)
+            finally:
+                if old is None:
+                    os.environ.pop("NUMPY_MADVISE_HUGEPAGE", None)
+                else:
+                    os.environ["NUMPY_MADVISE_HUGEPAGE"] = old
+        big = np.ones(64 * 1024 * 1024)   # 512 MB
+        runs = {(m, a): [] for m in MODES for a in ADVICE}
+        loads = []
+        try:
+            for rnd in range(args.rounds):
+                loads.append(C.load_average())
+                for mode in MODES:
+                    for advice in ADVICE:
+                        if mode == "COLMAP solve":
+                            C.run_colmap(prob, cfg, pycolmap)
+                        elif mode == "COLMAP solve + covariance":
+                            _, rec, ba, _ = C.run_colmap(prob, cfg, pycolmap, keep=True)
+                            cov = C.colmap_covariance(rec, ba, pycolmap, plan, cfg["name"])
+                            if "error" in cov:
+                                sys.exit(f"COLMAP's covariance: {cov['error']}")
+                            del rec, ba
+                        elif mode == "memory streaming":
+                            t0 = time.perf_counter()
+                            while time.perf_counter() - t0 < 0.1:
+                                big *= 1.0000001
+                        path = wd / "run.h5"
+                        shutil.copyfile(gen, path)
+                        stalls = vmstat("compact_stall")
+                        r = procs[advice](path, "full")
+                        stalls = (vmstat("compact_stall") or 0) - (stalls or 0)
+                        path.unlink()
+                        runs[mode, advice].append({
+                            "time_to_solution_s": r["time_to_solution_s"],
+                            "precision_s": r["phases"]["precision"],
+                            "solve_s": r["phases"]["solve"],
+                            "foreign_cpu_s": r["foreign_cpu_s"],
+                            "busy_looks": r["threads_looks"]["busy"],
+                            "checks": r["threads_looks"]["checks"],
+                            "compaction_stalls": stalls,
+                            "sigma0": r["sigma0"]})
+                        print(f"  round {rnd}: {mode}, advice {advice}: "
+                              f"{r['time_to_solution_s']:.4f} s (precision "
+                              f"{r['phases']['precision']:.4f})", file=sys.stderr)
+        finally:
+            for p in procs.values():
+                p.close()
+    rows = []
+    for (mode, advice), rs in runs.items():
+        tts = [r["time_to_solution_s"] for r in rs]
+        prec = [r["precision_s"] for r in rs]
+        rows.append({"before": mode, "huge_page_advice": advice, "runs": rs,
+                     "median_time_to_solution_s": float(np.median(tts)),
+                     "spread_time_to_solution_s": [min(tts), max(tts)],
+                     "median_precision_s": float(np.median(prec)),
+                     "spread_precision_s": [min(prec), max(prec)],
+                     "foreign_cpu_s_max": max(r["foreign_cpu_s"] for r in rs),
+                     "busy_looks": sum(r["busy_looks"] for r in rs),
+                     "checks": sum(r["checks"] for r in rs),
+                     "compaction_stalls": sum(r["compaction_stalls"] for r in rs),
+                     "sigma0": sorted({r["sigma0"] for r in rs})})
+    result = {
+        "benchmark": "sapgo's next run after COLMAP's work (colmap.py's rounds)",
+        "machine": {"python": sys.version.split()[0], "platform": platform.platform(),
+                    "cpus": os.cpu_count(), "transparent_hugepage": thp_settings()},
+        "sapgo_version": sapgo.__version__, "sapgo_source": C.git_state(),
+        "pycolmap_version": pycolmap.__version__, "photos": args.photos,
+        "colmap_configuration": cfg["name"], "rounds": args.rounds,
+        "load_before_rounds": loads, "rows": rows,
+        "wall_s": time.perf_counter() - t_start}
+    out = Path(__file__).parent / "results" / "interference.json"
+    out.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"\n{args.photos} photos, {args.rounds} interleaved rounds; transparent huge pages: "
+          f"enabled {result['machine']['transparent_hugepage']['enabled']}, defrag "
+          f"{result['machine']['transparent_hugepage']['defrag']}\n")
+    print("| before sapgo's run | numpy's huge-page advice | sapgo to solution s, median "
+          "(min-max) | precision pass s, median (min-max) | others' CPU s (max) | busy looks | "
+          "compaction stalls |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        a, b = r["spread_time_to_solution_s"], r["spread_precision_s"]
+        print(f"| {r['before']} | {r['huge_page_advice']} | "
+              f"{r['median_time_to_solution_s']:.4f} ({a[0]:.4f}-{a[1]:.4f}) | "
+              f"{r['median_precision_s']:.4f} ({b[0]:.4f}-{b[1]:.4f}) | "
+              f"{r['foreign_cpu_s_max']:.3f} | {r['busy_looks']} of {r['checks']} | "
+              f"{r['compaction_stalls']} |")
+    print(f"\nResults: {out}  (wall {result['wall_s']:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
