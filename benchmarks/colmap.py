@@ -102,7 +102,7 @@ process, 1 000 photos): sapgo's precision pass took 0.030 s (median) alone, 0.05
 after a COLMAP solve and 0.072 s right after COLMAP's covariance; at 10 000 photos the solve
 0.167 s an iteration alone and 0.195 s after a COLMAP solve. With sapgo in its own process
 colmap.py's median pass at 1 000 photos was still 0.066 s: the slowdown follows COLMAP's
-work on the machine, not the shared process (benchmarks/interference.py: it goes with numpy's
+work on the machine, not the shared process (benchmarks/interference.py: it is gone with numpy's
 huge-page advice off).
 """
 
