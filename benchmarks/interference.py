@@ -1,8 +1,9 @@
 """What COLMAP's work in colmap.py's rounds does to sapgo's next run.
 
 Run:  python benchmarks/interference.py [--rounds 8] [--photos 1000]
-      (writes results/interference.json and prints the table pasted into
-       benchmarks/README.md)
+      python benchmarks/interference.py --alone 10000,100000 [--rounds 5]
+      (write results/interference.json, key ``after_work`` or ``alone``, and print the
+       table pasted into benchmarks/README.md)
 
 colmap.py runs sapgo in a long-lived process of its own and COLMAP in its own process, the
 tools taking turns; sapgo's 1 000-photo runs there took about 1.5 times what they take
@@ -21,6 +22,10 @@ default) and off (``NUMPY_MADVISE_HUGEPAGE=0`` in that process's environment). M
 spreads over interleaved rounds of sapgo's time to solution and its precision pass, with the
 other processes' CPU time during the run, ``sapgo.threads``' busy looks and the kernel's
 compaction stalls (``/proc/vmstat``) during the run; the machine's huge-page settings.
+
+``--alone SIZES``: sapgo alone (nothing before its runs) on blocks of 20 strips of that many
+photos in all (one control point per 25 photos), the advice on and off in turn: whether
+turning it off costs the large blocks anything.
 """
 
 from __future__ import annotations
@@ -63,11 +68,108 @@ def thp_settings():
     return out
 
 
+def sapgo_processes(wd):
+    """Two long-lived sapgo processes (:class:`colmap.SapgoProcess`): numpy's huge-page
+    advice on (its default) and off (the child takes the environment at its start)."""
+    procs = {}
+    for advice in ADVICE:
+        old = os.environ.get("NUMPY_MADVISE_HUGEPAGE")
+        if advice == "off":
+            os.environ["NUMPY_MADVISE_HUGEPAGE"] = "0"
+        try:
+            d = wd / f"warm-{advice}"
+            d.mkdir()
+            procs[advice] = C.SapgoProcess(d)
+        finally:
+            if old is None:
+                os.environ.pop("NUMPY_MADVISE_HUGEPAGE", None)
+            else:
+                os.environ["NUMPY_MADVISE_HUGEPAGE"] = old
+    return procs
+
+
+def save(key, part):
+    out = Path(__file__).parent / "results" / "interference.json"
+    result = json.loads(out.read_text()) if out.exists() else {}
+    if "rows" in result:   # (the first version's layout: the after-work runs at the top)
+        result = {"after_work": result}
+    result[key] = part
+    out.write_text(json.dumps(result, indent=1) + "\n")
+    return out
+
+
+def alone(args):
+    """sapgo alone at the sizes of ``args.alone``, the advice on and off in turn."""
+    t_start = time.perf_counter()
+    sizes = [int(x) for x in args.alone.split(",") if x]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        wd = Path(tmp)
+        procs = sapgo_processes(wd)
+        try:
+            for n in sizes:
+                gen = wd / f"block{n}.h5"
+                sapgo.generate_block(gen, progress=False, strips=20, photos_per_strip=n // 20,
+                                     control_points=max(4, n // 25))
+                runs = {a: [] for a in ADVICE}
+                loads = []
+                for rnd in range(args.rounds):
+                    loads.append(C.load_average())
+                    for advice in ADVICE if rnd % 2 == 0 else ADVICE[::-1]:
+                        path = wd / "run.h5"
+                        shutil.copyfile(gen, path)
+                        r = procs[advice](path, "full")
+                        path.unlink()
+                        runs[advice].append(r)
+                        print(f"  {n} photos, round {rnd}, advice {advice}: "
+                              f"{r['time_to_solution_s']:.3f} s", file=sys.stderr)
+                gen.unlink()
+                for advice, rs in runs.items():
+                    tts = [r["time_to_solution_s"] for r in rs]
+                    prec = [r["phases"]["precision"] for r in rs]
+                    solve = [r["phases"]["solve"] for r in rs]
+                    rows.append({"photos": n, "huge_page_advice": advice,
+                                 "median_time_to_solution_s": float(np.median(tts)),
+                                 "spread_time_to_solution_s": [min(tts), max(tts)],
+                                 "median_precision_s": float(np.median(prec)),
+                                 "median_solve_s": float(np.median(solve)),
+                                 "sigma0": sorted({r["sigma0"] for r in rs}),
+                                 "load_before_rounds": loads,
+                                 "runs_time_to_solution_s": tts})
+        finally:
+            for p in procs.values():
+                p.close()
+    part = {"machine": {"python": sys.version.split()[0], "platform": platform.platform(),
+                        "cpus": os.cpu_count(), "transparent_hugepage": thp_settings()},
+            "sapgo_version": sapgo.__version__, "sapgo_source": C.git_state(),
+            "rounds": args.rounds, "rows": rows, "wall_s": time.perf_counter() - t_start}
+    out = save("alone", part)
+    print(f"\nsapgo alone, {args.rounds} interleaved rounds; transparent huge pages: "
+          f"enabled {part['machine']['transparent_hugepage']['enabled']}, defrag "
+          f"{part['machine']['transparent_hugepage']['defrag']}\n")
+    print("| photos | numpy's huge-page advice | to solution s, median (min-max) | "
+          "solve s (all iterations) | precision pass s | sigma0 |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        a = r["spread_time_to_solution_s"]
+        print(f"| {r['photos']:,} | {r['huge_page_advice']} | "
+              f"{r['median_time_to_solution_s']:.3f} ({a[0]:.3f}-{a[1]:.3f}) | "
+              f"{r['median_solve_s']:.3f} | {r['median_precision_s']:.3f} | "
+              f"{', '.join(f'{x:.10f}' for x in r['sigma0'])} |")
+    print(f"\nResults: {out}  (wall {part['wall_s']:.0f} s)")
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--rounds", type=int, default=8)
+    ap.add_argument("--rounds", type=int, default=None, help="default 8; 5 with --alone")
     ap.add_argument("--photos", type=int, default=1000, choices=sorted(C.BLOCKS))
+    ap.add_argument("--alone", default="", help="sapgo alone at these photo counts "
+                    "(20 strips), e.g. 10000,100000")
     args = ap.parse_args()
+    if args.alone:
+        args.rounds = args.rounds or 5
+        return alone(args)
+    args.rounds = args.rounds or 8
     pycolmap = C.import_pycolmap()
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
@@ -79,20 +181,7 @@ def main():
         plan = C.covariance_plan(int(prob["station_active"].sum()), other_params=0)
         if "skipped" in plan:
             sys.exit(f"COLMAP's covariance cannot run here: {plan['skipped']}")
-        procs = {}
-        for advice in ADVICE:   # (the child takes the environment at its start)
-            old = os.environ.get("NUMPY_MADVISE_HUGEPAGE")
-            if advice == "off":
-                os.environ["NUMPY_MADVISE_HUGEPAGE"] = "0"
-            try:
-                d = wd / f"warm-{advice}"
-                d.mkdir()
-                procs[advice] = C.SapgoProcess(d)
-            finally:
-                if old is None:
-                    os.environ.pop("NUMPY_MADVISE_HUGEPAGE", None)
-                else:
-                    os.environ["NUMPY_MADVISE_HUGEPAGE"] = old
+        procs = sapgo_processes(wd)
         big = np.ones(64 * 1024 * 1024)   # 512 MB
         runs = {(m, a): [] for m in MODES for a in ADVICE}
         loads = []
@@ -157,8 +246,7 @@ def main():
         "colmap_configuration": cfg["name"], "rounds": args.rounds,
         "load_before_rounds": loads, "rows": rows,
         "wall_s": time.perf_counter() - t_start}
-    out = Path(__file__).parent / "results" / "interference.json"
-    out.write_text(json.dumps(result, indent=1) + "\n")
+    out = save("after_work", result)
     print(f"\n{args.photos} photos, {args.rounds} interleaved rounds; transparent huge pages: "
           f"enabled {result['machine']['transparent_hugepage']['enabled']}, defrag "
           f"{result['machine']['transparent_hugepage']['defrag']}\n")
