@@ -110,7 +110,7 @@ def alone(args):
             for n in sizes:
                 gen = wd / f"block{n}.h5"
                 sapgo.generate_block(gen, progress=False, strips=20, photos_per_strip=n // 20,
-                                     control_points=max(4, n // 25))
+                                     control_points=max(4, n // 25), control_sigma=0.0)
                 runs = {a: [] for a in ADVICE}
                 loads = []
                 for rnd in range(args.rounds):
