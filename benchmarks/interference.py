@@ -17,15 +17,19 @@ the parent does one of
   (``estimate_ba_covariance``, a dense 6n x 6n matrix), as colmap.py does once a round;
 - ``memory streaming``: 0.1 s of numpy passes over a 512 MB array;
 
-and sapgo runs in two processes in turn: numpy's transparent-huge-page advice on (its
-default) and off (``NUMPY_MADVISE_HUGEPAGE=0`` in that process's environment). Medians and
+and sapgo runs in two processes in turn: numpy's transparent-huge-page advice on
+(numpy's default, kept by sapgo since ``NUMPY_MADVISE_HUGEPAGE=1`` is in that process's
+environment) and off (sapgo's default: its commands turn the advice off while they run,
+:func:`sapgo.paging.hugepage_advice_off`; before 1d2b198's successor it took
+``NUMPY_MADVISE_HUGEPAGE=0``). Medians and
 spreads over interleaved rounds of sapgo's time to solution and its precision pass, with the
 other processes' CPU time during the run, ``sapgo.threads``' busy looks and the kernel's
 compaction stalls (``/proc/vmstat``) during the run; the machine's huge-page settings.
 
 ``--alone SIZES``: sapgo alone (nothing before its runs) on blocks of 20 strips of that many
-photos in all (one control point per 25 photos), the advice on and off in turn: whether
-turning it off costs the large blocks anything.
+photos in all, or ``RxC`` square blocks (R strips of C photos: the partition tree), one
+control point per 25 photos, the advice on and off in turn: whether turning it off costs
+the large blocks anything.
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ import sapgo  # noqa: E402
 
 MODES = ("nothing", "COLMAP solve", "COLMAP solve + covariance", "memory streaming")
 ADVICE = ("on", "off")
+LABEL = {"on": "on (NUMPY_MADVISE_HUGEPAGE=1)", "off": "off (sapgo's default)"}
 
 
 def vmstat(key):
@@ -70,12 +75,15 @@ def thp_settings():
 
 def sapgo_processes(wd):
     """Two long-lived sapgo processes (:class:`colmap.SapgoProcess`): numpy's huge-page
-    advice on (its default) and off (the child takes the environment at its start)."""
+    advice on (``NUMPY_MADVISE_HUGEPAGE=1``: numpy's default, which sapgo then keeps) and
+    off (sapgo's default; the child takes the environment at its start)."""
     procs = {}
     for advice in ADVICE:
         old = os.environ.get("NUMPY_MADVISE_HUGEPAGE")
-        if advice == "off":
-            os.environ["NUMPY_MADVISE_HUGEPAGE"] = "0"
+        if advice == "on":
+            os.environ["NUMPY_MADVISE_HUGEPAGE"] = "1"
+        else:
+            os.environ.pop("NUMPY_MADVISE_HUGEPAGE", None)
         try:
             d = wd / f"warm-{advice}"
             d.mkdir()
@@ -101,15 +109,18 @@ def save(key, part):
 def alone(args):
     """sapgo alone at the sizes of ``args.alone``, the advice on and off in turn."""
     t_start = time.perf_counter()
-    sizes = [int(x) for x in args.alone.split(",") if x]
+    sizes = [x for x in args.alone.split(",") if x]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         wd = Path(tmp)
         procs = sapgo_processes(wd)
         try:
-            for n in sizes:
-                gen = wd / f"block{n}.h5"
-                sapgo.generate_block(gen, progress=False, strips=20, photos_per_strip=n // 20,
+            for size in sizes:
+                strips, per = ((int(a) for a in size.split("x")) if "x" in size
+                               else (20, int(size) // 20))
+                n = strips * per
+                gen = wd / f"block{size}.h5"
+                sapgo.generate_block(gen, progress=False, strips=strips, photos_per_strip=per,
                                      control_points=max(4, n // 25), control_sigma=0.0)
                 runs = {a: [] for a in ADVICE}
                 loads = []
@@ -121,14 +132,17 @@ def alone(args):
                         r = procs[advice](path, "full")
                         path.unlink()
                         runs[advice].append(r)
-                        print(f"  {n} photos, round {rnd}, advice {advice}: "
+                        print(f"  {size}, round {rnd}, advice {advice}: "
                               f"{r['time_to_solution_s']:.3f} s", file=sys.stderr)
                 gen.unlink()
                 for advice, rs in runs.items():
                     tts = [r["time_to_solution_s"] for r in rs]
                     prec = [r["phases"]["precision"] for r in rs]
                     solve = [r["phases"]["solve"] for r in rs]
-                    rows.append({"photos": n, "huge_page_advice": advice,
+                    rows.append({"photos": n, "block": (f"{strips} x {per}" if "x" in size
+                                                        else "20 strips"),
+                                 "ordering": rs[0]["ordering"],
+                                 "huge_page_advice": advice,
                                  "median_time_to_solution_s": float(np.median(tts)),
                                  "spread_time_to_solution_s": [min(tts), max(tts)],
                                  "median_precision_s": float(np.median(prec)),
@@ -147,12 +161,13 @@ def alone(args):
     print(f"\nsapgo alone, {args.rounds} interleaved rounds; transparent huge pages: "
           f"enabled {part['machine']['transparent_hugepage']['enabled']}, defrag "
           f"{part['machine']['transparent_hugepage']['defrag']}\n")
-    print("| photos | numpy's huge-page advice | to solution s, median (min-max) | "
+    print("| photos | block | numpy's huge-page advice | to solution s, median (min-max) | "
           "solve s (all iterations) | precision pass s | sigma0 |")
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
         a = r["spread_time_to_solution_s"]
-        print(f"| {r['photos']:,} | {r['huge_page_advice']} | "
+        print(f"| {r['photos']:,} | {r.get('block', '20 strips')} | "
+              f"{LABEL[r['huge_page_advice']]} | "
               f"{r['median_time_to_solution_s']:.3f} ({a[0]:.3f}-{a[1]:.3f}) | "
               f"{r['median_solve_s']:.3f} | {r['median_precision_s']:.3f} | "
               f"{', '.join(f'{x:.10f}' for x in r['sigma0'])} |")
@@ -164,7 +179,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=None, help="default 8; 5 with --alone")
     ap.add_argument("--photos", type=int, default=1000, choices=sorted(C.BLOCKS))
     ap.add_argument("--alone", default="", help="sapgo alone at these photo counts "
-                    "(20 strips), e.g. 10000,100000")
+                    "(20 strips) or RxC squares, e.g. 10000,100000,200x200")
     args = ap.parse_args()
     if args.alone:
         args.rounds = args.rounds or 5
@@ -256,7 +271,7 @@ def main():
     print("|---|---|---|---|---|---|---|")
     for r in rows:
         a, b = r["spread_time_to_solution_s"], r["spread_precision_s"]
-        print(f"| {r['before']} | {r['huge_page_advice']} | "
+        print(f"| {r['before']} | {LABEL[r['huge_page_advice']]} | "
               f"{r['median_time_to_solution_s']:.4f} ({a[0]:.4f}-{a[1]:.4f}) | "
               f"{r['median_precision_s']:.4f} ({b[0]:.4f}-{b[1]:.4f}) | "
               f"{r['foreign_cpu_s_max']:.3f} | {r['busy_looks']} of {r['checks']} | "

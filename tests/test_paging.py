@@ -218,3 +218,46 @@ def test_a_full_disk_is_an_error_naming_the_directory(tmp_path, monkeypatch):
         pager.zeros((1000, 6))
     assert exc.value.filename == os.fspath(tmp_path) and "scratch vector" in str(exc.value)
     assert list(tmp_path.iterdir()) == []
+
+
+def _advice_now():
+    """numpy's huge-page advice as it is (asked through its switch, then put back)."""
+    switch = paging._advice_switch()
+    now = switch(True)
+    switch(now)
+    return now
+
+
+@pytest.mark.parametrize("numpy_setting", [True, False])
+def test_commands_run_with_numpy_hugepage_advice_off(small_block, monkeypatch,
+                                                    numpy_setting):
+    """``adjust`` (and every command that writes a project) runs with numpy's huge-page
+    advice off, and leaves numpy's setting as it found it, after a failure too; a value of
+    ``NUMPY_MADVISE_HUGEPAGE`` in the environment is kept."""
+    import importlib
+
+    adjust_mod = importlib.import_module("sapgo.adjust")   # (sapgo.adjust: the function)
+    monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
+    switch = paging._advice_switch()
+    assert switch is not None   # (numpy >= 1.20 has it; the pinned range does)
+    seen = []
+    real = adjust_mod.check_values
+
+    def spy(p):
+        seen.append(_advice_now())
+        return real(p)
+
+    monkeypatch.setattr(adjust_mod, "check_values", spy)
+    before = switch(numpy_setting)
+    try:
+        sapgo.adjust(small_block, sapgo.Options(max_iterations=2))
+        assert seen == [False] and _advice_now() is numpy_setting
+        with pytest.raises(sapgo.SapgoError, match="999999"):   # (inside the command)
+            sapgo.adjust(small_block, sapgo.Options(fix=("fix:999999:all",)))
+        assert seen == [False, False] and _advice_now() is numpy_setting
+        monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", "1")
+        seen.clear()
+        sapgo.adjust(small_block, sapgo.Options(max_iterations=2))
+        assert seen == [numpy_setting]
+    finally:
+        switch(before)

@@ -107,17 +107,19 @@ def project_lock(path, command):
 
 def writes_project(command, target):
     """Decorator: the function holds the lock of the project named by its argument
-    ``target`` (:func:`project_lock`) while it runs."""
+    ``target`` (:func:`project_lock`) while it runs, with numpy's huge-page advice off
+    (:func:`sapgo.paging.hugepage_advice_off`)."""
     def deco(fn):
         sig = inspect.signature(fn)
 
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
+            from .paging import hugepage_advice_off
             from .project import disk_full_error, is_disk_full
 
             bound = sig.bind_partial(*args, **kwargs)
             path = bound.arguments[target]
-            with project_lock(path, command):
+            with project_lock(path, command), hugepage_advice_off():
                 try:
                     return fn(*args, **kwargs)
                 except (OSError, RuntimeError) as exc:   # (the writers removed their files)

@@ -108,6 +108,49 @@ class Pager:
 _active: Pager | None = None
 
 
+def _advice_switch():
+    """numpy's switch of its transparent-huge-page advice (``_set_madvise_hugepage``:
+    private, in numpy since 1.20; it returns the setting it replaces), or None."""
+    import importlib
+
+    for name in ("numpy._core.multiarray", "numpy.core.multiarray"):
+        try:
+            mod = importlib.import_module(name)
+        except ImportError:
+            continue
+        switch = getattr(mod, "_set_madvise_hugepage", None)
+        if switch is not None:
+            return switch
+    return None
+
+
+@contextlib.contextmanager
+def hugepage_advice_off():
+    """numpy's transparent-huge-page advice off until the block exits, then numpy's setting
+    back (every command that writes a project runs in one: :func:`sapgo.lock.writes_project`).
+
+    numpy asks the kernel for huge pages (``madvise(MADV_HUGEPAGE)``) on every array of
+    4 MiB or more. Where the kernel defragments memory for such requests (``defrag``
+    ``madvise``, common), a run right after other work on the machine slowed down 1.5
+    times: a 1 000-photo block's precision pass 0.083-0.087 s against 0.023 s after
+    nothing, its run 0.153-0.163 s against 0.106 s; with the advice off 0.101-0.112 s
+    after any work (``python benchmarks/interference.py``). Off, runs alone took as long at
+    100 000 photos and less at 10 000 (the same script's ``--alone``). A value the
+    environment gives numpy (``NUMPY_MADVISE_HUGEPAGE``, read when numpy loads) is the
+    user's choice: sapgo then leaves numpy's setting alone. (Dask workers are processes of
+    their own and keep theirs.)
+    """
+    switch = None if "NUMPY_MADVISE_HUGEPAGE" in os.environ else _advice_switch()
+    if switch is None:
+        yield
+        return
+    before = switch(False)
+    try:
+        yield
+    finally:
+        switch(before)
+
+
 @contextlib.contextmanager
 def paged(directory, enabled=True, min_bytes=MIN_PAGED_BYTES):
     """Per-station vectors allocated by :func:`zeros`, :func:`empty` and :func:`copy` are
