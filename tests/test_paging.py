@@ -261,3 +261,52 @@ def test_commands_run_with_numpy_hugepage_advice_off(small_block, monkeypatch,
         assert seen == [numpy_setting]
     finally:
         switch(before)
+
+
+@pytest.mark.parametrize("numpy_setting", [True, False])
+def test_hugepage_advice_off_counts_threads(monkeypatch, numpy_setting):
+    """Two blocks in two threads, the first to open closing first: the advice stays off
+    until the second closes, and then numpy's setting is the one found before both (a
+    switch that each block restores by itself would leave it off, or on too early)."""
+    import threading
+
+    monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
+    switch = paging._advice_switch()
+    assert switch is not None
+    a_in, b_in, a_out, b_check = (threading.Event() for _ in range(4))
+    seen = {}
+
+    def first():
+        with paging.hugepage_advice_off():
+            a_in.set()
+            b_in.wait(10)
+            seen["a inside"] = _advice_now()
+        a_out.set()
+
+    def second():
+        a_in.wait(10)
+        with paging.hugepage_advice_off():
+            b_in.set()
+            a_out.wait(10)
+            seen["b inside, a gone"] = _advice_now()
+        b_check.set()
+
+    before = switch(numpy_setting)
+    try:
+        threads = [threading.Thread(target=first), threading.Thread(target=second)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(20)
+        assert b_check.is_set() and a_out.is_set()
+        assert seen == {"a inside": False, "b inside, a gone": False}
+        assert _advice_now() is numpy_setting
+        # nested in one thread (a command inside another): the same
+        with paging.hugepage_advice_off():
+            with paging.hugepage_advice_off():
+                assert _advice_now() is False
+            assert _advice_now() is False
+        assert _advice_now() is numpy_setting
+        assert paging._advice_depth == 0
+    finally:
+        switch(before)

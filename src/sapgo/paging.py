@@ -124,6 +124,11 @@ def _advice_switch():
     return None
 
 
+_advice_lock = threading.Lock()
+_advice_depth = 0        # (how many blocks of hugepage_advice_off are open, in any thread)
+_advice_before = None    # (numpy's setting when the first of them opened)
+
+
 @contextlib.contextmanager
 def hugepage_advice_off():
     """numpy's transparent-huge-page advice off until the block exits, then numpy's setting
@@ -132,23 +137,35 @@ def hugepage_advice_off():
     numpy asks the kernel for huge pages (``madvise(MADV_HUGEPAGE)``) on every array of
     4 MiB or more. Where the kernel defragments memory for such requests (``defrag``
     ``madvise``, common), a run right after other work on the machine slowed down 1.5
-    times: a 1 000-photo block's precision pass 0.083-0.087 s against 0.023 s after
-    nothing, its run 0.153-0.163 s against 0.106 s; with the advice off 0.101-0.112 s
-    after any work (``python benchmarks/interference.py``). Off, runs alone took as long at
-    100 000 photos and less at 10 000 (the same script's ``--alone``). A value the
-    environment gives numpy (``NUMPY_MADVISE_HUGEPAGE``, read when numpy loads) is the
-    user's choice: sapgo then leaves numpy's setting alone. (Dask workers are processes of
-    their own and keep theirs.)
+    times: a 1 000-photo block's run 0.161-0.171 s with the advice on against 0.104-0.113 s
+    off (``python benchmarks/interference.py``, benchmarks/README.md). Off, runs alone took
+    as long at 100 000 photos and on the squares, and less at 10 000 (the same script's
+    ``--alone``). A value the environment gives numpy (``NUMPY_MADVISE_HUGEPAGE``, read when
+    numpy loads) is the user's choice: sapgo then leaves numpy's setting alone. (Dask
+    workers are processes of their own and keep theirs.)
+
+    numpy's setting is one for the process: the blocks are counted, the first to open
+    turns the advice off and the last to close puts back what the first found, so that
+    commands running at once in threads of one process (which may end in any order) leave
+    numpy as they found it.
     """
+    global _advice_depth, _advice_before
     switch = None if "NUMPY_MADVISE_HUGEPAGE" in os.environ else _advice_switch()
     if switch is None:
         yield
         return
-    before = switch(False)
+    with _advice_lock:
+        if _advice_depth == 0:
+            _advice_before = switch(False)
+        _advice_depth += 1
     try:
         yield
     finally:
-        switch(before)
+        with _advice_lock:
+            _advice_depth -= 1
+            if _advice_depth == 0:
+                switch(_advice_before)
+                _advice_before = None
 
 
 @contextlib.contextmanager
