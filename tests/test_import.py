@@ -904,6 +904,21 @@ def test_bad_image_frames_name_the_line(exported, tmp_path, capsys, line, words)
     assert not (tmp_path / "x.h5").exists()
 
 
+def test_image_frames_file_with_a_byte_order_mark_or_missing(exported, tmp_path, capsys):
+    """A byte-order mark at the start of an --image-frames file is skipped (the line is read:
+    its camera named), as in the column files; a file that is not there is a one-line error."""
+    gen, d = exported
+    frames = tmp_path / "frames.txt"
+    frames.write_bytes(b"\xef\xbb\xbf99 px 4.6 4.6 6000 4000 topleft down\n")
+    code, _, err = run_cli(capsys, "import", tmp_path / "x.h5", "--image-frames", frames,
+                           *cli_args(files_of(d)))
+    assert_one_line_error(code, err, "frames.txt:1", "camera 99 is not in the cameras")
+    code, _, err = run_cli(capsys, "import", tmp_path / "x.h5", "--image-frames",
+                           tmp_path / "none.txt", *cli_args(files_of(d)))
+    assert_one_line_error(code, err, "none.txt", "no such file")
+    assert not (tmp_path / "x.h5").exists()
+
+
 @pytest.mark.parametrize("tail, frames, words", [
     ("pixels 4.6 4.6 0 0 centre down", None, "unknown image unit; expected mm or px, found "
                                              "'pixels' (column 16)"),
