@@ -50,6 +50,7 @@ from .formats.text import (
     PRIORS,
     check_angles,
     check_axis_order,
+    open_input,
     parse_chunk,
     read_chunks,
     swap_axes,
@@ -1088,16 +1089,12 @@ def camera_lines(paths, cam_ids, usage, ncols):
     twice is an error naming the file and line (``usage``: the columns, for the message)."""
     seen = {}
     for path in paths:
+        with open_input(path) as f:
+            data = f.read()
         try:   # (UTF-8, a byte-order mark skipped, as in the column files)
-            lines = Path(path).read_text(encoding="utf-8-sig").splitlines()
+            lines = data.decode("utf-8-sig").splitlines()
         except UnicodeDecodeError as exc:
             raise DataError(f"{path}: not a text file ({exc.reason})") from None
-        except FileNotFoundError:
-            raise DataError(f"{path}: no such file") from None
-        except IsADirectoryError:
-            raise DataError(f"{path}: is a directory, not a text file") from None
-        except OSError as exc:
-            raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
         for k, line in enumerate(lines, start=1):
             t = line.split("#", 1)[0].split()
             if not t:

@@ -280,6 +280,19 @@ def angle_strings(rad, angles):
 
 # -- reading ---------------------------------------------------------------------------
 
+def open_input(path):
+    """``path`` opened for reading, binary; a file that is not there, a directory or a file
+    that cannot be read is a :class:`DataError` naming it."""
+    try:
+        return open(path, "rb")
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise DataError(f"{path}: is a directory, not a text file") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
 def read_chunks(path, chunk_bytes):
     """Yield ``(first_line_number, block)``: blocks of whole lines of about ``chunk_bytes``.
 
@@ -290,15 +303,7 @@ def read_chunks(path, chunk_bytes):
     """
     chunk_bytes = max(4096, int(chunk_bytes))
     max_line = max(chunk_bytes, MAX_LINE)
-    try:
-        f = open(path, "rb")
-    except FileNotFoundError:
-        raise DataError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise DataError(f"{path}: is a directory, not a text file") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    with f:
+    with open_input(path) as f:
         first, rest, start = 1, b"", True
         while True:
             block = f.read(chunk_bytes)
