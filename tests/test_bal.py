@@ -264,3 +264,20 @@ def test_malformed_bal_files_name_file_and_line(tmp_path, capsys, case):
     code, out, err = run_cli(capsys, "import", "--format", "bal", f, tmp_path / "x.h5")
     assert_one_line_error(code, err, f"bad.txt{line}", words)
     assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.parametrize("camera, words", [
+    ("0 0 0 0 0 -10 1e-300 0.1 0", "cameras record 0 (id 0): k1 is infinite"),
+    ("1e300 0 0 0 0 -10 500 0 0", "the initial cost is nan"),
+    ("0 0 0 0 0 1e300 500 0 0", "stations record 0 (id 0): eo 1e+300 is beyond 1e+15"),
+    ("0 0 0 0 0 -10 500 1e300 0", "the initial cost is inf"),
+])
+def test_bal_values_out_of_range_are_refused(tmp_path, capsys, camera, words):
+    """Finite values whose conversion or cost is not a number (a focal length of 1e-300
+    makes k1 / f^2 infinite): refused in one line, nothing written (NaN and inf were
+    stored before, with RuntimeWarnings)."""
+    f = tmp_path / "bad.txt"
+    f.write_text("1 1 1\n0 0 1 2\n" + "\n".join(camera.split()) + "\n0.1\n0\n1\n")
+    code, out, err = run_cli(capsys, "import", "--format", "bal", f, tmp_path / "x.h5")
+    assert_one_line_error(code, err, "bad.txt", words)
+    assert not (tmp_path / "x.h5").exists()

@@ -472,6 +472,8 @@ BAD = {
     "control id": ("control.txt", 1, "99 0 0 0 1 1 1", "control.txt:1:",
                    "point 99 is not a 3D point"),
     "control line": ("control.txt", 1, "1 0 0", "control.txt:1:", "expected 7 or 8 columns"),
+    "fy out of range": ("cameras.txt", 2, "1 PINHOLE 100 80 50.0 1e-300 50.0 40.0",
+                        "/m: cameras record 0 (id 1)", "format_y 4e+303 is beyond"),
 }
 
 

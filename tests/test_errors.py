@@ -210,3 +210,20 @@ def test_output_path_that_is_a_directory(tmp_path, capsys):
     (tmp_path / "d.h5").mkdir()
     assert_one_line_error(*run_cli(capsys, "generate", "--preset", "sapgo-p-1",
                                    tmp_path / "d.h5")[::2])
+
+
+def test_observations_cut_short_are_a_damaged_project(small_block, tmp_path, capsys):
+    """/observations shorter than the points' obs_start and n_obs say (a damaged or hand-made
+    file): every command refuses it in one line at the open (``plan`` read past the end in a
+    kernel before), and the file is left as it was."""
+    with h5py.File(small_block, "r+") as h:
+        obs = h["observations"][:5]
+        del h["observations"]
+        h.create_dataset("observations", data=obs)
+    before = digest(small_block)
+    for args in (("plan", small_block), ("order", small_block), ("adjust", small_block),
+                 ("info", small_block), ("export", small_block, tmp_path / "out"),
+                 ("export", "--format", "bal", small_block, tmp_path / "out.txt")):
+        assert_one_line_error(*run_cli(capsys, *args)[::2], "the project is damaged",
+                              "/observations has 5 records")
+    assert digest(small_block) == before

@@ -444,3 +444,25 @@ def test_northing_first_and_degrees_minutes_seconds_read_alike(block_cache, tmp_
     assert_one_line_error(code, err, "control.txt:2: '49:61:00' is no angle in degrees, "
                           "minutes and seconds (minutes and seconds must be below 60) "
                           "(column 2, X)")
+
+
+@pytest.mark.parametrize("which", ["photos", "control"])
+def test_coordinates_outside_the_crs_name_their_line(exported_geo, tmp_path, which):
+    """A latitude beyond 90 degrees (longitude and latitude swapped, say) in the photos or
+    the control: one line naming the file, the line and the id (pyproj's error before)."""
+    d = exported_geo
+    dd = tmp_path / "bad"
+    shutil.copytree(d, dd)
+    rows = (dd / f"{which}.txt").read_text().splitlines()
+    k = next(i for i, r in enumerate(rows) if r.strip() and r[0] != "#")
+    t = rows[k].split()
+    col = 7 if which == "photos" else 2     # (the latitude: Y of longitude, latitude, h)
+    t[col] = "95.0"
+    rows[k] = " ".join(t)
+    (dd / f"{which}.txt").write_text("\n".join(rows) + "\n")
+    with pytest.raises(DataError, match=rf"{which}.txt:{k + 1}: (photo|point) {t[0]}: "
+                                        r"coordinates \(.*95.*\) are outside the domain"):
+        import_text(tmp_path / "x.h5", cameras=dd / "cameras.txt", photos=dd / "photos.txt",
+                    measurements=dd / "measurements.txt", control=dd / "control.txt",
+                    crs="EPSG:4979")
+    assert not (tmp_path / "x.h5").exists()

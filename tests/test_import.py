@@ -685,6 +685,8 @@ def test_a_block_controlled_only_by_station_priors_adjusts(exported, tmp_path):
     ("99 0 0 0 0 0 3800 10 10 10 0.1 0.1 0.1", ("priors.txt:1", "photo 99 is not in the photos")),
     ("1 0 0 0 0 0 3800 - 0 - 0 0 -", ("priors.txt:1", "constrains nothing")),
     ("1 0 0 0 0 0 3800 10 -1 10 0.1 0.1 0.1", ("priors.txt:1", "column 9 (s_phi)")),
+    ("1 0 0 0 0 0 3800 1e-300 10 10 0.1 0.1 0.1", ("priors.txt:1", "photo 1",
+                                                    "too small for its weight")),
 ])
 def test_bad_priors_name_the_line(exported, tmp_path, capsys, line, words):
     gen, d = exported
@@ -894,6 +896,7 @@ def test_measurements_in_other_image_frames_adjust_alike(exported, tmp_path, cap
     ("1 px 4.6 4.6 6000 4000 middle down", "origin 'middle'"),
     ("1 px 4.6 4.6 6000 4000 centre sideways", "y axis 'sideways'"),
     ("1 px 4.6 4.6 6000 4000", "expected 8 columns"),
+    ("1 px 1e300 4.6 6000 4000 topleft down", "pixel_x '1e300' must be a positive number"),
 ])
 def test_bad_image_frames_name_the_line(exported, tmp_path, capsys, line, words):
     gen, d = exported
@@ -942,3 +945,18 @@ def test_bad_frames_in_the_cameras_file_name_the_line(exported, tmp_path, capsys
     code, _, err = run_cli(capsys, "import", tmp_path / "x.h5", *extra, *cli_args(files))
     assert_one_line_error(code, err, "cams.txt:2", words)
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_a_memory_budget_beyond_the_machine_reads_the_files_whole(exported, tmp_path, capsys):
+    """``--memory`` of terabytes: the files are read whole (no buffer beyond a file's size;
+    a MemoryError traceback before), and the project is the one the default budget makes."""
+    gen, d = exported
+    code, _, err = run_cli(capsys, "import", tmp_path / "big.h5", "--memory", "99999999T",
+                           *cli_args(files_of(d)))
+    assert code == 0, err
+    code, _, err = run_cli(capsys, "import", tmp_path / "default.h5", *cli_args(files_of(d)))
+    assert code == 0, err
+    with sapgo.open_project(tmp_path / "big.h5") as a, \
+            sapgo.open_project(tmp_path / "default.h5") as b:
+        for name in ("stations", "points", "observations"):
+            np.testing.assert_array_equal(a.read(name), b.read(name))

@@ -186,3 +186,165 @@ def test_export_needs_an_opensfm_import(tmp_path, capsys, small_block):
     code, out, err = run_cli(capsys, "export", small_block, tmp_path / "x", "--format",
                              "opensfm")
     assert_one_line_error(code, err, "not imported from OpenSfM")
+
+
+# -- malformed input found by fuzzing: one-line errors naming the file and the place ---------
+BRN, PSP = "v2 brown 4000 3000", "v2 perspective 3000 4000"
+
+
+def _cam(key, value):
+    def change(r, key=key, value=value):
+        cam = r[0]["cameras"][PSP if key in ("focal",) else BRN]
+        if value is KeyError:
+            del cam[key]
+        else:
+            cam[key] = value
+    return change
+
+
+JSON_BAD = {
+    "huge width": (_cam("width", 10 ** 30), f"camera '{BRN}': width 1000000000000000000000000"
+                   "000000 is not an image size in pixels"),
+    "fractional width": (_cam("width", 4000.5), "width 4000.5 is not an image size in pixels"),
+    "boolean height": (_cam("height", True), "height true is not"),
+    "boolean focal": (_cam("focal_x", True), f"camera '{BRN}': focal_x true is not a finite"),
+    "no k1": (_cam("k1", KeyError), f"camera '{BRN}': k1 is missing"),
+    "no perspective k2": (lambda r: r[0]["cameras"][PSP].pop("k2"),
+                          f"camera '{PSP}': k2 is missing"),
+    "no c_x": (_cam("c_x", KeyError), f"camera '{BRN}': c_x is missing"),
+    "tiny focal_y": (_cam("focal_y", 1e-300), f"camera '{BRN}': focal_y 1e-300"),
+    "lopsided focal": (_cam("focal_y", 100.0), f"camera '{BRN}': focal_x / focal_y"),
+    "far principal point": (_cam("c_x", 1e200), f"camera '{BRN}': c_x 1e+200"),
+    "huge rotation": (lambda r: r[0]["shots"]["IMG_0001.JPG"].update(rotation=[1e300, 0, 0]),
+                      "shot 'IMG_0001.JPG': rotation"),
+    "large rotation": (lambda r: r[0]["shots"]["IMG_0001.JPG"].update(rotation=[1e20, 0, 0]),
+                       "shot 'IMG_0001.JPG': rotation"),
+    "boolean rotation": (lambda r: r[0]["shots"]["IMG_0001.JPG"].update(
+        rotation=[True, 0, 0]), "shot 'IMG_0001.JPG': rotation: expected 3 finite numbers"),
+    "huge translation": (lambda r: r[0]["shots"]["IMG_0001.JPG"].update(
+        translation=[1e308, 1e308, 1e308]), "shot 'IMG_0001.JPG': its rotation and trans"),
+    "far point": (lambda r: r[0]["points"]["3"].update(coordinates=[1e300, 0, 0]),
+                  "point '3': coordinates"),
+    "no points": (lambda r: r[0].update(points={}), "has no points"),
+    "colour range": (lambda r: r[0]["points"]["3"].update(color=[999, 0, -3]),
+                     "point '3': color"),
+    "colour boolean": (lambda r: r[0]["points"]["3"].update(color=[True, 0, 3]),
+                       "point '3': color"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(JSON_BAD))
+def test_bad_reconstruction_values_are_one_line_errors(tmp_path, capsys, case):
+    d = tmp_path / "ds"
+    _dataset(d)
+    change, words = JSON_BAD[case]
+    r = json.loads((d / "reconstruction.json").read_text())
+    change(r)
+    (d / "reconstruction.json").write_text(json.dumps(r))
+    code, out, err = run_cli(capsys, "import", "--format", "opensfm", d, tmp_path / "x.h5")
+    assert_one_line_error(code, err, "reconstruction.json: ", words)
+    assert not (tmp_path / "x.h5").exists()
+
+
+def _line(k, col, value):
+    """Line ``k`` (from 1) of tracks.csv with column ``col`` replaced."""
+    def change(lines):
+        cols = lines[k - 1].split("\t")
+        cols[col] = value
+        lines[k - 1] = "\t".join(cols)
+        return lines
+    return change
+
+
+TRACKS_BAD = {
+    "huge feature id": (_line(3, 2, "99999999999999999999"),
+                        "tracks.csv:3: feature_id '99999999999999999999' is outside the "
+                        "int64 range"),
+    "fractional feature id": (_line(3, 2, "1.5"), "tracks.csv:3: feature_id '1.5'"),
+    "nan scale": (_line(4, 5, "nan"), "tracks.csv:4: scale"),
+    "empty": (lambda lines: [], "tracks.csv: no image measurement"),
+    "header only": (lambda lines: lines[:1], "tracks.csv: no image measurement"),
+    "conflicting duplicate": (lambda lines: lines + [lines[1].replace(
+        lines[1].split("\t")[3], repr(float(lines[1].split("\t")[3]) + 0.1))],
+        "lines 2 and "),
+}
+
+
+@pytest.mark.parametrize("case", sorted(TRACKS_BAD) + ["not utf-8"])
+def test_bad_tracks_are_one_line_errors(tmp_path, capsys, case):
+    d = tmp_path / "ds"
+    _dataset(d)
+    lines = (d / "tracks.csv").read_text().splitlines()
+    if case == "not utf-8":
+        raw = ("\n".join(lines[:4]) + "\n").encode() + b"IMG_0000.JPG\t\xe9\t1\t0.1\t0.1\t0.1" \
+            b"\t1\t2\t3\n" + ("\n".join(lines[4:]) + "\n").encode()
+        (d / "tracks.csv").write_bytes(raw)
+        words = ["tracks.csv:5: not a text file"]
+    else:
+        change, word = TRACKS_BAD[case]
+        lines = change(lines)
+        (d / "tracks.csv").write_text("".join(ln + "\n" for ln in lines))
+        words = [word]
+        if case == "conflicting duplicate":
+            words += [f"and {len(lines)}: shot 'IMG_0000.JPG' observes track", "px apart"]
+    code, out, err = run_cli(capsys, "import", "--format", "opensfm", d, tmp_path / "x.h5")
+    assert_one_line_error(code, err, *words)
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_agreeing_duplicates_are_merged(tmp_path):
+    d = tmp_path / "ds"
+    _dataset(d)
+    base = import_opensfm(d, tmp_path / "a.h5")
+    assert base["warnings"] == []
+    lines = (d / "tracks.csv").read_text().splitlines()
+    cols = lines[1].split("\t")
+    x = float(cols[3])
+    cols[3] = repr(x + 0.5 / 4000)   # half a pixel off
+    lines.append("\t".join(cols))
+    (d / "tracks.csv").write_text("\n".join(lines) + "\n")
+    r = import_opensfm(d, tmp_path / "b.h5")
+    assert r["observations"] == base["observations"]
+    assert len(r["warnings"]) == 1 and f"lines 2, {len(lines)}" in r["warnings"][0]
+    with Project(tmp_path / "a.h5") as p:
+        a = p.read("observations")
+    with Project(tmp_path / "b.h5") as p:
+        b = p.read("observations")
+    moved = np.flatnonzero(np.abs(a["x"] - b["x"]) > 1e-9)
+    assert len(moved) == 1 and b["x"][moved[0]] - a["x"][moved[0]] == pytest.approx(0.25)
+    # asked to, conflicting ones are averaged too
+    cols[3] = repr(x + 0.1)
+    lines[-1] = "\t".join(cols)
+    (d / "tracks.csv").write_text("\n".join(lines) + "\n")
+    r = import_opensfm(d, tmp_path / "c.h5", merge_duplicates=True)
+    assert r["observations"] == base["observations"] and len(r["warnings"]) == 2
+
+
+@pytest.mark.parametrize("case", ["garbage", "missing", "directory", "truncated"])
+def test_export_of_a_bad_project_names_it(tmp_path, capsys, case):
+    path = tmp_path / "p.h5"
+    if case == "garbage":
+        path.write_bytes(b"this is not HDF5\n" * 10)
+        words = "not a sapgo project (the file is not HDF5)"
+    elif case == "directory":
+        path.mkdir()
+        words = "is a directory"
+    elif case == "truncated":
+        _dataset(tmp_path / "ds")
+        import_opensfm(tmp_path / "ds", tmp_path / "ok.h5")
+        path.write_bytes((tmp_path / "ok.h5").read_bytes()[:3000])
+        words = "cannot open as HDF5"
+    else:
+        words = "no such file"
+    code, out, err = run_cli(capsys, "export", path, tmp_path / "out", "--format", "opensfm")
+    assert_one_line_error(code, err, f"{path}: ", words)
+
+
+def test_far_image_coordinates_name_the_line(tmp_path, capsys):
+    d = tmp_path / "ds"
+    _dataset(d)
+    lines = _line(3, 3, "1e300")((d / "tracks.csv").read_text().splitlines())
+    (d / "tracks.csv").write_text("\n".join(lines) + "\n")
+    code, out, err = run_cli(capsys, "import", "--format", "opensfm", d, tmp_path / "x.h5")
+    assert_one_line_error(code, err, "tracks.csv:3: x, y 1e+300")
+    assert not (tmp_path / "x.h5").exists()

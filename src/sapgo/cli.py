@@ -169,7 +169,9 @@ def cmd_import(args):
                                  "import --format opensfm DATASET block.h5")
         r = import_opensfm(args.paths[0], args.paths[1], index=args.reconstruction or 0,
                            sigma_image=1.0 if args.sigma_image is None else args.sigma_image,
-                           force=args.force)
+                           force=args.force, merge_duplicates=args.merge_duplicates)
+        for w in r.get("warnings", ()):
+            _warn(w)
         many = (f" (reconstruction {r['index']} of {r['reconstructions']})"
                 if r["reconstructions"] > 1 else "")
         _say(f"imported {r['path']}{many}: {r['cameras']} cameras (held), {r['photos']} "
@@ -1188,6 +1190,10 @@ def main(argv=None):
         return 2
     except OSError as exc:
         print(f"sapgo: error: {_os_message(exc)}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"sapgo: error: {args.command}: out of memory (a --memory larger than this "
+              f"machine can give? the default fits any block)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("sapgo: interrupted", file=sys.stderr)

@@ -91,8 +91,18 @@ def _as_3d(crs):
     return crs.to_3d()
 
 
+class OutsideDomain(DataError):
+    """Coordinates a CRS transformation cannot take; ``row``: the first of them in the
+    array given (callers name its record)."""
+
+    def __init__(self, message, row):
+        super().__init__(message)
+        self.row = row
+
+
 def _transform(src, dst, xyz):
     from pyproj import Transformer
+    from pyproj.exceptions import ProjError
 
     t = Transformer.from_crs(src, dst, always_xy=True)
     if "ballpark" in t.description.lower():
@@ -101,7 +111,17 @@ def _transform(src, dst, xyz):
                         f"model for orthometric heights is missing): give coordinates with "
                         f"ellipsoidal heights")
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    out = np.column_stack(t.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2], errcheck=True))
+    try:
+        out = np.column_stack(t.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2], errcheck=True))
+    except ProjError as exc:   # (which coordinates: those the unchecked call leaves inf)
+        bad = ~np.isfinite(np.column_stack(t.transform(xyz[:, 0], xyz[:, 1],
+                                                       xyz[:, 2]))).all(axis=1)
+        row = int(np.flatnonzero(bad)[0]) if bad.any() else 0
+        why = " ".join(str(exc).split())
+        raise OutsideDomain(
+            f"coordinates ({', '.join(f'{v:.10g}' for v in xyz[row])}) are outside the domain "
+            f"of {src.name!r} ({why}; a latitude beyond 90 degrees, or the axes swapped?)",
+            row) from None
     return out
 
 

@@ -61,6 +61,7 @@ from .frames import (
     ORIENTATIONS,
     SELENOCENTRIC,
     Frame,
+    OutsideDomain,
     _check_order,
     opk_of,
     opk_of_order,
@@ -86,6 +87,7 @@ from .project import (
     ProjectWriter,
     append_history,
 )
+from .validate import check_records
 
 #: Image measurements as they are sorted: point id, station record, values, origin.
 MEAS_DTYPE = np.dtype([("point", "<i8"), ("station", "<i8"), ("x", "<f8"), ("y", "<f8"),
@@ -352,11 +354,16 @@ class _Import:
             raise DataError("no photo: give a photos file with at least one photo (--photos)")
         ids, cam, strip = np.concatenate(ids), np.concatenate(cam), np.concatenate(strip)
         eo, locs = np.concatenate(eo), np.concatenate(locs)
-        self._set_frame(p, eo[n_old:, 3:])
-        if self.crs is not None and len(eo) > n_old:  # the files' photos into the frame
-            xyz = self.frame.from_user(eo[n_old:, 3:], self.crs)
-            eo[n_old:, :3] = self.frame.opk_from_user(eo[n_old:, :3], xyz, self.orientation)
-            eo[n_old:, 3:] = xyz
+        try:
+            self._set_frame(p, eo[n_old:, 3:])
+            if self.crs is not None and len(eo) > n_old:  # the files' photos into the frame
+                xyz = self.frame.from_user(eo[n_old:, 3:], self.crs)
+                eo[n_old:, :3] = self.frame.opk_from_user(eo[n_old:, :3], xyz,
+                                                          self.orientation)
+                eo[n_old:, 3:] = xyz
+        except OutsideDomain as exc:
+            j = n_old + exc.row
+            raise DataError(f"{self.src.where(locs[j])}: photo {ids[j]}: {exc}") from None
         values = np.concatenate([cam_ids[cam][:, None], strip[:, None], _bits(eo)], axis=1)
         names = ("camera", "strip", "omega", "phi", "kappa", "X", "Y", "Z")
         keep, twice, examples = self._dedupe("photo", ids, values, locs, names)
@@ -425,7 +432,12 @@ class _Import:
             "in none; give horizontal and vertical control sigmas > 0"))
         full = ~partial
         if full.any():
-            r["control"][full] = self.frame.from_user(r["control"][full], self.crs)
+            try:
+                r["control"][full] = self.frame.from_user(r["control"][full], self.crs)
+            except OutsideDomain as exc:
+                j = int(np.flatnonzero(full)[exc.row])
+                raise DataError(f"{self.src.where(loc[j])}: point {rec['id'][j]}: {exc}") \
+                    from None
         r["raw"] = partial
 
     def _partial_control(self, control, kind, raw, approx):
@@ -495,7 +507,19 @@ class _Import:
         return pr[np.argsort(pr["station"], kind="stable")]
 
     def _prior_weights(self, fmt, rec, loc):
-        """6x6 weights (1/rad^2, 1/m^2) of sigmas or covariances given in arc seconds and m."""
+        """6x6 weights (1/rad^2, 1/m^2) of sigmas or covariances given in arc seconds and m;
+        a weight that overflows (a sigma of 1e-300) is an error naming the line."""
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            w = self._prior_weights_of(fmt, rec, loc)
+        bad = ~np.isfinite(w).all(axis=(1, 2))
+        if bad.any():
+            r = int(np.flatnonzero(bad)[0])
+            raise DataError(f"{self.src.where(loc[r])}: the prior of photo {rec['photo'][r]} "
+                            f"has a sigma or covariance too small for its weight (1/sigma^2) "
+                            f"to be a number; leave a parameter free with 0 or '-'")
+        return w
+
+    def _prior_weights_of(self, fmt, rec, loc):
         scale = np.array([ARCSEC] * 3 + [1.0] * 3)
         n = len(rec)
         w = np.zeros((n, 6, 6))
@@ -617,7 +641,8 @@ class _Import:
         self.n_control = sum(counts.values())
 
     def _control_pieces(self, size):
-        with open(self.control_path, "rb") as f:
+        with open(self.control_path, "rb") as f:   # (no piece beyond the file)
+            size = max(1, min(size, os.fstat(f.fileno()).st_size // CTRL_DTYPE.itemsize + 1))
             while True:
                 c = np.fromfile(f, CTRL_DTYPE, size)
                 if not len(c):
@@ -972,6 +997,12 @@ class _Import:
                                         - MOON_RADIUS, 1.0)
             self.obs_per_station = np.zeros(len(st), np.int64)
 
+            def named(kind):   # (the files a record set comes from, for check_records)
+                return ", ".join(str(f) for f in self.files[kind]) or kind
+
+            check_records(named("cameras"), cameras=self.cameras)
+            check_records(named("photos") if self.files["photos"] else named("photos_matrix"),
+                          stations=st)
             with ProjectWriter(self.out, attrs) as w:
                 w.append("cameras", self.cameras)
                 w.append("stations", st)
@@ -981,6 +1012,9 @@ class _Import:
                                          ctrl_blocks):
                     pts, ob = self._assemble(o, ctl, w.size("points"))
                     pts["obs_start"] += w.size("observations")
+                    check_records(named("measurements"), points=pts)
+                    check_records(named("measurements"), observations=ob,
+                                  start=w.size("observations"))
                     w.append("points", pts)
                     w.append("observations", ob)
                 n_points, n_obs = w.size("points"), w.size("observations")
@@ -1047,6 +1081,10 @@ class ImageFrames:
                 (self.fy[cam] * y + self.oy[cam]) * self.sy[cam], sigma * self.ss[cam])
 
 
+#: An image frame's pixel sizes (um) and image sizes (px or mm) are at most this.
+MAX_FRAME_VALUE = 1e9
+
+
 def set_frame(frames, j, unit, px, py, w, h, origin, axis, where, zero_ok=False):
     """Camera record ``j``'s image frame into ``frames``: ``unit`` mm or px, pixel sizes
     ``px``, ``py`` (um; ``-`` or, with ``zero_ok``, 0 for mm), ``w``, ``h`` the image's size
@@ -1060,11 +1098,13 @@ def set_frame(frames, j, unit, px, py, w, h, origin, axis, where, zero_ok=False)
             v = float(tok)
         except ValueError:
             v = float("nan")
-        if not (np.isfinite(v) and v > 0):
+        if not (np.isfinite(v) and 0 < v <= MAX_FRAME_VALUE):
             raise DataError(f"{where}: {name} {repr(tok) if isinstance(tok, str) else f'{v:g}'} "
                             f"must be a positive number" + ("" if needed else
                                                             " or '-'" if not zero_ok
-                                                            else " or 0"))
+                                                            else " or 0")
+                            + (f" (at most {MAX_FRAME_VALUE:g})" if v > MAX_FRAME_VALUE
+                               else ""))
         return v
 
     px = number(px, "pixel_x", unit == "px")

@@ -461,6 +461,13 @@ def write_project(path, cameras, stations, points, observations, priors=None, tr
     format's own groups (:data:`KEYED_GROUPS`) into the new file. Large blocks are written
     with :class:`ProjectWriter`.
     """
+    from .validate import check_records
+
+    creator = json.loads((attrs or {}).get("creator", "{}") or "{}")
+    if creator.get("command") == "import":   # (the records of a format's import: checked)
+        check_records(creator.get("file") or creator.get("path") or creator.get("model")
+                      or path, *(r if isinstance(r, np.ndarray) and r.dtype.names else None
+                                 for r in (cameras, stations, points, observations)))
     sizes = {"cameras": len(cameras), "stations": len(stations), "points": len(points),
              "observations": len(observations),
              "station_priors": 0 if priors is None else len(priors)}
@@ -614,6 +621,18 @@ class Project:
                     f"{self.path}: /{name} records have fields {ds.dtype.names}, "
                     f"expected {dtype.names} (see docs/project-schema.md)"
                 )
+        n_pt, n_ob = len(f["points"]), len(f["observations"])
+        end = 0
+        if n_pt:   # (the tiling itself is checked with the values: validate.check_values)
+            try:
+                last = f["points"][n_pt - 1]
+                end = int(last["obs_start"]) + int(last["n_obs"])
+            except OSError:   # (a chunk failing its checksum: the reads name it, as before)
+                end = n_ob
+        if end != n_ob:
+            raise ProjectFormatError(
+                f"{self.path}: the points' obs_start and n_obs cover {end} observations but "
+                f"/observations has {n_ob} records: the project is damaged")
         if "truth" in f:
             if len(f["truth/stations"]) != len(f["stations"]) or len(f["truth/points"]) != len(
                 f["points"]

@@ -57,6 +57,49 @@ def _check_finite(name, start, ids, field, values):
         raise DataError(f"{name} record {start + i}{idtxt}: {label} is {_describe(v[i, comp])}")
 
 
+#: Positions and image coordinates beyond this (in any unit) are not a block's: a value of
+#: the input out of range (an import refuses them, :func:`check_records`).
+MAX_MAGNITUDE = 1e15
+
+
+def check_records(source, cameras=None, stations=None, points=None, observations=None,
+                  start=0):
+    """An import's records before they are written: every camera value, orientation, point
+    coordinate and image measurement a finite number, and positions and image coordinates
+    within :data:`MAX_MAGNITUDE` (a value that a conversion took out of range: a focal length
+    of 1e-300, a pixel size of 1e300). The first problem is a :class:`DataError` naming
+    ``source`` (the input) and the record (``start``: the first record's number, for a
+    chunk of points and observations)."""
+    sets = []
+    if cameras is not None:
+        floats = [n for n in cameras.dtype.names if cameras.dtype[n].base.kind == "f"]
+        sets.append(("cameras", cameras, floats, [(n, slice(None)) for n in floats]))
+    if stations is not None:
+        sets.append(("stations", stations, ["eo"], [("eo", slice(3, 6))]))
+    if points is not None:
+        sets.append(("points", points, ["xyz"], [("xyz", slice(0, 3))]))
+    if observations is not None:
+        sets.append(("observations", observations, ["x", "y", "sigma"],
+                     [("x", slice(None)), ("y", slice(None))]))
+    for name, rec, fields, bounded in sets:
+        if not len(rec):
+            continue
+        ids = rec["id"] if "id" in rec.dtype.names else None
+        try:
+            for field in fields:
+                _check_finite(name, start, ids, field, np.asarray(rec[field], np.float64))
+        except DataError as exc:
+            raise DataError(f"{source}: {exc} (a value of the input out of range?)") from None
+        for field, cols in bounded:
+            v = np.abs(np.asarray(rec[field], np.float64).reshape(len(rec), -1)[:, cols])
+            i = _first_bad((v > MAX_MAGNITUDE).any(axis=1))
+            if i >= 0:
+                idtxt = f" (id {ids[i]})" if ids is not None else ""
+                raise DataError(f"{source}: {name} record {start + i}{idtxt}: {field} "
+                                f"{v[i].max():.6g} is beyond {MAX_MAGNITUDE:g} (a "
+                                f"value of the input out of range?)")
+
+
 def check_values(project: Project, ordered_layout=True):
     """Check every input value; raise :class:`DataError` at the first problem. Returns
     ``{"rejected": n}``: the observations flagged rejected (by an earlier run), counted on

@@ -262,11 +262,12 @@ def snavely_to_sapgo(r, t, fk):
     camera model, Snavely et al. 2006)."""
     from ..frames import opk_of
 
-    centre = -np.einsum("nji,nj->ni", r, t)
-    eo = np.column_stack([opk_of(r), centre])
-    f = fk[:, 0]
-    rows = np.column_stack([f, np.zeros_like(f), np.zeros_like(f), fk[:, 1] / f ** 2,
-                            fk[:, 2] / f ** 4, np.zeros((len(f), N_CAMERA - 5))])
+    with np.errstate(all="ignore"):   # (values out of range: refused when written)
+        centre = -np.einsum("nji,nj->ni", r, t)
+        eo = np.column_stack([opk_of(r), centre])
+        f = fk[:, 0]
+        rows = np.column_stack([f, np.zeros_like(f), np.zeros_like(f), fk[:, 1] / f ** 2,
+                                fk[:, 2] / f ** 4, np.zeros((len(f), N_CAMERA - 5))])
     return eo, rows
 
 
@@ -334,14 +335,19 @@ def import_bal(path, out, force=False, intrinsics="adjusted", merge_duplicates=F
     d = read_bal(path)
     n_read = len(d["obs_camera"])
     warnings = _merge_duplicates(path, d, merge=merge_duplicates)
-    eo, rows = bal_to_sapgo(d["cameras"])
+    with np.errstate(all="ignore"):
+        eo, rows = bal_to_sapgo(d["cameras"])
+        cost = bal_cost(d)
+    if not np.isfinite(cost):
+        raise DataError(f"{path}: the initial cost is {cost} (a camera's or point's value out "
+                        f"of range?)")
     n = write_snavely_project(out, {"command": "import", "format": "bal", "file": str(path)},
                               eo, rows, np.arange(len(eo)), d["points"], d["obs_camera"],
                               d["obs_point"], d["obs_xy"], intrinsics)
     return {"path": str(out), "cameras": len(eo), "photos": len(eo),
             "points": len(d["points"]), "observations": n,
             "duplicates_dropped": n_read - n, "warnings": warnings,
-            "initial_cost": bal_cost(d)}
+            "initial_cost": cost}
 
 
 def _check_out(out, force, intrinsics):

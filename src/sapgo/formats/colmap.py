@@ -583,14 +583,15 @@ def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=F
     c_ord = np.argsort(cams["ids"], kind="stable")
     c_rec = np.empty(len(c_ord), np.int64)
     c_rec[c_ord] = np.arange(len(c_ord))
-    rows, y_scale = sapgo_camera_rows(cams["params"][c_ord], cams["size"][c_ord])
-    size = cams["size"][c_ord]
-    camera = np.zeros(len(c_ord), CAMERA_DTYPE)
-    camera["id"] = cams["ids"][c_ord]
-    for k, name in enumerate(("focal_length", "x0", "y0", "k1", "k2", "k3", "p1", "p2")):
-        camera[name] = rows[:, k]
-    camera["format_x"] = size[:, 0]
-    camera["format_y"] = size[:, 1] * y_scale
+    with np.errstate(all="ignore"):   # (values out of range: refused when written)
+        rows, y_scale = sapgo_camera_rows(cams["params"][c_ord], cams["size"][c_ord])
+        size = cams["size"][c_ord]
+        camera = np.zeros(len(c_ord), CAMERA_DTYPE)
+        camera["id"] = cams["ids"][c_ord]
+        for k, name in enumerate(("focal_length", "x0", "y0", "k1", "k2", "k3", "p1", "p2")):
+            camera[name] = rows[:, k]
+        camera["format_x"] = size[:, 0]
+        camera["format_y"] = size[:, 1] * y_scale
     camera["sigma_image"] = sigma_image
 
     i_ord = np.argsort(im["ids"], kind="stable")

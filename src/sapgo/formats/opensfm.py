@@ -18,22 +18,32 @@ are COLMAP's OPENCV model (plus k3) in other units, so the conversion to sapgo's
 COLMAP's (:func:`sapgo.formats.colmap.sapgo_camera_rows`), in pixels: sapgo's x = ``xn *
 S`` and y = ``-yn * S * fx / fy`` with ``S = max(width, height)``. Fisheye and spherical
 cameras are refused: sapgo's frame-camera model cannot hold them.
+
+A camera needs every parameter of its projection type (OpenSfM writes them all), with a
+plausible value (:data:`MAX_SIZE`, :data:`FOCAL_RANGE`, :data:`MAX_Y_SCALE`,
+:data:`MAX_PRINCIPAL_POINT`); a rotation vector is at most :data:`MAX_ROTATION` radians. A
+track observed twice on one shot is one observation at the mean of the two when they agree
+within 3 sigma (with a warning), else an error naming both lines (unless
+``merge_duplicates``), as the other imports do.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import re
 from pathlib import Path
 
 import numpy as np
 
 from ..lock import writes_project
 from ..errors import DataError, ParameterError
+from ..validate import MAX_MAGNITUDE   # (positions, coordinates: out of range)
 
 __all__ = ["CAMERA_TYPES", "export_opensfm", "import_opensfm", "opensfm_project",
            "read_opensfm"]
 
-#: The camera models taken, with their keys (the ones missing are 0).
+#: The camera models taken, with their keys (all needed, as OpenSfM writes them).
 CAMERA_TYPES = {
     "perspective": ("focal", "k1", "k2"),
     "brown": ("focal_x", "focal_y", "c_x", "c_y", "k1", "k2", "p1", "p2", "k3"),
@@ -43,11 +53,44 @@ CAMERA_TYPES = {
 #: ``(fx, fy, cx, cy, k1, k2, p1, p2, k3)``: normalised, principal point from the centre.
 _ROW = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 _FLIP = np.diag([1.0, -1.0, -1.0])
+#: The largest image width or height taken (pixels).
+MAX_SIZE = 1_000_000
+#: The focal lengths taken (normalised by ``max(width, height)``: OpenSfM's are near 1).
+FOCAL_RANGE = (1e-3, 1e3)
+#: ``focal_x / focal_y`` (sapgo's y scale) is taken from ``1 / MAX_Y_SCALE`` to this.
+MAX_Y_SCALE = 4.0
+#: The largest principal point offset taken (``c_x``, ``c_y``, normalised).
+MAX_PRINCIPAL_POINT = 1.0
+#: The largest rotation vector taken (radians; OpenSfM writes at most pi): beyond it the
+#: angle has lost its precision.
+MAX_ROTATION = 1e3
+_INT = re.compile(r"[+-]?[0-9]+\Z")
+_INT64 = (-(1 << 63), (1 << 63) - 1)
+
+
+def _show(v):
+    """A JSON value as the file could write it, short."""
+    try:
+        text = json.dumps(v)
+    except (TypeError, ValueError):
+        text = repr(v)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _number(v):
+    """The float of a JSON number (not a boolean), or None when it is none or not finite."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    try:
+        v = float(v)
+    except OverflowError:
+        return None
+    return v if math.isfinite(v) else None
 
 
 def _load_json(path):
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
         raise DataError(f"{path}: not a text file ({exc.reason})") from None
     try:
@@ -81,20 +124,41 @@ def _camera_row(rec, name, cam):
         raise DataError(f"{where}: projection_type {kind!r}: sapgo's frame-camera model takes "
                         f"{', '.join(CAMERA_TYPES)}")
     vals = {}
-    for key in CAMERA_TYPES[kind] + ("width", "height"):
-        v = cam.get(key, 0.0 if key.startswith(("k", "p", "c_")) else None)
+    for key in ("width", "height") + CAMERA_TYPES[kind]:
+        v = cam.get(key)
         if v is None:
             raise DataError(f"{where}: {key} is missing")
-        if not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise DataError(f"{where}: {key} {v!r} is not a finite number")
-        vals[key] = float(v)
-    if vals["width"] <= 0 or vals["height"] <= 0:
-        raise DataError(f"{where}: width and height must be the image's size in pixels "
-                        f"(found {vals['width']:g} x {vals['height']:g})")
+        x = _number(v)
+        if key in ("width", "height"):
+            if x is None or not (x.is_integer() and 1 <= x <= MAX_SIZE):
+                raise DataError(f"{where}: {key} {_show(v)} is not an image size in pixels "
+                                f"(width and height must be whole numbers from 1 to "
+                                f"{MAX_SIZE})")
+        elif x is None:
+            raise DataError(f"{where}: {key} {_show(v)} is not a finite number")
+        vals[key] = x
+    for key in ("focal", "focal_x", "focal_y"):
+        if key not in vals:
+            continue
+        if vals[key] <= 0:
+            raise DataError(f"{where}: the focal length must be positive ({key} "
+                            f"{vals[key]:g})")
+        lo, hi = FOCAL_RANGE
+        if not lo <= vals[key] <= hi:
+            raise DataError(f"{where}: {key} {vals[key]:g} is not a plausible focal length "
+                            f"(normalised by max(width, height): from {lo:g} to {hi:g})")
+    for key in ("c_x", "c_y"):
+        if key in vals and abs(vals[key]) > MAX_PRINCIPAL_POINT:
+            raise DataError(f"{where}: {key} {vals[key]:g} is not a plausible principal point "
+                            f"(normalised, from the image centre: at most "
+                            f"{MAX_PRINCIPAL_POINT:g} either way)")
     if kind == "perspective":
         vals["focal_x"] = vals["focal_y"] = vals["focal"]
-    if vals["focal_x"] <= 0 or vals["focal_y"] <= 0:
-        raise DataError(f"{where}: the focal length must be positive")
+    ratio = vals["focal_x"] / vals["focal_y"]
+    if not 1 / MAX_Y_SCALE <= ratio <= MAX_Y_SCALE:
+        raise DataError(f"{where}: focal_x / focal_y = {ratio:g} is not a plausible pixel "
+                        f"aspect ratio (sapgo scales the image y axis by it: from "
+                        f"{1 / MAX_Y_SCALE:g} to {MAX_Y_SCALE:g})")
     row = [vals["focal_x"], vals["focal_y"], vals.get("c_x", 0.0), vals.get("c_y", 0.0),
            vals.get("k1", 0.0), vals.get("k2", 0.0), vals.get("p1", 0.0),
            vals.get("p2", 0.0), vals.get("k3", 0.0)]
@@ -102,10 +166,10 @@ def _camera_row(rec, name, cam):
 
 
 def _vec(rec, what, v, n=3):
-    if (not isinstance(v, list) or len(v) != n
-            or not all(isinstance(x, (int, float)) and np.isfinite(x) for x in v)):
+    out = [_number(x) for x in v] if isinstance(v, list) else []
+    if len(out) != n or None in out:
         raise DataError(f"{rec}: {what}: expected {n} finite numbers, got {v!r}"[:300])
-    return [float(x) for x in v]
+    return out
 
 
 def read_opensfm(path, index=0):
@@ -114,9 +178,11 @@ def read_opensfm(path, index=0):
     ``camera_types``, ``camera_rows`` (n x 9, :data:`_ROW`), ``sizes`` (n x 2), ``shots``
     (names), ``shot_camera`` (indices), ``rotations`` (world to camera, n x 3 x 3),
     ``translations``, ``points`` (track ids), ``xyz``, ``colors``, ``obs_shot``,
-    ``obs_point``, ``obs_xy`` (normalised), ``obs_feature``, ``obs_scale``, ``version`` and
-    ``reconstructions`` (how many the file holds). Tracks of images or points not in the
-    reconstruction are left out. Errors name the file, and the line in ``tracks.csv``."""
+    ``obs_point``, ``obs_xy`` (normalised), ``obs_feature``, ``obs_scale``, ``obs_line``
+    (in ``tracks.csv``), ``version`` and ``reconstructions`` (how many the file holds).
+    Tracks of images or points not in the reconstruction are left out; a reconstruction
+    without points or observations is refused. Errors name the file, and the line in
+    ``tracks.csv``."""
     from scipy.spatial.transform import Rotation
 
     rec_path, tracks_path = _paths(path)
@@ -151,9 +217,18 @@ def read_opensfm(path, index=0):
                             f"{sh.get('camera') if isinstance(sh, dict) else None!r} is "
                             f"not one of the reconstruction's cameras")
         shot_camera.append(c_index[sh["camera"]])
-        rotvec.append(_vec(rec_path, f"shot {s!r}: rotation", sh.get("rotation")))
+        rv = _vec(rec_path, f"shot {s!r}: rotation", sh.get("rotation"))
+        angle = math.hypot(*rv)
+        if not angle <= MAX_ROTATION:
+            raise DataError(f"{rec_path}: shot {s!r}: rotation {_show(rv)}: a rotation "
+                            f"vector of {angle:.3g} rad is not usable (at most "
+                            f"{MAX_ROTATION:g}; OpenSfM writes at most pi)")
+        rotvec.append(rv)
         trans.append(_vec(rec_path, f"shot {s!r}: translation", sh.get("translation")))
     points = sorted(r["points"])
+    if not points:
+        raise DataError(f"{rec_path}: reconstruction {index} has no points (the block has "
+                        f"no image measurement)")
     p_index = {p: i for i, p in enumerate(points)}
     xyz, colors = [], []
     for p in points:
@@ -161,13 +236,26 @@ def read_opensfm(path, index=0):
         xyz.append(_vec(rec_path, f"point {p!r}: coordinates",
                         pt.get("coordinates") if isinstance(pt, dict) else None))
         col = pt.get("color", [128, 128, 128])
-        colors.append(_vec(rec_path, f"point {p!r}: color", col))
+        rgb = _vec(rec_path, f"point {p!r}: color", col)
+        if not all(0 <= c <= 255 for c in rgb):
+            raise DataError(f"{rec_path}: point {p!r}: color {_show(col)}: red, green and "
+                            f"blue must be from 0 to 255")
+        colors.append(rgb)
+    rotations = Rotation.from_rotvec(np.array(rotvec)).as_matrix().reshape(-1, 3, 3)
+    bad = ~np.isfinite(rotations).all(axis=(1, 2))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise DataError(f"{rec_path}: shot {shots[i]!r}: rotation {_show(rotvec[i])} is not a "
+                        f"usable rotation vector")
     obs = _read_tracks(tracks_path, s_index, p_index)
+    if not len(obs["obs_shot"]):
+        raise DataError(f"{tracks_path}: no image measurement: no line observes a track of "
+                        f"{rec_path.name}'s reconstruction {index} on one of its shots")
     return {"cameras": cameras, "camera_types": types,
             "camera_rows": np.array(rows, np.float64).reshape(-1, 9),
             "sizes": np.array(sizes, np.float64).reshape(-1, 2), "shots": shots,
             "shot_camera": np.array(shot_camera, np.int64),
-            "rotations": Rotation.from_rotvec(np.array(rotvec)).as_matrix().reshape(-1, 3, 3),
+            "rotations": rotations,
             "translations": np.array(trans, np.float64).reshape(-1, 3), "points": points,
             "xyz": np.array(xyz, np.float64).reshape(-1, 3),
             "colors": np.clip(np.round(np.array(colors, np.float64).reshape(-1, 3)), 0,
@@ -178,18 +266,24 @@ def read_opensfm(path, index=0):
 def _read_tracks(path, s_index, p_index):
     """The observations of ``tracks.csv`` on the reconstruction's shots and points."""
     ncols = {0: 8, 1: 9, 2: 11}
-    shot, point, xy, feature, scale = [], [], [], [], []
+    shot, point, xy, feature, scale, where = [], [], [], [], [], []
     version = 0
-    with open(path, newline="") as f:
+    with open(path, newline="", encoding="utf-8-sig", errors="surrogateescape") as f:
         for k, line in enumerate(f, start=1):
             line = line.rstrip("\r\n")
+            if not line.isascii():
+                try:
+                    line.encode("utf-8")
+                except UnicodeEncodeError:
+                    raise DataError(f"{path}:{k}: not a text file (a byte that is not "
+                                    f"UTF-8)") from None
             if k == 1 and line.startswith("OPENSFM_TRACKS_VERSION_v"):
                 try:
                     version = int(line[len("OPENSFM_TRACKS_VERSION_v"):])
                 except ValueError:
                     version = -1
                 if version not in ncols:
-                    raise DataError(f"{path}:1: tracks version {line!r}: sapgo reads "
+                    raise DataError(f"{path}:1: tracks version {line[:60]!r}: sapgo reads "
                                     f"v0, v1 and v2")
                 continue
             if not line.strip():
@@ -201,24 +295,34 @@ def _read_tracks(path, s_index, p_index):
             s, p = s_index.get(cols[0]), p_index.get(cols[1])
             if s is None or p is None:
                 continue
-            try:
-                x, y = float(cols[3]), float(cols[4])
-                feat = int(cols[2])
-                sc = float(cols[5]) if version >= 1 else 0.0
-            except ValueError:
-                raise DataError(f"{path}:{k}: feature_id, x, y or scale is not a number") \
-                    from None
-            if not (np.isfinite(x) and np.isfinite(y)):
-                raise DataError(f"{path}:{k}: x or y is not finite")
+            tok = cols[2].strip()
+            if not _INT.match(tok):
+                raise DataError(f"{path}:{k}: feature_id {tok[:40]!r} is not an integer")
+            feat = int(tok)
+            if not _INT64[0] <= feat <= _INT64[1]:
+                raise DataError(f"{path}:{k}: feature_id {tok[:40]!r} is outside the int64 "
+                                f"range")
+            vals = []
+            for name, col in (("x", 3), ("y", 4), ("scale", 5))[:3 if version >= 1 else 2]:
+                try:
+                    v = float(cols[col])
+                except ValueError:
+                    raise DataError(f"{path}:{k}: {name} {cols[col][:40]!r} is not a "
+                                    f"number") from None
+                if not math.isfinite(v):
+                    raise DataError(f"{path}:{k}: {name} {cols[col][:40]!r} is not finite")
+                vals.append(v)
             shot.append(s)
             point.append(p)
-            xy.append((x, y))
+            xy.append(vals[:2])
             feature.append(feat)
-            scale.append(sc)
+            scale.append(vals[2] if version >= 1 else 0.0)
+            where.append(k)
     return {"obs_shot": np.array(shot, np.int64), "obs_point": np.array(point, np.int64),
             "obs_xy": np.array(xy, np.float64).reshape(-1, 2),
             "obs_feature": np.array(feature, np.int64),
-            "obs_scale": np.array(scale, np.float64), "version": version}
+            "obs_scale": np.array(scale, np.float64), "obs_line": np.array(where, np.int64),
+            "version": version}
 
 
 def _sapgo_cameras(rows, sizes):
@@ -261,6 +365,76 @@ def opensfm_project(d, cam, r, t, xyz):
     return np.column_stack([fx * xd + cx, fy * yd + cy])
 
 
+def _merge_duplicates(path, d, xy, tol, merge):
+    """Each (shot, track) pair observed more than once in ``d`` (a :func:`read_opensfm`
+    dict, its ``obs_*`` arrays cut in place to the pair's first observation) merged at the
+    mean of ``xy`` (its observations in pixels; the merged ones returned). Observations of a
+    pair more than ``tol`` pixels apart raise a :class:`DataError` naming both lines of
+    ``path`` (``tracks.csv``), unless ``merge``. Returns the merged ``xy`` and warning lines
+    (none without duplicates)."""
+    from .bal import DUPLICATE_SIGMAS
+
+    shot, pt, lines = d["obs_shot"], d["obs_point"], d["obs_line"]
+    key = shot * (len(d["points"]) + 1) + pt
+    _, first, group, counts = np.unique(key, return_index=True, return_inverse=True,
+                                        return_counts=True)
+    if len(first) == len(key):
+        return xy, []
+    group = group.ravel()
+    by_group = np.argsort(group, kind="stable")
+    start = np.concatenate([[0], np.cumsum(counts)])
+
+    def members(g):
+        return by_group[start[g]:start[g + 1]]
+
+    def pair(i):
+        return f"shot {d['shots'][shot[i]]!r} track {d['points'][pt[i]]!r}"
+
+    lo = np.full((len(first), 2), np.inf)
+    hi = np.full((len(first), 2), -np.inf)
+    np.minimum.at(lo, group, xy)
+    np.maximum.at(hi, group, xy)
+    wide = np.flatnonzero(np.hypot(*(hi - lo).T) > tol)
+    conflicts = []   # (first line's observation, other, distance), in file order
+    for g in wide[np.argsort(first[wide], kind="stable")].tolist():
+        m = members(g)
+        dist = np.hypot(*(xy[m, None, :] - xy[None, m, :]).transpose(2, 0, 1))
+        i, j = np.unravel_index(int(np.argmax(dist)), dist.shape)
+        if dist[i, j] > tol:
+            conflicts.append((*sorted((int(m[i]), int(m[j]))), float(dist[i, j])))
+            if not merge:
+                break
+    if conflicts and not merge:
+        i, j, dist = conflicts[0]
+        raise DataError(f"{path}: lines {lines[i]} and {lines[j]}: shot "
+                        f"{d['shots'][shot[i]]!r} observes track {d['points'][pt[i]]!r} "
+                        f"twice, {dist:.4g} px apart (more than {DUPLICATE_SIGMAS:g} sigma = "
+                        f"{tol:g} px): correct or remove one, or give --merge-duplicates")
+    mean = np.column_stack([np.bincount(group, weights=xy[:, k]) / counts for k in (0, 1)])
+    keep = np.sort(first)
+    pairs = np.sort(first[counts > 1])
+    shown = "; ".join(f"{pair(i)} (lines "
+                      + ", ".join(str(lines[k]) for k in members(group[i])[:3].tolist())
+                      + ")" for i in pairs[:5].tolist())
+    close = "" if conflicts else (f" within {DUPLICATE_SIGMAS:g} sigma ({tol:g} px) of "
+                                  f"each other")
+    out = [f"{path}: {len(pairs)} (shot, track) pair(s) observed more than once{close}: "
+           f"each merged into one observation at their mean ({len(key) - len(keep)} "
+           f"observation(s) dropped): {shown}{'; ...' if len(pairs) > 5 else ''}"]
+    if conflicts:
+        i, j, dist = max(conflicts, key=lambda c: c[2])
+        out.append(f"{path}: {len(conflicts)} of these pairs lie more than "
+                   f"{DUPLICATE_SIGMAS:g} sigma ({tol:g} px) apart and were averaged as "
+                   f"asked; the farthest: {pair(i)}, lines {lines[i]} and {lines[j]}, "
+                   f"{dist:.4g} px")
+    normalised = np.column_stack([np.bincount(group, weights=d["obs_xy"][:, k]) / counts
+                                  for k in (0, 1)])
+    for name in [k for k in d if k.startswith("obs_")]:
+        d[name] = d[name][keep]
+    d["obs_xy"] = normalised[group[keep]]
+    return mean[group[keep]], out
+
+
 def _int_ids(names):
     """The names as int64 ids when all are decimal integers (distinct), else 1, 2, ..."""
     try:
@@ -273,16 +447,18 @@ def _int_ids(names):
 
 
 @writes_project("import", "out")
-def import_opensfm(path, out, index=0, sigma_image=1.0, force=False):
+def import_opensfm(path, out, index=0, sigma_image=1.0, force=False,
+                   merge_duplicates=False):
     """Import reconstruction ``index`` of the OpenSfM dataset ``path`` into a new project
     ``out``: one sapgo camera per OpenSfM camera (intrinsics held fixed), one photo per shot
     (ids 1, 2, ... in the order of the image names), one pass point per point (ids: the
     track ids when they are integers, else 1, 2, ... in their order), one observation per
     track entry on a reconstructed shot and point; pixels from the image centre, y up,
     sigma ``sigma_image`` pixels; a free network. Names, camera types, sizes, colours,
-    feature ids and scales go to ``/opensfm``. Returns a summary dict."""
-    import math
-
+    feature ids and scales go to ``/opensfm``. A track observed more than once on a shot
+    is one observation at their mean when they agree within 3 sigma, else an error naming
+    both lines unless ``merge_duplicates`` (the first one's feature id and scale kept).
+    Returns a summary dict (``warnings``: lines for the user)."""
     from ..frames import opk_of
     from ..project import new_project_path
     from .bal import write_snavely_project
@@ -292,14 +468,48 @@ def import_opensfm(path, out, index=0, sigma_image=1.0, force=False):
         raise ParameterError(f"--sigma-image must be a positive number of pixels, found "
                              f"{sigma_image!r}")
     d = read_opensfm(path, index)
-    rows, y_scale = _sapgo_cameras(d["camera_rows"], d["sizes"])
+    rec_path, tracks_path = _paths(path)
+    with np.errstate(all="ignore"):
+        rows, y_scale = _sapgo_cameras(d["camera_rows"], d["sizes"])
+        formats = np.column_stack([d["sizes"][:, 0], d["sizes"][:, 1] * y_scale])
+    bad = ~(np.isfinite(rows).all(axis=1) & np.isfinite(formats).all(axis=1))
+    if bad.any():
+        c = int(np.argmax(bad))
+        raise DataError(f"{rec_path}: camera {d['cameras'][c]!r}: its parameters do not "
+                        f"convert to finite values of sapgo's camera (f, x0, y0, k1, k2, k3, "
+                        f"p1, p2 in pixels: {', '.join(f'{v:g}' for v in rows[c, :8])})")
     cam = d["shot_camera"]
     big = d["sizes"].max(axis=1)
+    r = d["rotations"]
+    with np.errstate(all="ignore"):
+        eo = np.column_stack([opk_of(_FLIP @ r),
+                              -np.einsum("nji,nj->ni", r, d["translations"])])
+    bad = ~(np.isfinite(eo).all(axis=1) & (np.abs(eo[:, 3:]) <= MAX_MAGNITUDE).all(axis=1))
+    if bad.any():
+        s = int(np.argmax(bad))
+        raise DataError(f"{rec_path}: shot {d['shots'][s]!r}: its rotation and translation "
+                        f"put the camera at {_show(eo[s, 3:].tolist())}, beyond "
+                        f"{MAX_MAGNITUDE:g}: a value out of range")
+    bad = ~(np.abs(d["xyz"]) <= MAX_MAGNITUDE).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise DataError(f"{rec_path}: point {d['points'][i]!r}: coordinates "
+                        f"{_show(d['xyz'][i].tolist())} beyond {MAX_MAGNITUDE:g}: a value "
+                        f"out of range")
     o_cam = cam[d["obs_shot"]]
     xy = np.column_stack([d["obs_xy"][:, 0] * big[o_cam],
                           -d["obs_xy"][:, 1] * big[o_cam] * y_scale[o_cam]])
-    r = d["rotations"]
-    eo = np.column_stack([opk_of(_FLIP @ r), -np.einsum("nji,nj->ni", r, d["translations"])])
+    bad = ~(np.abs(xy) <= MAX_MAGNITUDE).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise DataError(f"{tracks_path}:{d['obs_line'][i]}: x, y {d['obs_xy'][i, 0]:g}, "
+                        f"{d['obs_xy'][i, 1]:g} are {_show(xy[i].tolist())} pixels, beyond "
+                        f"{MAX_MAGNITUDE:g}: a value out of range")
+    from .bal import DUPLICATE_SIGMAS
+
+    xy, warnings = _merge_duplicates(tracks_path, d, xy, DUPLICATE_SIGMAS * sigma_image,
+                                     merge_duplicates)
+    o_cam = cam[d["obs_shot"]]
     # the reference: OpenSfM's own reprojection error, pixels
     proj = opensfm_project(d, d["camera_rows"][o_cam], r[d["obs_shot"]],
                            d["translations"][d["obs_shot"]], d["xyz"][d["obs_point"]])
@@ -336,7 +546,6 @@ def import_opensfm(path, out, index=0, sigma_image=1.0, force=False):
         g.create_dataset("observations", data=o[np.lexsort((o["feature"], o["photo_id"],
                                                             o["point_id"]))])
 
-    formats = np.column_stack([d["sizes"][:, 0], d["sizes"][:, 1] * y_scale])
     n = write_snavely_project(
         out, {"command": "import", "format": "opensfm", "path": str(path), "index": index},
         eo, None, ids_shot, d["xyz"], d["obs_shot"], d["obs_point"], xy, "fixed", extra,
@@ -345,7 +554,8 @@ def import_opensfm(path, out, index=0, sigma_image=1.0, force=False):
     return {"path": str(out), "cameras": len(d["cameras"]), "photos": len(d["shots"]),
             "points": len(d["points"]), "observations": n,
             "reconstructions": d["reconstructions"], "index": index,
-            "mean_error_px": float(err.mean()) if len(err) else 0.0}
+            "mean_error_px": float(err.mean()) if len(err) else 0.0,
+            "warnings": warnings}
 
 
 def export_opensfm(project_path, out_dir, adjusted=True):
@@ -354,14 +564,14 @@ def export_opensfm(project_path, out_dir, adjusted=True):
     adjusted values where they were adjusted, its shots and points) and ``tracks.csv`` (v1)
     in ``out_dir``, with the names, camera types, colours, feature ids and scales it was
     imported with. Returns a dict of counts."""
-    import h5py
     from scipy.spatial.transform import Rotation
 
     from ..frames import rotation_matrices
+    from ..project import Project
     from .bal import snavely_block
 
-    with h5py.File(project_path, "r") as f:
-        g = f.get("opensfm")
+    with Project(project_path) as p:   # (its errors name the file: not HDF5, missing, ...)
+        g = p.file.get("opensfm")
         if g is None:
             raise DataError(f"{project_path}: not imported from OpenSfM (no /opensfm): the "
                             f"names of its cameras, images and tracks are not known")

@@ -33,6 +33,7 @@ float64 radians, so export -> import reproduces a project's records bitwise.
 from __future__ import annotations
 
 import io
+import os
 import re
 import warnings
 from pathlib import Path
@@ -304,6 +305,10 @@ def read_chunks(path, chunk_bytes):
     chunk_bytes = max(4096, int(chunk_bytes))
     max_line = max(chunk_bytes, MAX_LINE)
     with open_input(path) as f:
+        try:   # (no block beyond the file: a --memory of terabytes reads it at once)
+            chunk_bytes = max(4096, min(chunk_bytes, os.fstat(f.fileno()).st_size + 1))
+        except OSError:
+            pass
         first, rest, start = 1, b"", True
         while True:
             block = f.read(chunk_bytes)
