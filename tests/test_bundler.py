@@ -174,6 +174,19 @@ BAD = {
                         "camera 1 was not reconstructed"),
     "colour": ("# Bundle file v0.3\n1 1\n1 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 5\n1 2 3\n"
                "1 2 300\n0\n", ":9:", "colour"),
+    "key_int64": ("# Bundle file v0.3\n1 1\n1 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 5\n1 2 3\n"
+                  "1 2 3\n1 0 99999999999999999999 1.0 2.0\n", ":10:",
+                  "point 0: key '99999999999999999999' is outside the int64 range"),
+    "key_2p64": ("# Bundle file v0.3\n1 1\n1 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 5\n1 2 3\n"
+                 "1 2 3\n1 0 9223372036854775808 1.0 2.0\n", ":10:", "int64 range"),
+    "tiny_focal": ("# Bundle file v0.3\n1 1\n1e-300 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 -5\n"
+                   "1 2 3\n1 2 3\n1 0 0 1.0 2.0\n", ":3:",
+                   "camera 0: focal length 1e-300 pixels is implausibly small"),
+    "huge_translation": ("# Bundle file v0.3\n1 1\n100 0 0\n1 0 0\n0 1 0\n0 0 1\n"
+                         "1e300 0 -5\n1 2 3\n1 2 3\n1 0 0 1.0 2.0\n", ":10:",
+                         "point 0: its projection by camera 0 (lines 3-7) is not finite"),
+    "version": ("# Bundle file v0.9\n1 0\n1 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 5\n", ":1:",
+                "version '0.9': only v0.3 and v0.4 are read"),
 }
 
 
@@ -182,6 +195,28 @@ def test_malformed_bundler_files_name_file_and_line(tmp_path, capsys, case):
     text, line, words = BAD[case]
     f = tmp_path / "bad.out"
     f.write_text(text)
-    code, out, err = run_cli(capsys, "import", "--format", "bundler", f, tmp_path / "x.h5")
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")   # (a RuntimeWarning printed is a failure too)
+        code, out, err = run_cli(capsys, "import", "--format", "bundler", f,
+                                 tmp_path / "x.h5")
     assert_one_line_error(code, err, f"bad.out{line}", words)
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_keys_are_exact_and_v04_is_read(tmp_path):
+    """A keypoint index beyond 2^53 is kept exactly (as a float it would be its
+    neighbour); a v0.4 file and one without a header are read, an integral key written as
+    a float still taken."""
+    import h5py
+
+    big = 9007199254740993
+    cam = "100 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 -5\n"
+    for head in ("# Bundle file v0.4\n", "", "# Bundle file v0.3\n"):
+        f = tmp_path / "k.out"
+        f.write_text(f"{head}2 1\n{cam}{cam}1 2 3\n1 2 3\n2 0 {big} 1.0 2.0 1 7.0 1.5 2.5\n")
+        assert read_bundler(f)["obs_key"].tolist() == [big, 7]
+        import_bundler(f, tmp_path / "k.h5", force=True)
+        with h5py.File(tmp_path / "k.h5", "r") as h:
+            assert sorted(h["bundler/observations"]["key"].tolist()) == [7, big]

@@ -574,3 +574,21 @@ def test_text_export_of_the_adjusted_block_imports_again(small_block, tmp_path, 
     pts = np.loadtxt(d / "adjusted_points.txt", usecols=(0, 1, 2, 3))
     assert max(np.abs(r[1:] - xyz[int(r[0])]).max() for r in pts) < 1e-9
     shutil.rmtree(d)
+
+
+@pytest.mark.parametrize("where", ["one place", "a line"])
+def test_control_at_one_place_or_on_a_line_is_refused(scene, tmp_path, capsys, where):
+    """Full control points whose given coordinates coincide or lie on a line (the model's
+    points do not): the similarity is undetermined; one line naming the control file and
+    the points (the model was collapsed to a point, scale 0, before)."""
+    m = make_scene()
+    d = write_model(tmp_path / "model", m)
+    ids = [p for p, v in m["points"].items() if len(v[2]) >= 3][::7][:4]
+    lines = [f"{pid} {k if where == 'a line' else 0} {k if where == 'a line' else 0} "
+             f"{k if where == 'a line' else 0} 0.02 0.02 0.02" for k, pid in enumerate(ids)]
+    (tmp_path / "control.txt").write_text("\n".join(lines) + "\n")
+    code, _, err = run_cli(capsys, "import", "--format", "colmap", d, tmp_path / "x.h5",
+                           "--control", tmp_path / "control.txt")
+    assert_one_line_error(code, err, "control.txt: the full control points",
+                          "at one place or on a line")
+    assert not (tmp_path / "x.h5").exists()

@@ -227,3 +227,15 @@ def test_observations_cut_short_are_a_damaged_project(small_block, tmp_path, cap
         assert_one_line_error(*run_cli(capsys, *args)[::2], "the project is damaged",
                               "/observations has 5 records")
     assert digest(small_block) == before
+
+
+def test_a_refused_export_makes_no_directory(small_block, tmp_path, capsys):
+    """An export of a file that is not a project, or ``--adjusted`` of a project never
+    adjusted: one line, and no output directory left behind (an empty one before)."""
+    bad = tmp_path / "notes.h5"
+    bad.write_text("not a project\n")
+    assert_one_line_error(*run_cli(capsys, "export", bad, tmp_path / "out1")[::2],
+                          "not a sapgo project")
+    assert_one_line_error(*run_cli(capsys, "export", "--adjusted", small_block,
+                                   tmp_path / "out2")[::2], "no adjusted solution")
+    assert not (tmp_path / "out1").exists() and not (tmp_path / "out2").exists()

@@ -169,3 +169,192 @@ def test_export_and_import_again(small_block, tmp_path, capsys):
     code, out, err = run_cli(capsys, "export", small_block, tmp_path / "x.txt", "--format",
                              "photomodeler")
     assert_one_line_error(code, err, "--pixel-size")
+
+
+def _layout(lines):
+    """Where the blocks of a :func:`_write_pm` file start (indices into ``lines``): the
+    first photo's camera line, the control, object and marked points."""
+    k = 5
+    while lines[k].strip():
+        k += 6
+    ctl = k + 1
+    obj = next(i for i in range(ctl, len(lines)) if not lines[i].strip()) + 1
+    mk = next(i for i in range(obj, len(lines)) if not lines[i].strip()) + 1
+    return {"cam": 9, "ctl": ctl, "obj": obj, "mk": mk}
+
+
+def _edited(small_block, tmp_path, edit):
+    """A :func:`_write_pm` file changed by ``edit(lines, layout)`` (in place)."""
+    _write_pm(small_block, tmp_path / "pm.txt")
+    lines = (tmp_path / "pm.txt").read_text().splitlines()
+    edit(lines, _layout(lines))
+    (tmp_path / "pm.txt").write_text("\n".join(lines) + "\n")
+    return tmp_path / "pm.txt"
+
+
+def _set(lines, k, col, value):
+    t = lines[k].split()
+    t[col] = value
+    lines[k] = "  " + " ".join(t)
+
+
+def _import_refused(capsys, path, *words):
+    """The CLI import of ``path`` stops with one line holding ``words``, no warning raised
+    (a RuntimeWarning is an error here) and no project written."""
+    import warnings
+
+    out = path.parent / "x.h5"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code, _, err = run_cli(capsys, "import", "--format", "photomodeler", path, out)
+    assert_one_line_error(code, err, *words)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("col, value, words", [
+    (1, "-152.0", "photo 1's camera: c must be positive, found -152"),
+    (4, "0", "photo 1's camera: xs must be positive, found 0"),
+    (4, "-230.0", "photo 1's camera: xs must be positive, found -230"),
+    (5, "0.0", "photo 1's camera: ys must be positive, found 0"),
+])
+def test_a_photos_camera_row_is_checked(small_block, tmp_path, capsys, col, value, words):
+    path = _edited(small_block, tmp_path, lambda ln, at: _set(ln, at["cam"], col, value))
+    assert (tmp_path / "pm.txt").read_text().splitlines()[9].split()[0] == "1"
+    _import_refused(capsys, path, "pm.txt:10:", words)
+
+
+def test_ids_are_exact_integers(small_block, tmp_path, capsys):
+    """An id beyond 2^53 is read exactly: it keeps its marks and does not merge with its
+    neighbour; ids that are no integers or outside int64 are refused."""
+    from sapgo.formats.photomodeler import import_photomodeler
+
+    big = 9007199254740993
+
+    def edit(lines, at):
+        old = lines[at["obj"]].split()[0]
+        _set(lines, at["obj"], 0, str(big))
+        for k in range(at["mk"], len(lines)):
+            if lines[k].split()[1] == old:
+                _set(lines, k, 1, str(big))
+
+    path = _edited(small_block, tmp_path, edit)
+    r = import_photomodeler(path, tmp_path / "big.h5")
+    with Project(tmp_path / "big.h5") as p:
+        pt, ob = p.read("points"), p.read("observations")
+    assert big in pt["id"].tolist() and big - 1 not in pt["id"].tolist()
+    assert (pt["id"][ob["point"]] == big).sum() >= 2 and r["points"] == len(pt)
+    # a mark on big - 1 names a point that is not there
+    lines = path.read_text().splitlines()
+    at = _layout(lines)
+    k = next(k for k in range(at["mk"], len(lines)) if lines[k].split()[1] == str(big))
+    _set(lines, k, 1, str(big - 1))
+    path.write_text("\n".join(lines) + "\n")
+    _import_refused(capsys, path, f"pm.txt:{k + 1}:", f"marked point {big - 1} is not")
+    for value, words in (("99999999999999999999", "'99999999999999999999' is outside the "
+                                                   "int64 range"),
+                         ("1.0", "'1.0' is not an integer")):
+        _set(lines, k, 1, value)
+        path.write_text("\n".join(lines) + "\n")
+        _import_refused(capsys, path, f"pm.txt:{k + 1}:", words)
+    lines = _edited(small_block, tmp_path, lambda ln, at: None).read_text().splitlines()
+    at = _layout(lines)
+    _set(lines, at["ctl"], 0, "1e3")
+    path.write_text("\n".join(lines) + "\n")
+    _import_refused(capsys, path, f"pm.txt:{at['ctl'] + 1}:", "'1e3' is not an integer")
+
+
+def _repeat(lines, k, change=None):
+    """Line ``k`` written again after it, its column ``change[0]`` set to ``change[1]``."""
+    lines.insert(k + 1, lines[k])
+    if change:
+        _set(lines, k + 1, *change)
+
+
+@pytest.mark.parametrize("block, what", [("ctl", "control point"), ("obj", "object point")])
+def test_a_point_given_twice(small_block, tmp_path, capsys, block, what):
+    """Given twice with the same values: loaded once, with a warning; with different
+    values: an error naming the id and both lines."""
+    from sapgo.formats.photomodeler import import_photomodeler
+
+    path = _edited(small_block, tmp_path, lambda ln, at: _repeat(ln, at[block]))
+    lines = path.read_text().splitlines()
+    k = _layout(lines)[block]
+    pid = lines[k].split()[0]
+    r = import_photomodeler(path, tmp_path / "once.h5")
+    assert any(f"{what} {pid} is given again" in w and f"pm.txt:{k + 2}" in w
+               for w in r["warnings"])
+    (tmp_path / "ref").mkdir()
+    ref = import_photomodeler(_edited(small_block, tmp_path / "ref", lambda ln, at: None),
+                              tmp_path / "ref.h5")
+    assert (r["points"], r["control_points"]) == (ref["points"], ref["control_points"])
+    _set(lines, k + 1, 3, "500.0")
+    path.write_text("\n".join(lines) + "\n")
+    _import_refused(capsys, path, f"{what} {pid} is given twice with different values (Z)",
+                    f"pm.txt:{k + 1} and ", f"pm.txt:{k + 2}")
+
+
+def test_a_photo_given_twice(small_block, tmp_path, capsys):
+    from sapgo.formats.photomodeler import import_photomodeler
+
+    def edit(lines, at):
+        lines[11:11] = lines[5:11]
+
+    path = _edited(small_block, tmp_path, edit)
+    r = import_photomodeler(path, tmp_path / "once.h5")
+    assert r["photos"] == len(read_records(small_block)["stations"])
+    assert any("photo 1 is given again" in w and "pm.txt:12" in w for w in r["warnings"])
+    lines = path.read_text().splitlines()
+    _set(lines, 12, 3, "4300.5")
+    path.write_text("\n".join(lines) + "\n")
+    _import_refused(capsys, path, "photo 1 is given twice with different values (Z): ",
+                    "pm.txt:6 and ", "pm.txt:12")
+
+
+def test_a_point_marked_twice_on_a_photo(small_block, tmp_path, capsys):
+    """Within 3 sigma: one observation at the mean, with a warning; farther: an error
+    naming the photo, the point and both lines."""
+    from sapgo.formats.photomodeler import import_photomodeler
+
+    def edit(lines, at):
+        k = len(lines) - 1
+        _repeat(lines, k, (2, repr(float(lines[k].split()[2]) + 1.0)))
+
+    path = _edited(small_block, tmp_path, edit)
+    lines = path.read_text().splitlines()
+    n = len(lines)
+    ph, pt = lines[-1].split()[:2]
+    r = import_photomodeler(path, tmp_path / "merged.h5")
+    assert r["observations"] == len(read_records(small_block)["observations"])
+    assert any(f"photo {ph} point {pt} (lines {n - 1}, {n})" in w for w in r["warnings"])
+    back = read_records(tmp_path / "merged.h5")
+    o = back["observations"]
+    mine = o[(back["stations"]["id"][o["station"]] == int(ph))
+             & (back["points"]["id"][o["point"]] == int(pt))]
+    col = (float(lines[-1].split()[2]) + float(lines[-2].split()[2])) / 2
+    assert len(mine) == 1
+    assert mine["x"][0] == pytest.approx(col * 230 / WIDTH - 115, abs=1e-12)
+    _set(lines, n - 1, 2, repr(float(lines[-1].split()[2]) + 10000.0))
+    path.write_text("\n".join(lines) + "\n")
+    _import_refused(capsys, path, f"pm.txt: lines {n - 1} and {n}: point {pt} is marked "
+                    f"twice on photo {ph}, 1e+04 px apart (more than 3 sigma = 1.8 px)")
+
+
+def test_a_marks_sigma_must_not_be_negative(small_block, tmp_path, capsys):
+    """A negative sigma is an error; 0 (like none) takes the camera's sigma."""
+    from sapgo.formats.photomodeler import import_photomodeler
+
+    path = _edited(small_block, tmp_path, lambda ln, at: (_set(ln, len(ln) - 1, 4, "0"),
+                                                          _set(ln, len(ln) - 1, 5, "0")))
+    import_photomodeler(path, tmp_path / "zero.h5")
+    assert (read_records(tmp_path / "zero.h5")["observations"]["sigma"] == 0).sum() == 1
+    lines = path.read_text().splitlines()
+    _set(lines, len(lines) - 1, 4, "-0.6")
+    path.write_text("\n".join(lines) + "\n")
+    _import_refused(capsys, path, f"pm.txt:{len(lines)}: marked point sigma must be "
+                    f"positive, found -0.6")
+
+
+def test_an_empty_file(tmp_path, capsys):
+    for text in ("", "\n  \n"):
+        (tmp_path / "pm.txt").write_text(text)
+        _import_refused(capsys, tmp_path / "pm.txt", "pm.txt: the file is empty")

@@ -153,7 +153,13 @@ def cmd_import(args):
             raise ParameterError("--format photomodeler takes the export and the project to "
                                  "create: sapgo import --format photomodeler export.txt "
                                  "block.h5")
+        if args.merge_duplicates:
+            raise ParameterError("--merge-duplicates does not apply to --format photomodeler "
+                                 "(its marks agreeing within 3 sigma are averaged; others "
+                                 "are an error naming both lines)")
         r = import_photomodeler(args.paths[0], args.paths[1], force=args.force)
+        for w in r.get("warnings", ()):
+            _warn(w)
         datum = ("a free network" if r["free"] else
                  f"{r['control_points']} control points")
         _say(f"imported {r['path']}: {r['photos']} photos, {r['cameras']} camera(s) (held; "

@@ -19,6 +19,7 @@ pass point (id: its index); the colours and keypoint indices are kept in the pro
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +50,17 @@ BUNDLER_OBSERVATION_DTYPE = np.dtype([("point_id", "<i8"), ("photo_id", "<i8"),
 #: (Bundler writes 10 significant digits); the rotation is then made orthonormal.
 ROTATION_TOL = 1e-6
 
+#: The Bundler versions read (the header ``# Bundle file v0.3``).
+VERSIONS = ("0.3", "0.4")
+
+#: Smallest focal length (pixels) taken as a camera's: below it the camera is refused (an
+#: image of more than a few pixels would span nearly 180 degrees, and k1 / f^2, k2 / f^4
+#: of sapgo's model lose their meaning or overflow).
+MIN_FOCAL = 1e-6
+
+_INT = re.compile(r"[+-]?[0-9]+")
+_INT64 = (-(2 ** 63), 2 ** 63 - 1)
+
 
 def _numbers(path, lines, where, per_line, what):
     """The numbers of the lines ``where`` (indices into ``lines``), ``per_line`` each, as
@@ -72,22 +84,63 @@ def _numbers(path, lines, where, per_line, what):
     raise AssertionError("unreachable")
 
 
+def _keys(tokens):
+    """The keypoint indices ``tokens`` (strings) as exact int64, or ``(i, message)`` of the
+    first one that is not an index: decimal digits (an integral number below 2^53, e.g.
+    ``5.0``, is taken too), at least 0 and in the int64 range."""
+    joined = "".join(tokens)
+    if joined.isascii() and "_" not in joined:
+        try:
+            keys = np.array(tokens, dtype=np.str_).astype(np.int64)
+        except (ValueError, OverflowError):
+            keys = None
+        if keys is not None:
+            bad = np.flatnonzero(keys < 0)
+            return keys if not len(bad) else (int(bad[0]), "is not an index (an integer "
+                                                           ">= 0)")
+    keys = np.zeros(len(tokens), np.int64)
+    for i, x in enumerate(tokens):
+        if _INT.fullmatch(x):
+            v = int(x)
+            if not _INT64[0] <= v <= _INT64[1]:
+                return i, "is outside the int64 range"
+        else:
+            try:
+                f = float(x)
+            except ValueError:
+                return i, "is not a number"
+            if not (abs(f) < 2.0 ** 53 and f == round(f)):
+                return i, "is not an index (an integer >= 0)"
+            v = int(f)
+        if v < 0:
+            return i, "is not an index (an integer >= 0)"
+        keys[i] = v
+    return keys
+
+
 def read_bundler(path):
     """Read a Bundler ``.out`` file (plain, ``.gz`` or ``.bz2``): a dict of ``rotations``
     (n x 3 x 3), ``translations`` (n x 3), ``fk`` (n x 3: f, k1, k2), ``reconstructed`` (n: a camera
     not all zeros), ``points`` (m x 3), ``colors`` (m x 3), ``obs_camera``, ``obs_point``,
     ``obs_key`` (int64), ``obs_xy`` (k x 2), ``obs_line`` and ``obs_view`` (an
-    observation's line and its place in the line's view list, from 1) and ``version``.
-    Errors name the file and line."""
+    observation's line and its place in the line's view list, from 1), ``camera_line``
+    (n: each camera's first line) and ``version``. Errors name the file and line: among
+    them a version other than v0.3 and v0.4, a keypoint index that is not an exact
+    non-negative int64, a focal length below :data:`MIN_FOCAL` and an observation whose
+    projection is not finite."""
     path = Path(path)
     lines = read_text(path).splitlines()
     data = [k for k, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
-    version = next((ln.strip()[1:].strip() for ln in lines if ln.lstrip().startswith("#")),
-                   "")
+    at = next((k for k, ln in enumerate(lines) if ln.lstrip().startswith("#")), None)
+    version = lines[at].strip()[1:].strip() if at is not None else ""
     if not data:
         raise DataError(f"{path}: the file is empty")
+    said = re.fullmatch(r"bundle\s+file\s+v?(\S+)", version, re.IGNORECASE)
+    if said and said.group(1) not in VERSIONS:
+        raise DataError(f"{path}:{at + 1}: Bundle file version {said.group(1)!r}: only "
+                        f"v{' and v'.join(VERSIONS)} are read")
     head = lines[data[0]].split()
-    if len(head) != 2 or not all(h.isdigit() for h in head):
+    if len(head) != 2 or not all(h.isascii() and h.isdigit() for h in head):
         raise DataError(f"{path}:{data[0] + 1}: expected 'num_cameras num_points' (two "
                         f"non-negative integers), got {lines[data[0]].strip()!r}")
     n_cam, n_pt = (int(h) for h in head)
@@ -115,6 +168,10 @@ def read_bundler(path):
         if fk[j, 0] <= 0:
             raise DataError(f"{path}:{cam_line(j, 0)}: camera {j}: focal length "
                             f"{float(fk[j, 0]):g} is not positive")
+        if fk[j, 0] < MIN_FOCAL:
+            raise DataError(f"{path}:{cam_line(j, 0)}: camera {j}: focal length "
+                            f"{float(fk[j, 0]):g} pixels is implausibly small (at least "
+                            f"{MIN_FOCAL:g} expected)")
         err = np.abs(rot[j].T @ rot[j] - np.eye(3)).max()
         det = np.linalg.det(rot[j])
         if err > ROTATION_TOL or det <= 0:
@@ -138,7 +195,7 @@ def read_bundler(path):
     for i, k in enumerate(pts_lines[2::3]):
         parts = lines[k].split()
         n = parts[0] if parts else ""
-        if not n.isdigit() or len(parts) != 1 + 4 * int(n):
+        if not (n.isascii() and n.isdigit()) or len(parts) != 1 + 4 * int(n):
             raise DataError(f"{path}:{k + 1}: point {i}: view list: expected 'n' and n "
                             f"times 'camera key x y', got {len(parts)} values")
         counts[i] = int(n)
@@ -160,14 +217,18 @@ def read_bundler(path):
                 except ValueError:
                     raise DataError(f"{path}:{k + 1}: point {i}: view list: {x!r} is not "
                                     f"a number") from None
-    for col, name, n in ((0, "camera", n_cam), (1, "key", None)):
-        v = views[:, col]
-        bad = np.flatnonzero((v != np.round(v)) | (v < 0) | ((v >= n) if n else False))
-        if len(bad):
-            o = int(bad[0])
-            raise DataError(f"{path}:{view_line(o)}: point {int(obs_point[o])}: {name} "
-                            f"{v[o]:g} is not " + (f"one of 0..{n - 1}" if n else
-                                                   "an index (an integer >= 0)"))
+    v = views[:, 0]
+    bad = np.flatnonzero((v != np.round(v)) | (v < 0) | (v >= n_cam))
+    if len(bad):
+        o = int(bad[0])
+        raise DataError(f"{path}:{view_line(o)}: point {int(obs_point[o])}: camera "
+                        f"{v[o]:g} is not one of 0..{n_cam - 1}")
+    # keypoint indices: exact integers (as floats, indices beyond 2^53 would merge)
+    keys = _keys(tokens[1::4])
+    if isinstance(keys, tuple):
+        o, why = keys
+        raise DataError(f"{path}:{view_line(o)}: point {int(obs_point[o])}: key "
+                        f"{tokens[4 * o + 1]!r} {why}")
     obs_camera = views[:, 0].astype(np.int64)
     bad = np.flatnonzero(~reconstructed[obs_camera])
     if len(bad):
@@ -179,13 +240,30 @@ def read_bundler(path):
         o = int(bad[0])
         raise DataError(f"{path}:{view_line(o)}: point {int(obs_point[o])}: an image "
                         f"coordinate is not finite")
+    # every observation's projection and residual finite (a camera or point value so large,
+    # or a point so near a camera's plane, that they overflow: the cost would be nan)
+    with np.errstate(all="ignore"):
+        c, j = obs_camera, obs_point
+        p = np.einsum("nij,nj->ni", rot[c], pts[j]) + t[c]
+        q = -p[:, :2] / p[:, 2:3]
+        r2 = (q * q).sum(axis=1)
+        proj = fk[c, 0][:, None] * (1.0 + fk[c, 1] * r2 + fk[c, 2] * r2 * r2)[:, None] * q
+        res = ((proj - views[:, 2:]) ** 2).sum(axis=1)
+    bad = np.flatnonzero(~np.isfinite(res))
+    if len(bad):
+        o = int(bad[0])
+        cj = int(obs_camera[o])
+        raise DataError(f"{path}:{view_line(o)}: point {int(obs_point[o])}: its projection "
+                        f"by camera {cj} (lines {cam_line(cj, 0)}-{cam_line(cj, 4)}) is not "
+                        f"finite: a camera or point value is out of range")
     line = np.asarray(pts_lines[2::3], np.int64)[obs_point] + 1 if len(obs_point) else \
         np.zeros(0, np.int64)
     view = np.arange(len(obs_point)) - np.repeat(np.cumsum(counts) - counts, counts) + 1
     return {"rotations": rot, "translations": t, "fk": fk, "reconstructed": reconstructed,
             "points": pts, "colors": rgb.astype(np.uint8), "obs_camera": obs_camera,
-            "obs_point": obs_point, "obs_key": views[:, 1].astype(np.int64),
+            "obs_point": obs_point, "obs_key": keys,
             "obs_xy": views[:, 2:].copy(), "obs_line": line, "obs_view": view,
+            "camera_line": np.asarray(body[:5 * n_cam:5], np.int64) + 1,
             "version": version}
 
 
@@ -242,7 +320,20 @@ def import_bundler(path, out, force=False, intrinsics="adjusted", merge_duplicat
     rec = np.flatnonzero(d["reconstructed"])
     index = np.full(len(d["fk"]), -1)
     index[rec] = np.arange(len(rec))
-    eo, rows = snavely_to_sapgo(d["rotations"][rec], d["translations"][rec], d["fk"][rec])
+    with np.errstate(all="ignore"):
+        eo, rows = snavely_to_sapgo(d["rotations"][rec], d["translations"][rec],
+                                    d["fk"][rec])
+    bad = np.flatnonzero(~(np.isfinite(eo).all(axis=1) & np.isfinite(rows).all(axis=1)))
+    if len(bad):
+        j = int(rec[bad[0]])
+        raise DataError(f"{path}:{d['camera_line'][j]}: camera {j}: a value is out of range "
+                        f"for sapgo's camera model (its projection centre -R't or k1 / f^2, "
+                        f"k2 / f^4 is not finite)")
+    with np.errstate(all="ignore"):
+        cost = bundler_cost(d)
+    if not np.isfinite(cost):   # (each observation's residual is finite: their sum is not)
+        raise DataError(f"{path}: the initial cost is {cost} (the residuals are too large "
+                        f"to sum: a camera's or point's value out of range?)")
 
     def extra(file):
         g = file.create_group("bundler")
@@ -264,7 +355,7 @@ def import_bundler(path, out, force=False, intrinsics="adjusted", merge_duplicat
     return {"path": str(out), "cameras": len(rec), "photos": len(rec),
             "not_reconstructed": int(len(d["fk"]) - len(rec)), "points": len(d["points"]),
             "observations": n, "duplicates_dropped": n_read - n, "warnings": warnings,
-            "initial_cost": bundler_cost(d), "version": d["version"]}
+            "initial_cost": cost, "version": d["version"]}
 
 
 def export_bundler(project_path, out_path, adjusted=True):

@@ -643,6 +643,13 @@ def import_colmap(model_dir, out, control=(), crs=None, sigma_image=1.0, force=F
                   if len(full) >= 3 else np.zeros(3))
         # (nearly on a line: the rotation about it would be set by the noise)
         if len(full) >= 3 and spread[1] > 1e-3 * spread[0]:
+            given = np.linalg.svd(ctrl[full] - ctrl[full].mean(axis=0), compute_uv=False)
+            if not given[1] > 1e-3 * given[0]:   # (the control's own coordinates: the same)
+                shown = ", ".join(str(int(v)) for v in ids_sorted[full[:5]])
+                raise DataError(
+                    f"{', '.join(str(c) for c in control)}: the full control points "
+                    f"({shown}{', ...' if len(full) > 5 else ''}) are at one place or on a "
+                    f"line: the similarity that brings the model to them is undetermined")
             s, q, t, rms = similarity(xyz[full], ctrl[full])
             xyz = s * xyz @ q.T + t
             eo = np.column_stack([opk_of(rotation_matrices(eo[:, :3]) @ q.T),

@@ -29,12 +29,19 @@ are a *backward* model: they correct a measured point ``m`` (mm, y up) into the 
 image centre, y up) and gives each camera its K1-K3, P1, P2 as k1-k3, p1, p2 of that model:
 held, they correct the measurements exactly as DBAT does; self-calibrated (``--calibrate``),
 they are adjusted in PhotoModeler's own model. Marked points' sigmas are taken as pixels.
+
+Checks beyond the layout: ids are exact int64 integers; a photo's camera needs c, xs, ys
+positive; a mark's sigma must not be negative (0 or none: the camera's); a photo, control
+or object point given twice is loaded once with a warning when the repeats are the same
+(bit for bit), else refused naming both lines; a point marked twice on a photo is averaged
+with a warning within :data:`DUPLICATE_SIGMAS` sigmas, else refused naming both lines.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +51,20 @@ from ..errors import DataError, ParameterError
 from ..geometry import AP_SET, BACKWARD
 
 __all__ = ["export_photomodeler", "import_photomodeler", "pm_correct", "read_photomodeler"]
+
+
+#: Marks of one point on one photo at most this many sigmas apart (the larger of their
+#: sigmas, else the camera's 0.1 pixel) are one measurement written twice: averaged, with a
+#: warning. Farther apart they contradict each other and the import stops.
+DUPLICATE_SIGMAS = 3.0
+#: A marked point's sigma (pixels) when the file gives none (or 0): the camera's.
+DEFAULT_SIGMA_PX = 0.1
+
+_INT = re.compile(r"[+-]?[0-9]+")
+_INT64 = (-(2 ** 63), 2 ** 63 - 1)
+_PHOTO_COLUMNS = ("name", "X", "Y", "Z", "kappa", "phi", "omega", "c", "xp", "yp", "xs",
+                  "ys", "K1", "K2", "K3", "P1", "P2")
+_POINT_COLUMNS = ("X", "Y", "Z", "sX", "sY", "sZ")
 
 
 def _floats(path, k, line, n, what, first_int=False):
@@ -71,21 +92,114 @@ def _num(x):
         return False
 
 
+def _id(path, k, token, what):
+    """An id written in decimal digits (an optional sign) in the int64 range, exactly."""
+    if not _INT.fullmatch(token):
+        raise DataError(f"{path}:{k + 1}: {token!r} is not an integer ({what})")
+    v = int(token)
+    if not _INT64[0] <= v <= _INT64[1]:
+        raise DataError(f"{path}:{k + 1}: {token!r} is outside the int64 range ({what})")
+    return v
+
+
 def _photo_no(line):
     t = line.split()
-    return int(t[0]) if t and t[0].lstrip("-").isdigit() else None
+    return int(t[0]) if t and re.fullmatch(r"-?[0-9]+", t[0]) else None
+
+
+def _fmt(v):
+    """A float as short as it reads back."""
+    return f"{v:g}" if float(f"{v:g}") == v else repr(v)
+
+
+def _bits(values):
+    return [x.hex() if isinstance(x, float) else x for x in values]
+
+
+def _differ(a, b, names):
+    """The names of the columns where ``a`` and ``b`` differ (bit for bit)."""
+    return [nm for nm, x, y in zip(names, _bits(a), _bits(b)) if x != y]
+
+
+def _once(path, what, key, line, values, seen, names, warnings):
+    """True the first time ``key`` is seen (remembered with its line and values); a repeat
+    with the same values is False (loaded once, with a warning), with others an error
+    naming both lines."""
+    if key not in seen:
+        seen[key] = (line, values)
+        return True
+    first, old = seen[key]
+    diff = _differ(old, values, names)
+    if diff:
+        raise DataError(f"{what} {key} is given twice with different values "
+                        f"({', '.join(diff)}): {path}:{first} and {path}:{line}")
+    warnings.append(f"{path}:{line}: {what} {key} is given again with the same values "
+                    f"(first on line {first}): loaded once")
+    return False
+
+
+def _merge_marks(path, marked, lines, warnings):
+    """The marks (photo, point, col, row, sx, sy) with each (photo, point) pair marked more
+    than once reduced to one at their mean (summed in sorted value order; the sigmas of
+    the mark with the largest given ones) when they lie within :data:`DUPLICATE_SIGMAS`
+    sigmas of each other, else an error naming the pair and both lines. Returns the
+    marks, their lines and, changed in place, ``warnings``."""
+    groups = {}
+    for i, (ph, pt) in enumerate((r[0], r[1]) for r in marked):
+        groups.setdefault((ph, pt), []).append(i)
+    dup = [g for g in groups.values() if len(g) > 1]
+    if not dup:
+        return marked, lines
+    drop, shown = set(), []
+    for g in dup:
+        col = np.array([marked[i][2] for i in g])
+        row = np.array([marked[i][3] for i in g])
+        sig = [math.sqrt(marked[i][4] * marked[i][5]) if marked[i][4] > 0 and
+               marked[i][5] > 0 else 0.0 for i in g]
+        tol = DUPLICATE_SIGMAS * (max(sig) if max(sig) > 0 else DEFAULT_SIGMA_PX)
+        with np.errstate(all="ignore"):
+            dist = np.hypot(col[:, None] - col[None, :], row[:, None] - row[None, :])
+        a, b = np.unravel_index(int(np.argmax(dist)), dist.shape)
+        if not dist[a, b] <= tol:
+            a, b = sorted((int(a), int(b)))
+            ph, pt = marked[g[0]][:2]
+            raise DataError(f"{path}: lines {lines[g[a]]} and {lines[g[b]]}: point {pt} is "
+                            f"marked twice on photo {ph}, {float(dist[a, b]):.4g} px apart "
+                            f"(more than {DUPLICATE_SIGMAS:g} sigma = {tol:.4g} px)")
+        keep = g[0]
+        best = g[int(np.argmax(sig))]
+        marked[keep] = [*marked[keep][:2], math.fsum(np.sort(col)) / len(g),
+                        math.fsum(np.sort(row)) / len(g), *marked[best][4:6]]
+        drop.update(g[1:])
+        if len(shown) < 5:
+            shown.append(f"photo {marked[keep][0]} point {marked[keep][1]} (lines "
+                         + ", ".join(str(lines[i]) for i in g[:3]) + ")")
+    warnings.append(f"{path}: {len(dup)} (photo, point) pair(s) marked more than once within "
+                    f"{DUPLICATE_SIGMAS:g} sigma of each other: each merged into one "
+                    f"observation at their mean ({len(drop)} mark(s) dropped): "
+                    f"{'; '.join(shown)}{'; ...' if len(dup) > 5 else ''}")
+    keep = [i for i in range(len(marked)) if i not in drop]
+    return [marked[i] for i in keep], [lines[i] for i in keep]
 
 
 def read_photomodeler(path):
     """Read a PhotoModeler text export: a dict of ``size`` (width, height px), ``camera``
     (c, xp, yp, xs, ys, K1, K2, K3, P1, P2), ``photos`` (number, name, X, Y, Z, kappa, phi,
-    omega in degrees, camera row), ``control`` and ``points`` (id, X, Y, Z, sX, sY, sZ) and
-    ``marked`` (photo, id, x, y, sx, sy; pixels). Errors name the file and line."""
+    omega in degrees, camera row) and ``photo_line`` (each one's first line), ``control``
+    and ``points`` (id, X, Y, Z, sX, sY, sZ) with their exact int64 ids ``control_id`` and
+    ``point_id``, ``marked`` (photo, id, x, y, sx, sy; pixels) with ``marked_ids`` (photo,
+    id; int64) and ``marked_line``, and ``warnings`` (repeats loaded once, marks merged).
+    A photo, control or object point given twice with different values, or a point marked
+    twice on a photo more than :data:`DUPLICATE_SIGMAS` sigmas apart, is an error. Errors
+    name the file and line."""
     path = Path(path)
     try:
         lines = path.read_text(errors="strict").splitlines()
     except UnicodeDecodeError as exc:
         raise DataError(f"{path}: not a text file ({exc.reason})") from None
+    if not any(ln.strip() for ln in lines):
+        raise DataError(f"{path}: the file is empty (a PhotoModeler text export starts with "
+                        f"5 header lines)")
     if len(lines) < 5:
         raise DataError(f"{path}:{len(lines)}: the file ends early: 5 header lines expected")
     head = lines[1].split()
@@ -97,11 +211,12 @@ def read_photomodeler(path):
     if not (w > 0 and h > 0):
         raise DataError(f"{path}:2: the image's width and height must be positive pixels")
     camera = _floats(path, 3, lines[3], 10, "camera")
-    photos = []
+    warnings = []
+    photos, photo_line, seen = [], [], {}
     k = 5
     while k < len(lines) and _photo_no(lines[k]) is not None and len(lines[k].split()) >= 2 \
             and not _num(lines[k].split()[1]):
-        n = _photo_no(lines[k])
+        n = _id(path, k, lines[k].split()[0], "photo number")
         name = lines[k].split(None, 1)[1].strip()
         if k + 5 >= len(lines):
             raise DataError(f"{path}:{len(lines)}: the file ends in photo {n}'s block")
@@ -111,7 +226,14 @@ def read_photomodeler(path):
                                 f"{lines[k + j].strip()!r}")
         pos = _floats(path, k + 1, lines[k + 1], 6, f"photo {n}", first_int=True)
         cam = _floats(path, k + 4, lines[k + 4], 10, f"photo {n}'s camera", first_int=True)
-        photos.append((n, name, pos, cam))
+        for col, name_ in ((0, "c"), (3, "xs"), (4, "ys")):
+            if not cam[col] > 0:
+                raise DataError(f"{path}:{k + 5}: photo {n}'s camera: {name_} must be "
+                                f"positive, found {_fmt(cam[col])}")
+        if _once(path, "photo", n, k + 1, [name, *pos, *cam], seen, _PHOTO_COLUMNS,
+                 warnings):
+            photos.append((n, name, pos, cam))
+            photo_line.append(k + 1)
         k += 6
     if not photos:
         raise DataError(f"{path}:{k + 1}: no photo block (expected 'N name' after the 5 "
@@ -130,26 +252,41 @@ def read_photomodeler(path):
         k += 1
     while len(blocks) < 3:
         blocks.append([])
-    control = [[int(lines[i].split()[0])] + _floats(path, i, lines[i], 6, "control point",
-                                                     first_int=True) for i in blocks[0]]
-    points = [[int(lines[i].split()[0])] + _floats(path, i, lines[i], 6, "object point",
-                                                    first_int=True) for i in blocks[1]]
-    marked = []
+    tables = []
+    for what, block in (("control point", blocks[0]), ("object point", blocks[1])):
+        ids, rows, seen = [], [], {}
+        for i in block:
+            pid = _id(path, i, lines[i].split()[0], f"{what} id")
+            v = _floats(path, i, lines[i], 6, what, first_int=True)
+            if _once(path, what, pid, i + 1, v, seen, _POINT_COLUMNS, warnings):
+                ids.append(pid)
+                rows.append(v)
+        tables.append((np.array(ids, np.int64), np.array(rows, np.float64).reshape(-1, 6)))
+    marked, marked_line = [], []
     for i in blocks[2]:
         t = lines[i].split()
-        if len(t) < 4 or not t[0].isdigit():
+        if len(t) < 4:
             raise DataError(f"{path}:{i + 1}: marked point: expected 'photo id x y [sx sy]', "
                             f"got {lines[i].strip()!r}")
-        v = _floats(path, i, lines[i], 5 if len(t) >= 6 else 3, "marked point",
-                    first_int=True)
-        if v[0] != int(v[0]):
-            raise DataError(f"{path}:{i + 1}: marked point: id {t[1]!r} is not an integer")
-        marked.append([int(t[0]), int(v[0]), v[1], v[2]] + (v[3:5] if len(v) == 5
-                                                             else [0.0, 0.0]))
-    return {"size": (w, h), "camera": camera, "photos": photos,
-            "control": np.array(control, np.float64).reshape(-1, 7),
-            "points": np.array(points, np.float64).reshape(-1, 7),
-            "marked": np.array(marked, np.float64).reshape(-1, 6), "lines": blocks}
+        ph = _id(path, i, t[0], "marked point's photo")
+        pt = _id(path, i, t[1], "marked point's id")
+        v = _floats(path, i, " ".join(t[2:]), 4 if len(t) >= 6 else 2, "marked point")
+        for tok, x in zip(t[4:6], v[2:4]):
+            if x < 0:
+                raise DataError(f"{path}:{i + 1}: marked point sigma must be positive, found "
+                                f"{tok} (0 or none: the camera's sigma)")
+        marked.append([ph, pt, v[0], v[1]] + (v[2:4] if len(v) == 4 else [0.0, 0.0]))
+        marked_line.append(i + 1)
+    marked, marked_line = _merge_marks(path, marked, marked_line, warnings)
+    (cid, cval), (oid, oval) = tables
+    return {"size": (w, h), "camera": camera, "photos": photos, "photo_line": photo_line,
+            "control": np.column_stack([cid.astype(np.float64), cval]),
+            "points": np.column_stack([oid.astype(np.float64), oval]),
+            "control_id": cid, "point_id": oid,
+            "marked": np.array(marked, np.float64).reshape(-1, 6),
+            "marked_ids": np.array([r[:2] for r in marked], np.int64).reshape(-1, 2),
+            "marked_line": np.array(marked_line, np.int64), "lines": blocks,
+            "warnings": warnings}
 
 
 def pm_correct(x, y, camera):
@@ -172,7 +309,7 @@ def import_photomodeler(path, out, force=False):
     PhotoModeler's), photos with ids their numbers, the object points (ids theirs) as pass
     points with their coordinates as approximations, the control points as full control
     (a sigma at or below 0: fixed), or a free network without control. Returns a summary
-    dict."""
+    dict (``warnings``: lines for the user: repeats loaded once, marks merged)."""
     from ..project import (
         CAMERA_DTYPE,
         KIND_CONTROL,
@@ -199,11 +336,18 @@ def import_photomodeler(path, out, force=False):
     for k, name in enumerate(("k1", "k2", "k3", "p1", "p2")):
         camera[name] = cams[:, 5 + k]
     camera["distortion_model"] = BACKWARD
-    pw, ph = cams[:, 3] / w, cams[:, 4] / h
-    camera["sigma_image"] = np.sqrt(pw * ph) * 0.1       # (0.1 px where a point has none)
+    with np.errstate(all="ignore"):
+        pw, ph = cams[:, 3] / w, cams[:, 4] / h
+        camera["sigma_image"] = np.sqrt(pw * ph) * 0.1   # (0.1 px where a point has none)
+    bad = np.flatnonzero(~(np.isfinite(pw) & (pw > 0) & np.isfinite(ph) & (ph > 0)
+                           & np.isfinite(camera["sigma_image"]) & (camera["sigma_image"] > 0)))
+    if len(bad):
+        j = int(np.flatnonzero(cam_of_photo == bad[0])[0])
+        raise DataError(f"{path}:{d['photo_line'][j] + 4}: photo {d['photos'][j][0]}'s "
+                        f"camera: the pixel size (xs / width, ys / height) is out of range")
     ids = np.array([n for n, _, _, _ in d["photos"]], np.int64)
     if len(np.unique(ids)) != len(ids):
-        raise DataError(f"{path}: photo numbers repeat")
+        raise AssertionError("photo numbers repeat")   # (read_photomodeler refuses them)
     pos = np.array([p for _, _, p, _ in d["photos"]], np.float64)
     station = np.zeros(len(ids), STATION_DTYPE)
     station["id"] = ids
@@ -211,44 +355,52 @@ def import_photomodeler(path, out, force=False):
     station["strip"] = -1
     station["eo"][:, :3] = np.radians(pos[:, [5, 4, 3]])   # (kappa phi omega in the file)
     station["eo"][:, 3:] = pos[:, :3]
-    # points: the object points, the control's values where given
-    pts = d["points"]
-    ctrl = d["control"]
-    all_ids = np.unique(np.concatenate([pts[:, 0], ctrl[:, 0]])).astype(np.int64)
+    # points: the object points, the control's values where given (ids exact int64)
+    pts, pts_id = d["points"][:, 1:], d["point_id"]
+    ctrl, ctrl_id = d["control"][:, 1:], d["control_id"]
+    all_ids = np.unique(np.concatenate([pts_id, ctrl_id]))
     n_pt = len(all_ids)
     xyz = np.zeros((n_pt, 3))
-    xyz[np.searchsorted(all_ids, pts[:, 0].astype(np.int64))] = pts[:, 1:4]
+    xyz[np.searchsorted(all_ids, pts_id)] = pts[:, :3]
     kind = np.zeros(n_pt, np.int8)
     control = np.zeros((n_pt, 3))
     csig = np.zeros((n_pt, 3))
     if len(ctrl):
-        at = np.searchsorted(all_ids, ctrl[:, 0].astype(np.int64))
+        at = np.searchsorted(all_ids, ctrl_id)
         kind[at] = KIND_CONTROL
-        control[at] = ctrl[:, 1:4]
-        csig[at] = np.maximum(ctrl[:, 4:7], 0.0)      # (<= 0: fixed, as DBAT reads it)
-        only = ~np.isin(ctrl[:, 0], pts[:, 0])
-        xyz[at[only]] = ctrl[only, 1:4]
-    m = d["marked"]
+        control[at] = ctrl[:, :3]
+        csig[at] = np.maximum(ctrl[:, 3:6], 0.0)      # (<= 0: fixed, as DBAT reads it)
+        only = ~np.isin(ctrl_id, pts_id)
+        xyz[at[only]] = ctrl[only, :3]
+    m, m_ids, m_line = d["marked"], d["marked_ids"], d["marked_line"]
     if not len(m):
         raise DataError(f"{path}: no marked points (image measurements)")
-    st_rec = np.searchsorted(ids, m[:, 0].astype(np.int64))
-    bad = np.flatnonzero((st_rec >= len(ids)) | (ids[np.minimum(st_rec, len(ids) - 1)]
-                                                 != m[:, 0]))
+    order_ids = np.argsort(ids, kind="stable")
+    sorted_ids = ids[order_ids]
+    at = np.searchsorted(sorted_ids, m_ids[:, 0])
+    bad = np.flatnonzero((at >= len(ids)) | (sorted_ids[np.minimum(at, len(ids) - 1)]
+                                             != m_ids[:, 0]))
     if len(bad):
-        line = d["lines"][2][bad[0]] + 1
-        raise DataError(f"{path}:{line}: marked point on photo {int(m[bad[0], 0])}, which "
-                        f"has no photo block")
-    p_rec = np.searchsorted(all_ids, m[:, 1].astype(np.int64))
-    bad = np.flatnonzero((p_rec >= n_pt) | (all_ids[np.minimum(p_rec, n_pt - 1)] != m[:, 1]))
+        raise DataError(f"{path}:{int(m_line[bad[0]])}: marked point on photo "
+                        f"{int(m_ids[bad[0], 0])}, which has no photo block")
+    st_rec = order_ids[at]
+    p_rec = np.searchsorted(all_ids, m_ids[:, 1])
+    bad = np.flatnonzero((p_rec >= n_pt) | (all_ids[np.minimum(p_rec, n_pt - 1)]
+                                            != m_ids[:, 1]))
     if len(bad):
-        line = d["lines"][2][bad[0]] + 1
-        raise DataError(f"{path}:{line}: marked point {int(m[bad[0], 1])} is not an object "
-                        f"or control point")
+        raise DataError(f"{path}:{int(m_line[bad[0]])}: marked point {int(m_ids[bad[0], 1])} "
+                        f"is not an object or control point")
     c = cam_of_photo[st_rec]
-    x = m[:, 2] * pw[c] - cams[c, 3] / 2
-    y = cams[c, 4] / 2 - m[:, 3] * ph[c]
-    sig = np.where((m[:, 4] > 0) & (m[:, 5] > 0), np.sqrt(m[:, 4] * m[:, 5] * pw[c] * ph[c]),
-                   0.0)
+    given = (m[:, 4] > 0) & (m[:, 5] > 0)
+    with np.errstate(all="ignore"):
+        x = m[:, 2] * pw[c] - cams[c, 3] / 2
+        y = cams[c, 4] / 2 - m[:, 3] * ph[c]
+        sig = np.where(given, np.sqrt(m[:, 4] * m[:, 5] * pw[c] * ph[c]), 0.0)
+    bad = np.flatnonzero(~(np.isfinite(x) & np.isfinite(y) & np.isfinite(sig))
+                         | (given & ~(sig > 0)))
+    if len(bad):
+        raise DataError(f"{path}:{int(m_line[bad[0]])}: marked point: a value is out of range "
+                        f"once converted to mm")
     order = np.lexsort((st_rec, p_rec))
     obs = np.zeros(len(m), OBSERVATION_DTYPE)
     obs["point"], obs["station"] = p_rec[order], st_rec[order]
@@ -263,7 +415,7 @@ def import_photomodeler(path, out, force=False):
     write_project(out, camera, station, point, obs, attrs=attrs)
     return {"path": str(out), "cameras": len(camera), "photos": len(station),
             "points": n_pt, "control_points": int(len(ctrl)), "observations": len(obs),
-            "free": free}
+            "free": free, "warnings": d["warnings"]}
 
 
 def export_photomodeler(project_path, out_path, adjusted=False, pixel_size=None):

@@ -753,11 +753,11 @@ def export_text(project_path, out_dir, angles="deg", chunk=CHUNK_RECORDS, rotati
     check_angles(angles)
     _check_order(rotation)
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     paths = {k: out_dir / f"{k}.txt" for k in ("cameras", "photos", "measurements", "control")}
     counts = dict.fromkeys(paths, 0)
     inexact = 0
-    with Project(project_path) as p:
+    with Project(project_path) as p:   # (a project that cannot be read: no directory made)
+        out_dir.mkdir(parents=True, exist_ok=True)
         cams = p.cameras()
         with open(paths["cameras"], "w") as f:
             f.write(_HEADERS["cameras"] + "\n")
@@ -870,7 +870,6 @@ def export_adjusted(project_path, out_dir, angles="deg", orientation="tangent",
     names = {"opk": "omega phi kappa", "pok": "phi omega kappa",
              "kpo": "kappa phi omega"}[rotation]
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"photos": out_dir / "adjusted_photos.txt",
              "points": out_dir / "adjusted_points.txt"}
     counts = dict.fromkeys(paths, 0)
@@ -878,6 +877,7 @@ def export_adjusted(project_path, out_dir, angles="deg", orientation="tangent",
         if not p.has_solution:
             raise DataError(f"{project_path}: the project has no adjusted solution: run "
                             f"'sapgo adjust' first")
+        out_dir.mkdir(parents=True, exist_ok=True)
         frame = p.frame()
         if frame.kind == "local space rectangular":
             where, axes = "", "frame X, Y, Z in m"
