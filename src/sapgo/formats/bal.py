@@ -164,27 +164,20 @@ def read_bal(path):
 DUPLICATE_SIGMAS = 3.0
 
 
-def _merge_duplicates(path, d, sigma=1.0, merge=False, where=None):
-    """Each (camera, point) pair observed more than once in ``d`` (a :func:`read_bal` or
-    :func:`sapgo.formats.bundler.read_bundler` dict, changed in place) reduced to its first
-    observation, moved to the mean of the pair's observations (the other ``obs_*`` arrays
-    keep the first one's values). Observations of a pair more than :data:`DUPLICATE_SIGMAS`
-    ``sigma`` pixels apart raise a :class:`DataError` naming the file, both lines, the
-    camera, the point and their distance, unless ``merge``. ``where(i)``: the line of
-    observation ``i`` in the file as a message gives it (default ``d["obs_line"]``).
-    Returns warning lines for the user (none without duplicates)."""
-    cam, pt, xy = d["obs_camera"], d["obs_point"], d["obs_xy"]
-    if where is None:
-        lines = d["obs_line"]
-
-        def where(i):
-            return str(int(lines[i]))
-
-    key = cam * (int(pt.max(initial=0)) + 1) + pt
+def merge_repeats(path, d, key, xy, tol, merge, where, pair, what, hint, also=()):
+    """Observations of ``d`` (an import's dict, its ``obs_*`` arrays cut in place to each
+    repeated pair's first observation) that share ``key`` (a photo and a point) merged at
+    the mean of their ``xy`` (pixels; returned, merged). A pair whose observations lie more
+    than ``tol`` pixels apart is a :class:`DataError` naming ``path``, both lines
+    (``where(i)``) and the pair, unless ``merge``. ``pair(i)``: the (photo, point) words of
+    observation ``i`` ("camera 3", "point 7"); ``what``: the pair's kind for the warning
+    ("(camera, point)"); ``hint``: the error's advice; ``also``: names of other ``obs_*``
+    arrays of ``d`` (n x k) averaged the same way. Returns the merged ``xy`` and the
+    warning lines (none without repeats)."""
     _, first, group, counts = np.unique(key, return_index=True, return_inverse=True,
                                         return_counts=True)
     if len(first) == len(key):
-        return []
+        return xy, []
     group = group.ravel()
     by_group = np.argsort(group, kind="stable")   # group g: by_group[start[g]:start[g + 1]]
     start = np.concatenate([[0], np.cumsum(counts)])
@@ -192,7 +185,6 @@ def _merge_duplicates(path, d, sigma=1.0, merge=False, where=None):
     def members(g):
         return by_group[start[g]:start[g + 1]]
 
-    tol = DUPLICATE_SIGMAS * sigma
     # only a pair whose observations span more than tol can hold two farther apart
     lo = np.full((len(first), 2), np.inf)
     hi = np.full((len(first), 2), -np.inf)
@@ -209,30 +201,56 @@ def _merge_duplicates(path, d, sigma=1.0, merge=False, where=None):
     if conflicts and not merge:
         i, j, dist = conflicts[0]
         more = f" (and {len(conflicts) - 1} more such pair(s))" if len(conflicts) > 1 else ""
-        raise DataError(f"{path}: lines {where(i)} and {where(j)}: camera {int(cam[i])} observes "
-                        f"point {int(pt[i])} twice, {dist:.4g} px apart (more than "
-                        f"{DUPLICATE_SIGMAS:g} sigma = {tol:g} px){more}: use "
-                        f"--merge-duplicates to average them")
-    mean = np.column_stack([np.bincount(group, weights=xy[:, k]) / counts for k in (0, 1)])
+        photo, point = pair(i)
+        raise DataError(f"{path}: lines {where(i)} and {where(j)}: {photo} observes {point} "
+                        f"twice, {dist:.4g} px apart (more than {DUPLICATE_SIGMAS:g} sigma = "
+                        f"{tol:g} px){more}: {hint}")
+    def average(v):
+        return np.column_stack([np.bincount(group, weights=v[:, k]) / counts
+                                for k in range(v.shape[1])])
+
+    mean = average(xy)
+    averaged = {name: average(d[name]) for name in also}
     keep = np.sort(first)
     pairs = np.sort(first[counts > 1])
-    shown = "; ".join(f"camera {int(cam[i])} point {int(pt[i])} (lines "
+    shown = "; ".join(" ".join(pair(i)) + " (lines "
                       + ", ".join(where(k) for k in members(group[i])[:3].tolist())
                       + ")" for i in pairs[:5].tolist())
     close = "" if conflicts else (f" within {DUPLICATE_SIGMAS:g} sigma ({tol:g} px) of "
                                   f"each other")
-    out = [f"{path}: {len(pairs)} (camera, point) pair(s) observed more than once{close}: "
+    out = [f"{path}: {len(pairs)} {what} pair(s) observed more than once{close}: "
            f"each merged into one observation at their mean ({len(key) - len(keep)} "
            f"observation(s) dropped): {shown}{'; ...' if len(pairs) > 5 else ''}"]
     if conflicts:
         i, j, dist = max(conflicts, key=lambda c: c[2])
         out.append(f"{path}: {len(conflicts)} of these pairs lie more than "
                    f"{DUPLICATE_SIGMAS:g} sigma ({tol:g} px) apart and were averaged as "
-                   f"asked (--merge-duplicates); the farthest: camera {int(cam[i])} point "
-                   f"{int(pt[i])}, lines {where(i)} and {where(j)}, {dist:.4g} px")
+                   f"asked (--merge-duplicates); the farthest: {' '.join(pair(i))}, lines "
+                   f"{where(i)} and {where(j)}, {dist:.4g} px")
     for name in [k for k in d if k.startswith("obs_")]:
-        d[name] = d[name][keep]
-    d["obs_xy"] = mean[group[keep]]
+        d[name] = averaged[name][group[keep]] if name in averaged else d[name][keep]
+    return mean[group[keep]], out
+
+
+def _merge_duplicates(path, d, sigma=1.0, merge=False, where=None):
+    """Each (camera, point) pair observed more than once in ``d`` (a :func:`read_bal` or
+    :func:`sapgo.formats.bundler.read_bundler` dict, changed in place) reduced to its first
+    observation, moved to the mean of the pair's observations (:func:`merge_repeats`; the
+    other ``obs_*`` arrays keep the first one's values). ``where(i)``: the line of
+    observation ``i`` in the file as a message gives it (default ``d["obs_line"]``).
+    Returns warning lines for the user (none without duplicates)."""
+    cam, pt = d["obs_camera"], d["obs_point"]
+    if where is None:
+        lines = d["obs_line"]
+
+        def where(i):
+            return str(int(lines[i]))
+
+    xy, out = merge_repeats(path, d, cam * (int(pt.max(initial=0)) + 1) + pt, d["obs_xy"],
+                            DUPLICATE_SIGMAS * sigma, merge, where,
+                            lambda i: (f"camera {int(cam[i])}", f"point {int(pt[i])}"),
+                            "(camera, point)", "use --merge-duplicates to average them")
+    d["obs_xy"] = xy
     return out
 
 

@@ -368,71 +368,20 @@ def opensfm_project(d, cam, r, t, xyz):
 def _merge_duplicates(path, d, xy, tol, merge):
     """Each (shot, track) pair observed more than once in ``d`` (a :func:`read_opensfm`
     dict, its ``obs_*`` arrays cut in place to the pair's first observation) merged at the
-    mean of ``xy`` (its observations in pixels; the merged ones returned). Observations of a
-    pair more than ``tol`` pixels apart raise a :class:`DataError` naming both lines of
-    ``path`` (``tracks.csv``), unless ``merge``. Returns the merged ``xy`` and warning lines
-    (none without duplicates)."""
-    from .bal import DUPLICATE_SIGMAS
+    mean of ``xy`` (its observations in pixels; the merged ones returned) and of its
+    normalised ``obs_xy``, by :func:`sapgo.formats.bal.merge_repeats`: observations of a
+    pair more than ``tol`` pixels apart are an error naming both lines of ``path``
+    (``tracks.csv``), unless ``merge``. Returns the merged ``xy`` and warning lines (none
+    without duplicates)."""
+    from .bal import merge_repeats
 
     shot, pt, lines = d["obs_shot"], d["obs_point"], d["obs_line"]
-    key = shot * (len(d["points"]) + 1) + pt
-    _, first, group, counts = np.unique(key, return_index=True, return_inverse=True,
-                                        return_counts=True)
-    if len(first) == len(key):
-        return xy, []
-    group = group.ravel()
-    by_group = np.argsort(group, kind="stable")
-    start = np.concatenate([[0], np.cumsum(counts)])
-
-    def members(g):
-        return by_group[start[g]:start[g + 1]]
-
-    def pair(i):
-        return f"shot {d['shots'][shot[i]]!r} track {d['points'][pt[i]]!r}"
-
-    lo = np.full((len(first), 2), np.inf)
-    hi = np.full((len(first), 2), -np.inf)
-    np.minimum.at(lo, group, xy)
-    np.maximum.at(hi, group, xy)
-    wide = np.flatnonzero(np.hypot(*(hi - lo).T) > tol)
-    conflicts = []   # (first line's observation, other, distance), in file order
-    for g in wide[np.argsort(first[wide], kind="stable")].tolist():
-        m = members(g)
-        dist = np.hypot(*(xy[m, None, :] - xy[None, m, :]).transpose(2, 0, 1))
-        i, j = np.unravel_index(int(np.argmax(dist)), dist.shape)
-        if dist[i, j] > tol:
-            conflicts.append((*sorted((int(m[i]), int(m[j]))), float(dist[i, j])))
-            if not merge:
-                break
-    if conflicts and not merge:
-        i, j, dist = conflicts[0]
-        raise DataError(f"{path}: lines {lines[i]} and {lines[j]}: shot "
-                        f"{d['shots'][shot[i]]!r} observes track {d['points'][pt[i]]!r} "
-                        f"twice, {dist:.4g} px apart (more than {DUPLICATE_SIGMAS:g} sigma = "
-                        f"{tol:g} px): correct or remove one, or give --merge-duplicates")
-    mean = np.column_stack([np.bincount(group, weights=xy[:, k]) / counts for k in (0, 1)])
-    keep = np.sort(first)
-    pairs = np.sort(first[counts > 1])
-    shown = "; ".join(f"{pair(i)} (lines "
-                      + ", ".join(str(lines[k]) for k in members(group[i])[:3].tolist())
-                      + ")" for i in pairs[:5].tolist())
-    close = "" if conflicts else (f" within {DUPLICATE_SIGMAS:g} sigma ({tol:g} px) of "
-                                  f"each other")
-    out = [f"{path}: {len(pairs)} (shot, track) pair(s) observed more than once{close}: "
-           f"each merged into one observation at their mean ({len(key) - len(keep)} "
-           f"observation(s) dropped): {shown}{'; ...' if len(pairs) > 5 else ''}"]
-    if conflicts:
-        i, j, dist = max(conflicts, key=lambda c: c[2])
-        out.append(f"{path}: {len(conflicts)} of these pairs lie more than "
-                   f"{DUPLICATE_SIGMAS:g} sigma ({tol:g} px) apart and were averaged as "
-                   f"asked; the farthest: {pair(i)}, lines {lines[i]} and {lines[j]}, "
-                   f"{dist:.4g} px")
-    normalised = np.column_stack([np.bincount(group, weights=d["obs_xy"][:, k]) / counts
-                                  for k in (0, 1)])
-    for name in [k for k in d if k.startswith("obs_")]:
-        d[name] = d[name][keep]
-    d["obs_xy"] = normalised[group[keep]]
-    return mean[group[keep]], out
+    return merge_repeats(
+        path, d, shot * (len(d["points"]) + 1) + pt, xy, tol, merge,
+        lambda i: str(int(lines[i])),
+        lambda i: (f"shot {d['shots'][shot[i]]!r}", f"track {d['points'][pt[i]]!r}"),
+        "(shot, track)", "correct or remove one, or give --merge-duplicates",
+        also=("obs_xy",))
 
 
 def _int_ids(names):
