@@ -1971,7 +1971,7 @@ def adjust(path, options: Options | None = None) -> Summary:
     # commit makes the project: a run that fails leaves the project as it was
     ordered = ordered_path(path)
     src = path
-    p = Project(path, "r")
+    p = Project(path, "r", tiling=False)   # (check_values checks the tiling, below)
     try:
         if in_memory:   # (its records read once, for the checks and the ordering)
             p.hold(None, max_bytes=IN_MEMORY_BYTES)

@@ -535,14 +535,17 @@ class Project:
             print(p.n_stations, p.band_width)
     """
 
-    def __init__(self, path, mode="r", shown=None, memory=None, held=None):
-        # ``shown``: the name messages give (``sapgo adjust`` reads an unordered project's
+    def __init__(self, path, mode="r", shown=None, memory=None, held=None, tiling=True):
+        # ``tiling``: check at the open that the points' observation ranges end where
+        # /observations does (False: the caller runs validate.check_values, which checks
+        # the whole tiling on its pass over the points). ``shown``: the name messages give (``sapgo adjust`` reads an unordered project's
         # ordered copy, ``file_path``, under the project's own name). ``memory``: an open
         # HDF5 file in memory (:func:`memory_image`) that the caller validated or wrote and
         # closes: ``path`` only names it; ``held``: its records by dataset, as written
         # (:class:`ProjectWriter` in memory), held for the reads
         self.file_path = Path(path)
         self.path = self.file_path
+        self._check_tiling = tiling
         if mode not in ("r", "r+"):
             raise ValueError("mode must be 'r' or 'r+'")
         self._own = memory is None
@@ -622,8 +625,8 @@ class Project:
                     f"expected {dtype.names} (see docs/project-schema.md)"
                 )
         n_pt, n_ob = len(f["points"]), len(f["observations"])
-        end = 0
-        if n_pt:   # (the tiling itself is checked with the values: validate.check_values)
+        end = n_ob
+        if n_pt and getattr(self, "_check_tiling", True):   # (all of it: check_values)
             try:
                 last = f["points"][n_pt - 1]
                 end = int(last["obs_start"]) + int(last["n_obs"])

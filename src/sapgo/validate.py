@@ -221,6 +221,10 @@ def check_values(project: Project, ordered_layout=True):
         if i >= 0:
             raise DataError(f"points record {a + i} (id {ids[i]}): obs_start/n_obs do not "
                             f"follow the observations grouped by point")
+        if int(starts[-1] + counts[-1]) > project.n_observations:
+            raise DataError(f"{path}: the points' obs_start and n_obs cover at least "
+                            f"{int(starts[-1] + counts[-1])} observations but /observations "
+                            f"has {project.n_observations} records: the project is damaged")
         owners = project.read_field("observations", "point", int(starts[0]),
                                     int(starts[-1] + counts[-1]))
         i = _first_bad(owners != np.repeat(np.arange(a, b), counts))
