@@ -960,3 +960,12 @@ def test_a_memory_budget_beyond_the_machine_reads_the_files_whole(exported, tmp_
             sapgo.open_project(tmp_path / "default.h5") as b:
         for name in ("stations", "points", "observations"):
             np.testing.assert_array_equal(a.read(name), b.read(name))
+
+
+def test_a_cameras_file_without_cameras_is_named(exported, tmp_path, capsys):
+    gen, d = exported
+    files = files_of(d)
+    files["cameras"] = write_lines(tmp_path / "cams.txt", [])
+    code, _, err = run_cli(capsys, "import", tmp_path / "x.h5", *cli_args(files))
+    assert_one_line_error(code, err, "cams.txt: no camera")
+    assert not (tmp_path / "x.h5").exists()

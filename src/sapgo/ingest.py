@@ -288,8 +288,10 @@ class _Import:
                 locs.append(loc)
                 for i in np.flatnonzero(rec["frame"] >= 0):
                     self.camera_frames.append((int(rec["id"][i]), rec[i], int(loc[i])))
-        if not recs:
-            raise DataError("no camera: give a cameras file (--cameras)")
+        given = ", ".join(str(f) for f in self.files["cameras"])
+        if not recs or not sum(len(r) for r in recs):
+            raise DataError(f"{given}: no camera (every line blank or a comment)" if given
+                            else "no camera: give a cameras file (--cameras)")
         cams = np.concatenate(recs)
         locs = np.concatenate(locs)
         if not len(cams):
