@@ -281,3 +281,11 @@ def test_bal_values_out_of_range_are_refused(tmp_path, capsys, camera, words):
     code, out, err = run_cli(capsys, "import", "--format", "bal", f, tmp_path / "x.h5")
     assert_one_line_error(code, err, "bad.txt", words)
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_append_is_refused_for_a_bal_import(tmp_path, capsys):
+    f = tmp_path / "p.txt"
+    f.write_text("1 1 1\n0 0 1 2\n" + "0\n" * 5 + "-10\n500\n0\n0\n0.1\n0\n1\n")
+    code, _, err = run_cli(capsys, "import", "--format", "bal", "--append", f, tmp_path / "x.h5")
+    assert_one_line_error(code, err, "--append applies to the text files' import",
+                          "--format bal makes a new project")

@@ -930,6 +930,10 @@ def test_image_frames_file_with_a_byte_order_mark_or_missing(exported, tmp_path,
     ("px 4.6 4.6 0 0 topleft down", None, "width 0 must be a positive number"),
     ("px 4.6 4.6 0 0 centre down", "1 px 4.6 4.6 - - centre down",
      "camera 1's image frame is given here and in --image-frames"),
+    ("px 4.6 5.0 6000 4000 topleft", None, "image frame needs columns 16-22 (mm|px pixel_x "
+                                           "pixel_y width height origin y_axis), found 21"),
+    ("px", None, "image frame needs columns 16-22"),
+    ("none 4.6", None, "found 17 columns"),
 ])
 def test_bad_frames_in_the_cameras_file_name_the_line(exported, tmp_path, capsys, tail,
                                                       frames, words):

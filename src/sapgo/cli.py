@@ -140,6 +140,9 @@ def cmd_init(args):
 
 
 def cmd_import(args):
+    if args.append and args.format != "text":
+        raise ParameterError(f"--append applies to the text files' import; --format "
+                             f"{args.format} makes a new project (--force replaces one)")
     if args.sigma_image is not None and args.format not in ("colmap", "opensfm"):
         raise ParameterError("--sigma-image applies to --format colmap and opensfm (a "
                              "cameras file gives each camera's sigma_image, a BAL problem "

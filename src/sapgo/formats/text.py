@@ -570,10 +570,31 @@ def parse_chunk(fmt, chunk, first, angles, src, refs=None, dms=()):
             lines = _data_lines(chunk, first)
         arr = _parse_lines(fmt, chunk, first, lines, angles, src, refs, dms)
         rec = _normalize(fmt, arr, fmt.max_cols, angles)
+    if fmt is CAMERAS:
+        refs = _whole_frames(refs, _token_counts(chunk, first, lines))
     check_records(fmt, arr, rec, lines, src, refs)
     if fmt is CONTROL:
         _settle_control(rec)
     return rec, lines
+
+
+def _token_counts(chunk, first, lines):
+    """The number of columns of each of ``lines`` of a block."""
+    text_lines = chunk.split(b"\n")
+    return np.fromiter((len(text_lines[i].split(b"#", 1)[0].split())
+                        for i in (lines - first).tolist()), np.int64, len(lines))
+
+
+def _whole_frames(refs, counts):
+    """``refs`` with the check that a camera's image frame (columns 16-22) is given whole:
+    a unit with fewer columns, or some of columns 17-22 without the rest, would be read with
+    defaults for the rest."""
+    def checks(rec):
+        bad = ((counts > 16) & (counts < 22)) | ((counts == 16) & (rec["frame"] >= 0))
+        return list(refs(rec) if refs else []) + [(bad, lambda i: (
+            f"an image frame needs columns 16-22 (mm|px pixel_x pixel_y width height "
+            f"origin y_axis), found {int(counts[i])} columns"))]
+    return checks
 
 
 # -- value checks ----------------------------------------------------------------------
