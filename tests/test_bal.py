@@ -289,3 +289,11 @@ def test_append_is_refused_for_a_bal_import(tmp_path, capsys):
     code, _, err = run_cli(capsys, "import", "--format", "bal", "--append", f, tmp_path / "x.h5")
     assert_one_line_error(code, err, "--append applies to the text files' import",
                           "--format bal makes a new project")
+
+
+def test_a_byte_that_is_not_utf8_names_its_line(tmp_path, capsys):
+    f = tmp_path / "bad.txt"
+    f.write_bytes(b"1 1 1\n0 0 1 2\n0\n0\n0\n0\n0\n-10\n500\n\xe9\n0\n0.1\n0\n1\n")
+    code, _, err = run_cli(capsys, "import", "--format", "bal", f, tmp_path / "x.h5")
+    assert_one_line_error(code, err, "bad.txt:10: not a text file")
+    assert not (tmp_path / "x.h5").exists()

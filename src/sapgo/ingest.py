@@ -50,6 +50,7 @@ from .formats.text import (
     PRIORS,
     check_angles,
     check_axis_order,
+    decode_text,
     open_input,
     parse_chunk,
     read_chunks,
@@ -1133,10 +1134,7 @@ def camera_lines(paths, cam_ids, usage, ncols):
     for path in paths:
         with open_input(path) as f:
             data = f.read()
-        try:   # (UTF-8, a byte-order mark skipped, as in the column files)
-            lines = data.decode("utf-8-sig").splitlines()
-        except UnicodeDecodeError as exc:
-            raise DataError(f"{path}: not a text file ({exc.reason})") from None
+        lines = decode_text(path, data).splitlines()   # (as the column files)
         for k, line in enumerate(lines, start=1):
             t = line.split("#", 1)[0].split()
             if not t:

@@ -62,20 +62,22 @@ def read_text(path):
         if path.suffix == ".gz":
             import gzip
 
-            with gzip.open(path, "rt") as f:
-                return f.read()
-        if path.suffix == ".bz2":
+            with gzip.open(path, "rb") as f:
+                data = f.read()
+        elif path.suffix == ".bz2":
             import bz2
 
-            with bz2.open(path, "rt") as f:
-                return f.read()
-        return path.read_text()
-    except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not a text file ({exc.reason})") from None
+            with bz2.open(path, "rb") as f:
+                data = f.read()
+        else:
+            data = path.read_bytes()
     except (OSError, EOFError) as exc:
         if isinstance(exc, FileNotFoundError):
             raise
         raise DataError(f"{path}: cannot be read ({exc})") from None
+    from .text import decode_text
+
+    return decode_text(path, data)
 
 
 def read_bal(path):

@@ -44,6 +44,7 @@ import numpy as np
 
 from ..lock import writes_project
 from ..errors import DataError, ParameterError
+from .text import decode_text
 
 #: Camera models read and written, with COLMAP's parameter names in file order.
 CAMERA_MODELS = {
@@ -83,9 +84,7 @@ def _image_dtype():
 
 def _lines(path):
     try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not a text file ({exc.reason})") from None
+        text = decode_text(path, path.read_bytes())
     except IsADirectoryError:
         raise DataError(f"{path}: is a directory, not a file of a COLMAP text model") from None
     except OSError as exc:

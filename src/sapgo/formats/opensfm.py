@@ -38,6 +38,7 @@ import numpy as np
 
 from ..lock import writes_project
 from ..errors import DataError, ParameterError
+from .text import decode_text
 from ..validate import MAX_MAGNITUDE   # (positions, coordinates: out of range)
 
 __all__ = ["CAMERA_TYPES", "export_opensfm", "import_opensfm", "opensfm_project",
@@ -89,10 +90,7 @@ def _number(v):
 
 
 def _load_json(path):
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not a text file ({exc.reason})") from None
+    text = decode_text(path, path.read_bytes())
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

@@ -48,6 +48,7 @@ import numpy as np
 
 from ..lock import writes_project
 from ..errors import DataError, ParameterError
+from .text import decode_text
 from ..geometry import AP_SET, BACKWARD
 
 __all__ = ["export_photomodeler", "import_photomodeler", "pm_correct", "read_photomodeler"]
@@ -193,10 +194,7 @@ def read_photomodeler(path):
     twice on a photo more than :data:`DUPLICATE_SIGMAS` sigmas apart, is an error. Errors
     name the file and line."""
     path = Path(path)
-    try:
-        lines = path.read_text(errors="strict").splitlines()
-    except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not a text file ({exc.reason})") from None
+    lines = decode_text(path, path.read_bytes()).splitlines()
     if not any(ln.strip() for ln in lines):
         raise DataError(f"{path}: the file is empty (a PhotoModeler text export starts with "
                         f"5 header lines)")

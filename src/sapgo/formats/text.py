@@ -281,6 +281,16 @@ def angle_strings(rad, angles):
 
 # -- reading ---------------------------------------------------------------------------
 
+def decode_text(path, data):
+    """The bytes ``data`` of the file ``path`` as text: UTF-8, a byte-order mark skipped; a
+    byte that is not UTF-8 is a :class:`DataError` naming the file and its line."""
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[:exc.start].count(b"\n") + 1
+        raise DataError(f"{path}:{line}: not a text file ({exc.reason})") from None
+
+
 def open_input(path):
     """``path`` opened for reading, binary; a file that is not there, a directory or a file
     that cannot be read is a :class:`DataError` naming it."""
