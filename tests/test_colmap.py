@@ -465,6 +465,8 @@ BAD = {
                     "listed twice"),
     "image twice": ("images.txt", 4, "1 1 0 0 0 1 0 10 2 b.jpg", "images.txt:4:",
                     "image 1 is given twice (also line 2)"),
+    "name twice": ("images.txt", 4, "2 1 0 0 0 1 0 10 2 a.jpg", "images.txt:4:",
+                   "image 2's NAME 'a.jpg' (column 10) is also image 1's (line 2)"),
     "track mismatch": ("points3D.txt", 3, "2 1 1 1 0 0 0 0.1 2 0", "points3D.txt:3:",
                        "has 3D point 1"),
     "not in the track": ("images.txt", 3, "10 20 1 30 40 2", "images.txt:3:",

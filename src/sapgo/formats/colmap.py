@@ -177,7 +177,7 @@ def _read_images(path, cameras):
     cam_of = {c: i for i, c in enumerate(cameras["ids"].tolist())}
     ids, qvec, tvec, cam, names, head_lines, pts_lines = [], [], [], [], [], [], []
     xs, ys, pids, counts = [], [], [], []
-    seen = {}
+    seen, named = {}, {}
     k = 0
     while k < len(lines):
         s = lines[k].strip()
@@ -205,6 +205,10 @@ def _read_images(path, cameras):
         if iid in seen:
             raise DataError(f"{where}: image {iid} is given twice (also line {seen[iid]})")
         seen[iid] = ln
+        if tok[9] in named:   # (a name is the image's file: two images cannot share it)
+            raise DataError(f"{where}: image {iid}'s NAME {tok[9]!r} (column 10) is also "
+                            f"image {named[tok[9]][0]}'s (line {named[tok[9]][1]})")
+        named[tok[9]] = (iid, ln)
         # the 2D points: the next line, whatever it holds (empty: no 2D point)
         k += 1
         text = lines[k].strip() if k < len(lines) else ""
