@@ -239,3 +239,14 @@ def test_a_refused_export_makes_no_directory(small_block, tmp_path, capsys):
     assert_one_line_error(*run_cli(capsys, "export", "--adjusted", small_block,
                                    tmp_path / "out2")[::2], "no adjusted solution")
     assert not (tmp_path / "out1").exists() and not (tmp_path / "out2").exists()
+
+
+def test_a_refused_import_leaves_no_new_folder(tmp_path, capsys):
+    """An import into a folder that does not exist yet, refused: the folders made for it
+    (for its lock) are removed again; a successful one keeps them."""
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1 1 1\n0 0 1 2\n" + "0\n" * 9 + "1\n2\n3\n")   # (f = 0)
+    out = tmp_path / "new" / "deeper" / "x.h5"
+    code, _, err = run_cli(capsys, "import", "--format", "bal", bad, out)
+    assert_one_line_error(code, err, "focal length")
+    assert not (tmp_path / "new").exists()

@@ -70,7 +70,12 @@ def project_lock(path, command):
             entry[1] += 1
     if entry is None:
         lf = lock_path(key)
+        made = []   # (the folders made for a new project: removed if it is not written)
         if not lf.parent.is_dir():   # (a new project's folder: made by its writer)
+            d = lf.parent
+            while not d.exists():
+                made.append(d)
+                d = d.parent
             lf.parent.mkdir(parents=True, exist_ok=True)
         lock = FileLock(str(lf), timeout=0, thread_local=False)
         try:
@@ -88,7 +93,7 @@ def project_lock(path, command):
                     "argv": sys.argv[:8]}))
         except OSError:   # (a full disk: the lock holds, its note is only for the message)
             pass
-        entry = [lock, 1]
+        entry = [lock, 1, made]
         with _guard:
             _held[key] = entry
     try:
@@ -103,6 +108,10 @@ def project_lock(path, command):
             with contextlib.suppress(OSError):
                 os.unlink(entry[0].lock_file)
             entry[0].release()
+            if not os.path.exists(key):   # (a refused command: no folder left behind)
+                for d in entry[2]:
+                    with contextlib.suppress(OSError):
+                        d.rmdir()   # (only while empty)
 
 
 def writes_project(command, target):
