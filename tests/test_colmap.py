@@ -594,3 +594,20 @@ def test_control_at_one_place_or_on_a_line_is_refused(scene, tmp_path, capsys, w
     assert_one_line_error(code, err, "control.txt: the full control points",
                           "at one place or on a line")
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_options_between_the_paths(tmp_path, capsys):
+    """``import --format colmap MODEL --sigma-image 1 OUT``: the paths around an option are
+    both taken (argparse left OUT over before); an unknown word after them is still an
+    error."""
+    d = tmp_path / "m"
+    d.mkdir()
+    for f, text in (("cameras.txt", CAMERAS), ("images.txt", IMAGES), ("points3D.txt", POINTS)):
+        (d / f).write_text(text)
+    code, _, err = run_cli(capsys, "import", "--format", "colmap", d, "--sigma-image", "1",
+                           tmp_path / "x.h5")
+    assert code == 0, err
+    assert (tmp_path / "x.h5").exists()
+    with pytest.raises(SystemExit) as exc:   # (argparse's usage error)
+        run_cli(capsys, "adjust", tmp_path / "x.h5", "surplus")
+    assert exc.value.code == 2 and "unrecognized arguments: surplus" in capsys.readouterr().err

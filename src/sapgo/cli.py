@@ -1172,7 +1172,13 @@ def main(argv=None):
     from .errors import DiskFullError
     from .project import disk_full_error, is_disk_full
 
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if extra and getattr(args, "command", None) == "import" and not any(
+            e.startswith("-") for e in extra):   # (import's paths around its options)
+        args.paths += extra
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     sys.unraisablehook = _quiet_hdf5_teardown
     from . import kernelcache
 
