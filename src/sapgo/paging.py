@@ -139,8 +139,8 @@ def hugepage_advice_off():
     ``madvise``, common), a run right after other work on the machine slowed down 1.5
     times: a 1 000-photo block's run 0.161-0.171 s with the advice on against 0.104-0.113 s
     off (``python benchmarks/interference.py``, benchmarks/README.md). Off, runs alone took
-    as long at 100 000 photos and on the squares, and less at 10 000 (the same script's
-    ``--alone``). A value the environment gives numpy (``NUMPY_MADVISE_HUGEPAGE``, read when
+    as long at 10 000 and 100 000 photos and on the squares, within the machine's
+    run-to-run differences (the same script's ``--alone``). A value the environment gives numpy (``NUMPY_MADVISE_HUGEPAGE``, read when
     numpy loads) is the user's choice: sapgo then leaves numpy's setting alone. (Dask
     workers are processes of their own and keep theirs.)
 
