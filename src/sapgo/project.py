@@ -320,7 +320,9 @@ class ProjectWriter:
 
     ``memory``: the file is built in memory (HDF5's core driver, nothing written) and
     :meth:`finish` hands over the open file instead (``sapgo adjust``'s ordered copy of a
-    small project, :func:`memory_image`).
+    small project, :func:`memory_image`). The records appended are held as arrays and each
+    dataset is created whole, with its data, by :meth:`finish` (one write each instead of
+    a resize and a write an append): until then the file has none of the record datasets.
     """
 
     def __init__(self, path, attrs=None, truth=False, tmp_suffix=".tmp", sizes=None,
@@ -331,7 +333,10 @@ class ProjectWriter:
         #: (memory) the records appended, by dataset: the run reads them, not the file
         self.records = {}
         if memory:
-            self._f = h5py.File(self.tmp, "w", driver="core", backing_store=False)
+            est = sum(int(n) * RECORD_DTYPES[k].itemsize for k, n in (sizes or {}).items()
+                      if k in RECORD_DTYPES)
+            self._f = h5py.File(self.tmp, "w", driver="core", backing_store=False,
+                                block_size=core_block_size(2 * est))
         else:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             if self.path.is_dir():
@@ -355,36 +360,43 @@ class ProjectWriter:
         for k, v in (attrs or {}).items():
             f.attrs[k] = v
         f.attrs["uuid"] = uuid.uuid4().hex
-        names = dict(RECORD_DTYPES)
+        self._names = dict(RECORD_DTYPES)
         if truth:
             f.create_group("truth")
-            names.update(TRUTH_DTYPES)
-        for name, dtype in names.items():
+            self._names.update(TRUTH_DTYPES)
+        self._rows = {}
+        for name, dtype in self._names.items():
             rows = max(1, min(CHUNK_RECORDS, (1 << 20) // dtype.itemsize))
             if sizes is not None and name in sizes:
                 rows = max(1, min(rows, int(sizes[name])))
-            f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows,),
-                             **CHECKSUM)
+            self._rows[name] = rows
+            if not memory:
+                f.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype,
+                                 chunks=(rows,), **CHECKSUM)
 
     @property
     def file(self):
         return self._f
 
     def size(self, name):
+        if self.memory:
+            return sum(len(r) for r in self.records.get(name, ()))
         return int(self._f[name].shape[0])
 
     def append(self, name, records):
         """Append records to dataset ``name``; returns the record number of the first."""
+        if self.memory:   # (a copy: the caller may reuse its buffer)
+            n = self.size(name)
+            self.records.setdefault(name, []).append(
+                np.array(records, dtype=self._names[name], copy=True))
+            return n
         ds = self._f[name]
         records = np.asarray(records, dtype=ds.dtype)
-        if not self.memory:
-            ensure_free(self.tmp, 2 * records.nbytes, f"the new project {self.path.name}")
+        ensure_free(self.tmp, 2 * records.nbytes, f"the new project {self.path.name}")
         n = ds.shape[0]
         if len(records):
             ds.resize((n + len(records),))
             ds[n:] = records
-        if self.memory:   # (a copy: the caller may reuse its buffer)
-            self.records.setdefault(name, []).append(records.copy())
         return n
 
     def set_attrs(self, **attrs):
@@ -395,9 +407,13 @@ class ProjectWriter:
         """Close the file and move it into place (in memory: the open file, handed over)."""
         if self.memory:
             f, self._f = self._f, None
-            f.flush()
             self.records = {name: np.concatenate(parts) if len(parts) > 1 else parts[0]
                             for name, parts in self.records.items()}
+            for name, dtype in self._names.items():
+                data = self.records.get(name)
+                f.create_dataset(name, data=np.zeros(0, dtype) if data is None else data,
+                                 maxshape=(None,), chunks=(self._rows[name],), **CHECKSUM)
+            f.flush()
             return f
         self._f.close()
         self._f = None
@@ -971,9 +987,24 @@ def memory_image(path):
     adjust`` on a small project commits from it (:func:`write_image`). None when the file
     cannot be opened so (then the run reads the file itself)."""
     try:
-        return h5py.File(path, "r+", driver="core", backing_store=False)
+        size = os.path.getsize(path)
+        return h5py.File(path, "r+", driver="core", backing_store=False,
+                         block_size=core_block_size(size))
     except OSError:
         return None
+
+
+def core_block_size(grows_by):
+    """The increment of an HDF5 file in memory (the core driver's ``block_size``) for a
+    file that grows by about ``grows_by`` bytes: the driver reallocates its image every
+    increment (64 KiB by default), so a file in memory that takes a few megabytes of
+    records or results was copied whole dozens of times (p49: 7.5 against 4.7 ms for the
+    records, 6.9 against 3.6 for the solution at 8 MiB). A power of two from 64 KiB to
+    16 MiB; a larger one costs its allocation."""
+    b = 1 << 16
+    while b < grows_by and b < (16 << 20):
+        b <<= 1
+    return b
 
 
 def write_image(f, path):
