@@ -361,3 +361,24 @@ def test_datum_free_leaves_out_a_one_ray_control_point(block_cache, tmp_path):
     b = sapgo.adjust(without, sapgo.Options(**opts))
     assert a.redundancy == b.redundancy and a.n_points == b.n_points
     assert a.sigma0 == pytest.approx(b.sigma0, rel=1e-9)
+
+
+@pytest.mark.parametrize("calibrate", [(), FREE_CALIB])
+def test_first_inner_constraint_pass_on_threads_equals_one_thread(free_block, tmp_path,
+                                                                  monkeypatch, calibrate):
+    """The first S-transform pass sums the stations' (and the border's) right-hand sides
+    in a copy for each thread (:func:`sapgo.normals.datum_sums_parallel`); with no room
+    for the copies it runs on one thread: the same precision either way, to rounding."""
+    path, _ = free_block
+    out = {}
+    for room in (sapgo.freenet.PRIVATE_SUMS_BYTES, 0):
+        monkeypatch.setattr(sapgo.freenet, "PRIVATE_SUMS_BYTES", room)
+        run = tmp_path / f"room{room}.h5"
+        shutil.copy(path, run)
+        sapgo.adjust(run, sapgo.Options(progress=False, calibrate=calibrate))
+        with Project(run) as p:
+            out[room] = (p.solution("station_sigma"), p.solution("point_sigma"))
+    a, b = out.values()
+    assert np.abs(a[0]).max() > 0 and np.abs(a[1]).max() > 0
+    np.testing.assert_allclose(a[0], b[0], rtol=1e-10, atol=0)
+    np.testing.assert_allclose(a[1], b[1], rtol=1e-10, atol=0)

@@ -279,3 +279,45 @@ def test_reverse_cuthill_mckee_matches_the_algorithm_in_words(monkeypatch, steps
             deg = np.diff(indptr)
             assert len(set(deg[list(want)])) < n   # (there was a tie to break)
     assert agree >= 10   # (19 of the 60 here)
+
+
+@pytest.mark.parametrize("case", ["plain", "left out", "rejections reset", "tree"])
+def test_ordered_copy_in_memory_has_the_records_of_the_streamed_one(small_block, tmp_path,
+                                                                    case):
+    """``sapgo adjust``'s ordered copy of a small project, built in memory from whole arrays
+    (``in_memory``), holds the records, truth and tree the streamed passes write to a file:
+    the same sort keys, the same order, bit for bit."""
+    from sapgo.project import STATUS_REJECTED
+
+    rec = read_records(small_block)
+    ob, pt = rec["observations"], rec["points"]
+    if case == "left out":   # a point on one photo, a photo with two points
+        single = int(np.flatnonzero((pt["kind"] == 4) & (np.bincount(ob["point"]) >= 2))[0])
+        drop = np.union1d(np.flatnonzero(ob["point"] == single)[1:],
+                          np.flatnonzero(ob["station"] == 2)[2:])
+        rec["observations"] = np.delete(ob, drop)
+    if case == "rejections reset":
+        rec["observations"]["status"][[10, 40]] = STATUS_REJECTED
+    rewrite(small_block, rec)
+    kw = dict(reset_rejections=case == "rejections reset",
+              solver="tree" if case == "tree" else "auto")
+    streamed = order_project(small_block, out=tmp_path / "streamed.h5", **kw)
+    held = order_project(small_block, out=tmp_path / "held.h5", in_memory=True, **kw)
+    try:
+        assert held.to_dict() | {"seconds": 0} == streamed.to_dict() | {"seconds": 0}
+        with Project(tmp_path / "streamed.h5") as s:
+            names = [n for n in ("stations", "points", "observations", "cameras",
+                                 "station_priors", "truth/stations", "truth/points")
+                     if n in s.file]
+            assert "truth/points" in names
+            for n in names:
+                np.testing.assert_array_equal(held.file[n][()], s.file[n][()], err_msg=n)
+                np.testing.assert_array_equal(held.records[n], s.file[n][()], err_msg=n)
+            assert ("tree" in held.file) == ("tree" in s.file) == (case == "tree")
+            for k in s.file["tree"] if case == "tree" else ():
+                np.testing.assert_array_equal(held.file["tree"][k][()], s.file["tree"][k][()])
+            for k in ("ordering", "band_width", "solver", "ordered", "rejections_reset"):
+                assert held.file.attrs[k] == s.file.attrs[k], k
+    finally:
+        held.file.close()
+    assert not (tmp_path / "held.h5").exists()

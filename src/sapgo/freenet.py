@@ -43,7 +43,7 @@ import types
 import numpy as np
 
 from . import threads as _threads
-from .normals import PointChunk, datum_columns, datum_columns_parallel
+from .normals import PointChunk, datum_columns, datum_columns_parallel, datum_sums_parallel
 
 #: The station parameters held for a free network's adjustment: all six of one photo.
 ALL_SIX = 0b111111
@@ -196,6 +196,12 @@ def _border_x(work, blk, opts):
                       scratch=work.dir).border_x(n)
 
 
+#: The first inner-constraint pass runs on every thread when a copy of the stations' (and
+#: the border's) right-hand sides for each thread takes at most this many bytes (about
+#: 190 000 stations on 2 threads), else on one thread.
+PRIVATE_SUMS_BYTES = 64 << 20
+
+
 def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g):
     """One pass of :func:`sapgo.normals.datum_columns` over the points (``r_g``, ``x_g``:
     the border's reduced right-hand sides and solution, border x 7); ``on_chunk(a, b, c,
@@ -214,8 +220,13 @@ def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g):
                 c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, blk.camera,
                 blk.cams, blk.ctrl_mask, c.max_rays, h, x_st, r_st, b_pt, blk.behind_ok,
                 blk.fixed, cal, r_g, x_g)
-        if x_st is None:   # (sums into the stations' rows: one thread)
+        if x_st is None and (_threads.parts() * 8 * (r_st.size + r_g.size)
+                             > PRIVATE_SUMS_BYTES):   # (sums into the stations' rows)
             bad = datum_columns(*args)
+        elif x_st is None:   # (each thread's sums in a copy of its own)
+            _threads.adapt()
+            bad = datum_sums_parallel(_threads.parts(), *args[:18], r_st, blk.behind_ok,
+                                      blk.fixed, cal, r_g)
         else:
             _threads.adapt()
             bad = datum_columns_parallel(_threads.parts(), *args)

@@ -1250,6 +1250,48 @@ def datum_columns_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, 
     return 0
 
 
+@njit(cache=True, error_model="numpy", nogil=True, parallel=True)
+def datum_sums_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start,
+                        pt_nobs, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
+                        cam_of_station, cams, ctrl_mask, max_rays, h_pt, r_st, behind_ok,
+                        st_fixed, cal, r_g):
+    """:func:`datum_columns` without the stations' solution (the pass that sums into the
+    stations' and the border's reduced right-hand sides ``r_st`` and ``r_g``) on
+    ``nthreads`` threads: each run of points (cut as :func:`datum_columns_parallel` cuts
+    them) sums into a copy of its own, and the copies are added in run order -- the same
+    sums for the same count of runs, whatever threads run them. The caller sees that
+    ``nthreads`` copies fit in memory. The first point that cannot be linearised (index +
+    1), else 0."""
+    n = pt_xyz.shape[0]
+    nt = max(1, min(nthreads, n))
+    for j in range(1, n):
+        if pt_start[j] < pt_start[j - 1] + pt_nobs[j - 1]:
+            nt = 1
+    cut = _runs(pt_start, pt_nobs, nt)
+    bad = np.zeros(nt, np.int64)
+    rs = np.zeros((nt, r_st.shape[0], r_st.shape[1], r_st.shape[2]))
+    rg = np.zeros((nt, r_g.shape[0], r_g.shape[1]))
+    for t in prange(nt):
+        a, b = cut[t], cut[t + 1]
+        if b > a:
+            o0, o1 = pt_start[a], pt_start[b - 1] + pt_nobs[b - 1]
+            k = datum_columns(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b],
+                              pt_rot[a:b], pt_start[a:b] - o0, pt_nobs[a:b], pt_active[a:b],
+                              obs_station[o0:o1], obs_xy[o0:o1], obs_sigma[o0:o1],
+                              obs_active[o0:o1], eo, cam_of_station, cams, ctrl_mask,
+                              max_rays, h_pt[a:b], None, rs[t], h_pt[a:b], behind_ok,
+                              st_fixed, cal, rg[t], rg[t])
+            if k > 0:
+                bad[t] = a + k
+    for t in range(nt):
+        if bad[t] > 0:
+            return bad[t]
+    for t in range(nt):
+        r_st += rs[t]
+        r_g += rg[t]
+    return 0
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,

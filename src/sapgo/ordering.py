@@ -34,7 +34,7 @@ from numba import njit
 from . import paging
 from .lock import writes_project
 from .errors import ParameterError
-from .extsort import DEFAULT_MEMORY, ExternalSorter, parse_memory, rechunk
+from .extsort import DEFAULT_MEMORY, ExternalSorter, _key_order, parse_memory, rechunk
 from .project import (
     CHECKSUM,
     CHUNK_RECORDS,
@@ -967,6 +967,52 @@ def choose_solver(pos, active, edges, band_width, k=6, solver="auto", leaf_stati
     return None, None, predicted
 
 
+def _records_in_memory(p, w, st_active, pos, n_st, reset, has_truth, tree, node_points,
+                       excluded_points):
+    """:func:`_order`'s points and observations (and the points' truth) in their new order
+    for an ordered copy built in memory (``sapgo adjust`` on a small project without a
+    solution): the records the streamed passes write -- the same sort keys, the same
+    stable order -- from whole arrays in one pass, without the external sorters' copies.
+    Appends them to ``w``, counts each node's points into ``node_points`` (a tree) and
+    the excluded points' ids into ``excluded_points``; returns how many were excluded."""
+    n_pt = p.n_points
+    c = _Chunk(p, 0, n_pt, st_active, reset=reset)
+    new_st = pos[c.station]
+    smin, smax = _ray_range(c.starts, c.counts, new_st, c.obs_active)
+    kmin = np.where(c.point_active, smin, n_st)
+    kmax = np.where(c.point_active, smax, n_st)
+    order = _key_order([kmin, kmax, np.asarray(c.pts["id"], np.int64),
+                        np.arange(n_pt, dtype=np.int64)])
+    r = c.pts.copy()
+    r["status"] = np.where(c.point_active, STATUS_ACTIVE, STATUS_EXCLUDED)
+    r["station_min"] = np.where(c.point_active, smin, -1)
+    r["station_max"] = smax
+    r = r[order]
+    r["obs_start"] = np.concatenate([[0], np.cumsum(r["n_obs"][:-1])]) if n_pt else 0
+    w.append("points", r)
+    if has_truth:
+        w.append("truth/points", p.read("truth/points")[order])
+    if tree is not None:   # the points of each node (by their first station)
+        km = kmin[order]
+        km = km[km < tree.n_active]
+        node_points += np.bincount(np.searchsorted(tree.hi, km, side="right"),
+                                   minlength=tree.n_nodes)
+    new = np.empty(n_pt, np.int64)
+    new[order] = np.arange(n_pt, dtype=np.int64)
+    point = np.repeat(new, c.counts)
+    o = c.obs.copy()
+    rejected = o["status"] == STATUS_REJECTED
+    o["status"] = np.where(c.obs_active, STATUS_ACTIVE, STATUS_EXCLUDED)
+    o["status"][rejected] = STATUS_REJECTED
+    o["point"] = point
+    o["station"] = new_st
+    w.append("observations", o[_key_order([point, new_st,
+                                           np.arange(c.o0, c.o1, dtype=np.int64)])])
+    ids = c.pts["id"][~c.point_active]
+    excluded_points.extend(int(i) for i in ids[:LISTED_IDS])
+    return len(ids)
+
+
 def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, out=None,
            reset=False, in_memory=False):
 
@@ -1026,102 +1072,107 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
             ProjectWriter(out or p.path, attrs, truth=has_truth, tmp_suffix=".order.tmp",
                           sizes={n: len(p.file[n]) for n in (*RECORD_DTYPES, *TRUTH_DTYPES)
                                  if n in p.file}, memory=in_memory) as w:
-        # 1. points keyed by (min, max) logical station of their active rays
-        for a, b_ in p.chunks("points", chunk):
-            c = _Chunk(p, a, b_, st_active, fields=("station", "status"), reset=reset)
-            new_st = pos[c.station]
-            smin, smax = _ray_range(c.starts, c.counts, new_st, c.obs_active)
-            rec = np.zeros(b_ - a, pt_dtype)
-            rec["kmin"] = np.where(c.point_active, smin, n_st)
-            rec["kmax"] = np.where(c.point_active, smax, n_st)
-            rec["id"] = c.pts["id"]
-            rec["old"] = np.arange(a, b_)
-            r = c.pts.copy()
-            r["status"] = np.where(c.point_active, STATUS_ACTIVE, STATUS_EXCLUDED)
-            r["station_min"] = np.where(c.point_active, smin, -1)
-            r["station_max"] = smax
-            rec["rec"] = r
-            if has_truth:
-                rec["truth"] = p.read("truth/points", a, b_)
-            if has_solution:
-                rec["corr"] = p.solution("point_corr", a, b_)
-                rec["sigma"] = p.solution("point_sigma", a, b_)
-            ids = c.pts["id"][~c.point_active]
-            n_excluded_points += len(ids)
-            excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
-            pts_sort.add(rec)
-
-        # 2. points written in the new order; the old -> new map sorted back by old number
-        if has_solution:
-            sol = w.file.create_group("solution.new")
-            for k, v in p.file["solution"].attrs.items():
-                sol.attrs[k] = v
-            narrow = not p.cameras()["ap_set"].any()
-            for dname, (parent, _) in SOLUTION_LAYOUT.items():
-                solution_dataset(sol, dname, {"stations": n_st, "points": n_pt,
-                                              "cameras": p.n_cameras}.get(parent,
-                                                                          p.n_observations),
-                                 PHOTO_CAMERA_NARROW if narrow and dname == "photo_camera_corr"
-                                 else None)
-            sol["station_corr"][...] = p.solution("station_corr")[perm]
-            sol["station_sigma"][...] = p.solution("station_sigma")[perm]
-            pcc = sol["photo_camera_corr"]
-            pcc[...] = p.solution("photo_camera_corr")[perm][:, :pcc.shape[1]]
-            sol["camera_corr"][...] = p.solution("camera_corr")  # cameras keep their order
-            if "report" in p.file["solution"]:
-                sol.create_dataset("report", data=p.file["solution/report"][()])
-        with ExternalSorter(map_dtype, ["old"], memory // 4, work, "map") as map_sort:
-            new, start = 0, 0
-            for c in pts_sort.sorted_chunks():
-                r = c["rec"].copy()
-                r["obs_start"] = start + np.concatenate([[0], np.cumsum(r["n_obs"][:-1])])
-                start = int(r["obs_start"][-1] + r["n_obs"][-1])
-                w.append("points", r)
+        if in_memory and not has_solution:   # (one pass over whole arrays, no sorter)
+            n_excluded_points = _records_in_memory(p, w, st_active, pos, n_st, reset,
+                                                   has_truth, tree, node_points,
+                                                   excluded_points)
+        else:
+            # 1. points keyed by (min, max) logical station of their active rays
+            for a, b_ in p.chunks("points", chunk):
+                c = _Chunk(p, a, b_, st_active, fields=("station", "status"), reset=reset)
+                new_st = pos[c.station]
+                smin, smax = _ray_range(c.starts, c.counts, new_st, c.obs_active)
+                rec = np.zeros(b_ - a, pt_dtype)
+                rec["kmin"] = np.where(c.point_active, smin, n_st)
+                rec["kmax"] = np.where(c.point_active, smax, n_st)
+                rec["id"] = c.pts["id"]
+                rec["old"] = np.arange(a, b_)
+                r = c.pts.copy()
+                r["status"] = np.where(c.point_active, STATUS_ACTIVE, STATUS_EXCLUDED)
+                r["station_min"] = np.where(c.point_active, smin, -1)
+                r["station_max"] = smax
+                rec["rec"] = r
                 if has_truth:
-                    w.append("truth/points", c["truth"])
-                if has_solution:   # (every per-point and per-observation result)
-                    sol["point_corr"][new:new + len(c)] = c["corr"]
-                    sol["point_sigma"][new:new + len(c)] = c["sigma"]
-                if tree is not None:  # the points of each node (by their first station)
-                    km = c["kmin"][c["kmin"] < tree.n_active]
-                    node_points += np.bincount(np.searchsorted(tree.hi, km, side="right"),
-                                               minlength=tree.n_nodes)
-                m = np.zeros(len(c), map_dtype)
-                m["old"] = c["old"]
-                m["new"] = np.arange(new, new + len(c))
-                map_sort.add(m)
-                new += len(c)
-            pts_sort.close()
+                    rec["truth"] = p.read("truth/points", a, b_)
+                if has_solution:
+                    rec["corr"] = p.solution("point_corr", a, b_)
+                    rec["sigma"] = p.solution("point_sigma", a, b_)
+                ids = c.pts["id"][~c.point_active]
+                n_excluded_points += len(ids)
+                excluded_points.extend(int(i) for i in ids[:LISTED_IDS - len(excluded_points)])
+                pts_sort.add(rec)
 
-            # 3. observations relabelled (old point order = record order) and sorted
-            with ExternalSorter(ob_dtype, ["point", "station", "seq"], memory // 2, work,
-                                "observations") as obs_sort:
-                maps = rechunk(map_sort.sorted_chunks(), chunk)
-                for (a, b_), m in zip(p.chunks("points", chunk), maps):
-                    c = _Chunk(p, a, b_, st_active, reset=reset)
-                    rec = np.zeros(c.o1 - c.o0, ob_dtype)
-                    rec["point"] = np.repeat(m["new"], c.counts)
-                    rec["station"] = pos[c.station]
-                    rec["seq"] = np.arange(c.o0, c.o1)
-                    o = c.obs.copy()
-                    rejected = o["status"] == STATUS_REJECTED
-                    o["status"] = np.where(c.obs_active, STATUS_ACTIVE, STATUS_EXCLUDED)
-                    o["status"][rejected] = STATUS_REJECTED
-                    o["point"] = rec["point"]
-                    o["station"] = rec["station"]
-                    rec["rec"] = o
-                    if has_solution:
-                        rec["res"] = p.solution("residuals", c.o0, c.o1)
-                        rec["quality"] = p.solution("obs_quality", c.o0, c.o1)
-                    obs_sort.add(rec)
-                map_sort.close()
-                at = 0
-                for c in obs_sort.sorted_chunks():
-                    w.append("observations", c["rec"])
-                    if has_solution:
-                        sol["residuals"][at:at + len(c)] = c["res"]
-                        sol["obs_quality"][at:at + len(c)] = c["quality"]
-                    at += len(c)
+            # 2. points written in the new order; the old -> new map sorted back by old number
+            if has_solution:
+                sol = w.file.create_group("solution.new")
+                for k, v in p.file["solution"].attrs.items():
+                    sol.attrs[k] = v
+                narrow = not p.cameras()["ap_set"].any()
+                for dname, (parent, _) in SOLUTION_LAYOUT.items():
+                    solution_dataset(sol, dname, {"stations": n_st, "points": n_pt,
+                                                  "cameras": p.n_cameras}.get(parent,
+                                                                              p.n_observations),
+                                     PHOTO_CAMERA_NARROW if narrow and dname == "photo_camera_corr"
+                                     else None)
+                sol["station_corr"][...] = p.solution("station_corr")[perm]
+                sol["station_sigma"][...] = p.solution("station_sigma")[perm]
+                pcc = sol["photo_camera_corr"]
+                pcc[...] = p.solution("photo_camera_corr")[perm][:, :pcc.shape[1]]
+                sol["camera_corr"][...] = p.solution("camera_corr")  # cameras keep their order
+                if "report" in p.file["solution"]:
+                    sol.create_dataset("report", data=p.file["solution/report"][()])
+            with ExternalSorter(map_dtype, ["old"], memory // 4, work, "map") as map_sort:
+                new, start = 0, 0
+                for c in pts_sort.sorted_chunks():
+                    r = c["rec"].copy()
+                    r["obs_start"] = start + np.concatenate([[0], np.cumsum(r["n_obs"][:-1])])
+                    start = int(r["obs_start"][-1] + r["n_obs"][-1])
+                    w.append("points", r)
+                    if has_truth:
+                        w.append("truth/points", c["truth"])
+                    if has_solution:   # (every per-point and per-observation result)
+                        sol["point_corr"][new:new + len(c)] = c["corr"]
+                        sol["point_sigma"][new:new + len(c)] = c["sigma"]
+                    if tree is not None:  # the points of each node (by their first station)
+                        km = c["kmin"][c["kmin"] < tree.n_active]
+                        node_points += np.bincount(np.searchsorted(tree.hi, km, side="right"),
+                                                   minlength=tree.n_nodes)
+                    m = np.zeros(len(c), map_dtype)
+                    m["old"] = c["old"]
+                    m["new"] = np.arange(new, new + len(c))
+                    map_sort.add(m)
+                    new += len(c)
+                pts_sort.close()
+
+                # 3. observations relabelled (old point order = record order) and sorted
+                with ExternalSorter(ob_dtype, ["point", "station", "seq"], memory // 2, work,
+                                    "observations") as obs_sort:
+                    maps = rechunk(map_sort.sorted_chunks(), chunk)
+                    for (a, b_), m in zip(p.chunks("points", chunk), maps):
+                        c = _Chunk(p, a, b_, st_active, reset=reset)
+                        rec = np.zeros(c.o1 - c.o0, ob_dtype)
+                        rec["point"] = np.repeat(m["new"], c.counts)
+                        rec["station"] = pos[c.station]
+                        rec["seq"] = np.arange(c.o0, c.o1)
+                        o = c.obs.copy()
+                        rejected = o["status"] == STATUS_REJECTED
+                        o["status"] = np.where(c.obs_active, STATUS_ACTIVE, STATUS_EXCLUDED)
+                        o["status"][rejected] = STATUS_REJECTED
+                        o["point"] = rec["point"]
+                        o["station"] = rec["station"]
+                        rec["rec"] = o
+                        if has_solution:
+                            rec["res"] = p.solution("residuals", c.o0, c.o1)
+                            rec["quality"] = p.solution("obs_quality", c.o0, c.o1)
+                        obs_sort.add(rec)
+                    map_sort.close()
+                    at = 0
+                    for c in obs_sort.sorted_chunks():
+                        w.append("observations", c["rec"])
+                        if has_solution:
+                            sol["residuals"][at:at + len(c)] = c["res"]
+                            sol["obs_quality"][at:at + len(c)] = c["quality"]
+                        at += len(c)
 
         # 4. per-station records (a chunk at a time)
         for a, b_ in paging.rows(n_st):
