@@ -335,10 +335,12 @@ def _check_station_spread(project):
     centre = np.median(sample, axis=0)
     size = float(np.median(np.linalg.norm(sample - centre, axis=1)))
     n_pt = project.n_points
-    if n_pt:
-        starts = np.unique(np.linspace(0, max(n_pt - 4096, 0), 16).astype(np.int64))
-        xyz = np.concatenate([project.read_field("points", "xyz", int(a), int(a) + 4096)
-                              for a in starts])   # (a sample: 16 runs of 4096 points)
+    if n_pt:   # (every point up to 16 x 4096, else a sample: 16 runs of 4096 points)
+        starts = (np.zeros(1, np.int64) if n_pt <= 16 * 4096 else
+                  np.linspace(0, n_pt - 4096, 16).astype(np.int64))
+        run = 4096 if n_pt > 16 * 4096 else n_pt
+        xyz = np.concatenate([project.read_field("points", "xyz", int(a), int(a) + run)
+                              for a in starts])
         size = max(size, float(np.median(np.linalg.norm(xyz - centre, axis=1))))
     size = max(size, 1.0)
     far, i, where = -1.0, -1, None
