@@ -227,6 +227,75 @@ def _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, diag, rhs_row, g, col,
             g[q, u, c] = tmp[c]
 
 
+@njit(cache=True, error_model="numpy", nogil=True)
+def _inverse3(lo, out):
+    """The inverse ``(L L')^-1`` of a 3 x 3 matrix from its Cholesky factor ``lo``."""
+    i00 = 1.0 / lo[0, 0]
+    i11 = 1.0 / lo[1, 1]
+    i22 = 1.0 / lo[2, 2]
+    i10 = -lo[1, 0] * i00 * i11
+    i21 = -lo[2, 1] * i11 * i22
+    i20 = -(lo[2, 0] * i00 + lo[2, 1] * i10) * i22
+    out[0, 0] = i00 * i00 + i10 * i10 + i20 * i20
+    out[1, 0] = out[0, 1] = i10 * i11 + i20 * i21
+    out[2, 0] = out[0, 2] = i20 * i22
+    out[1, 1] = i11 * i11 + i21 * i21
+    out[2, 1] = out[1, 2] = i21 * i22
+    out[2, 2] = i22 * i22
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _ray_terms6(q, w_all, a_all, l_all, nbar, h, ninv, diag, rhs_row, g, nbt):
+    """:func:`_ray_terms` for 6 parameters a station (the loops unrolled), with
+    ``G = Nbar Ndd^-1`` from the inverse ``ninv`` (:func:`_inverse3`) instead of six
+    triangular solves; ``Nbar`` transposed into ``nbt[q]`` besides."""
+    p = w_all[q]
+    l0 = l_all[q, 0]
+    l1 = l_all[q, 1]
+    for u in range(6):
+        pa0 = p * a_all[q, 0, u]
+        pa1 = p * a_all[q, 1, u]
+        for v in range(6):
+            diag[u, v] += pa0 * a_all[q, 0, v] + pa1 * a_all[q, 1, v]
+        n0, n1, n2 = nbar[q, u, 0], nbar[q, u, 1], nbar[q, u, 2]
+        rhs_row[u] += pa0 * l0 + pa1 * l1 - (n0 * h[0] + n1 * h[1] + n2 * h[2])
+        for c in range(3):
+            g[q, u, c] = n0 * ninv[0, c] + n1 * ninv[1, c] + n2 * ninv[2, c]
+            nbt[q, c, u] = nbar[q, u, c]
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _rays6(k, base, split, band, rhs, ovf_band, ovf_rhs, w_all, a_all, l_all, nbar, h, ninv,
+           g, nbt, st_all):
+    """:func:`_ray_terms6` of a point's ``k`` rays into their band rows."""
+    for q in range(k):
+        r = st_all[q] - base
+        row = band[r] if r < split else ovf_band[r - split]
+        rrow = rhs[r] if r < split else ovf_rhs[r - split]
+        _ray_terms6(q, w_all, a_all, l_all, nbar, h, ninv, row, rrow, g, nbt)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _schur6(k, base, split, band, ovf_band, st_all, g, nbar, nbt):
+    """The Schur complement of a point into its band rows, ``M[s_q, s_t] -= G_q Nbar_t'``,
+    for 6 parameters a station (the loops unrolled)."""
+    for q in range(k):
+        r = st_all[q] - base
+        row = band[r] if r < split else ovf_band[r - split]
+        for t in range(q, k):
+            off = 6 * (st_all[t] - st_all[q])
+            for u in range(6):
+                g0, g1, g2 = g[q, u, 0], g[q, u, 1], g[q, u, 2]
+                for v in range(6):
+                    row[u, off + v] -= g0 * nbt[t, 0, v] + g1 * nbt[t, 1, v] + g2 * nbt[t, 2, v]
+            if st_all[t] == st_all[q] and t != q:   # (two rays of one photo: both ways)
+                for u in range(6):
+                    for v in range(6):
+                        row[v, off + u] -= g[q, u, 0] * nbar[t, v, 0] \
+                            + g[q, u, 1] * nbar[t, v, 1] + g[q, u, 2] * nbar[t, v, 2]
+
+
+
 #: Doubles of a point's kept system (:func:`_keep_point`): the Cholesky factor of its
 #: (damped) 3 x 3 block, its right-hand side, its coordinates and the block's diagonal.
 KEPT_POINT = 18
@@ -310,6 +379,7 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
     h = np.empty(3)
     col = np.empty(3)
     tmp = np.empty(3)
+    ninv = np.empty((3, 3))
     ng = bord.shape[2]
     slot = np.full(ng, -1, np.int64)     # border column -> its place among the point's
     tcols = np.empty(ng, np.int64)       # the border columns the point touches
@@ -339,6 +409,24 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
         if keep_pt is not None and keep_pt.shape[0] > 0:
             _keep_point(j, keep_pt, keep_nbar, lo, cc, xyz, nn, nbar, pt_start, pt_nobs,
                         obs_active)
+        if npar == 6:   # (the loops over a station's parameters unrolled)
+            _inverse3(lo, ninv)
+            _rays6(k, base, split, band, rhs, ovf_band, ovf_rhs, w_all, a_all, l_all, nbar,
+                   h, ninv, g, nbt, st_all)
+            if dg is not None and dg.shape[0] > 0:
+                for q in range(k):
+                    r = st_all[q] - base
+                    drow = dg[r] if r < split else ovf_dg[r - split]
+                    pq = w_all[q]
+                    for u in range(6):
+                        drow[u] += pq * (a_all[q, 0, u] * a_all[q, 0, u]
+                                         + a_all[q, 1, u] * a_all[q, 1, u])
+            _schur6(k, base, split, band, ovf_band, st_all, g, nbar, nbt)
+            if ng > 0:
+                _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal,
+                              xyz, a_all, l_all, w_all, st_all, g, lo, h, base, split, bord,
+                              ovf_bord, cnn, ccg, cdiag, slot, tcols, ngp, ggp, e, b_all, o_all)
+            continue
         for q in range(k):
             r = st_all[q] - base
             row = band[r] if r < split else ovf_band[r - split]

@@ -51,7 +51,7 @@ from ..blas import (FNS, L, N, R, T, blas_limits, gemm, gemv, lauum, syrk, trmm,
                     trsv, trtri)
 from ..geometry import N_CALIBRATION
 from ..normals import (BAD_LAYOUT, BEHIND_CAMERA, OK, SINGULAR_POINT, _border_point, _chol3,
-                       _point_system, _ray_terms, _solve3, _workspace)
+                       _inverse3, _point_system, _ray_terms, _ray_terms6, _solve3, _workspace)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -81,6 +81,8 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
     only in the rows of its stations."""
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all, o_all = _workspace(max_rays, npar)
     g = np.empty((max_rays, npar, 3))
+    nbt = np.empty((max_rays, 3, npar))
+    ninv = np.empty((3, 3))
     h = np.empty(3)
     col = np.empty(3)
     tmp = np.empty(3)
@@ -109,6 +111,32 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
         if not _chol3(nn, lo):
             return SINGULAR_POINT, j
         _solve3(lo, cc, h)
+        if npar == 6:   # (the loops over a station's parameters unrolled)
+            _inverse3(lo, ninv)
+            for q in range(k):
+                s0 = 6 * st_all[q]
+                if c0 <= s0 < c1:
+                    _ray_terms6(q, w_all, a_all, l_all, nbar, h, ninv,
+                                front[s0 - c0:s0 - c0 + 6, s0 - c0:s0 - c0 + 6],
+                                rhs[s0:s0 + 6], g, nbt)
+                elif c1 <= s0 < c2:
+                    _ray_terms6(q, w_all, a_all, l_all, nbar, h, ninv,
+                                upd[s0 - c1:s0 - c1 + 6, s0 - c1:s0 - c1 + 6],
+                                rhs[s0:s0 + 6], g, nbt)
+                else:
+                    _ray_terms6(q, w_all, a_all, l_all, nbar, h, ninv, spare, spare_rhs, g,
+                                nbt)
+            for q in range(k):
+                sq = 6 * st_all[q]
+                if c0 <= sq < c1:
+                    _schur_blocks6(front, c0, g, nbt, q, k, st_all)
+                elif c1 <= sq < c2:
+                    _schur_blocks6(upd, c1, g, nbt, q, k, st_all)
+            if ng > 0:
+                _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams,
+                              cal, xyz, a_all, l_all, w_all, st_all, g, lo, h, 0, nf, bord,
+                              bord, cnn, ccg, cdiag, slot, tcols, ngp, ggp, e, b_all, o_all)
+            continue
         for q in range(k):
             s0 = npar * st_all[q]
             if c0 <= s0 < c1:
@@ -154,6 +182,26 @@ def _schur_blocks(a, off, g, nbar, q, k, st_all, npar):
                 if st != sq:
                     a[st + v, sq + u] -= x
                 else:
+                    a[sq + u, sq + v] -= x
+                    if t != q:
+                        a[sq + v, sq + u] -= x
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _schur_blocks6(a, off, g, nbt, q, k, st_all):
+    """:func:`_schur_blocks` for 6 parameters a station (the loops unrolled; ``nbt``:
+    ``Nbar`` transposed, :func:`sapgo.normals._ray_terms6`)."""
+    sq = 6 * st_all[q] - off
+    for t in range(q, k):
+        st = 6 * st_all[t] - off
+        for u in range(6):
+            g0, g1, g2 = g[q, u, 0], g[q, u, 1], g[q, u, 2]
+            if st != sq:
+                for v in range(6):
+                    a[st + v, sq + u] -= g0 * nbt[t, 0, v] + g1 * nbt[t, 1, v] + g2 * nbt[t, 2, v]
+            else:
+                for v in range(6):
+                    x = g0 * nbt[t, 0, v] + g1 * nbt[t, 1, v] + g2 * nbt[t, 2, v]
                     a[sq + u, sq + v] -= x
                     if t != q:
                         a[sq + v, sq + u] -= x
