@@ -12,6 +12,7 @@ from sapgo.solve.band import band_to_dense
 from sapgo.ordering import order_project
 from sapgo.project import (
     CONTROL_MASK,
+    KIND_CONTROL,
     KIND_HORIZONTAL,
     KIND_PASS,
     KIND_VERTICAL,
@@ -331,3 +332,60 @@ def test_part_of_a_kept_chunk_is_the_chunk_read_afresh(tmp_path):
         cams = blk.camera.copy()
         again = PointChunk(p, 1, 3, xyz[1:3], cams, blk.cam_sigma, blk.frame)
         assert not np.shares_memory(again.obs_xy, whole.obs_xy)
+
+
+def _two_rays_of_one_photo(path, every=3):
+    """Every ``every``-th point not control measured twice on its first photo (the second
+    mark 2 um away): two active rays of one station, the case the Schur update adds both
+    ways."""
+    rec = read_records(path)
+    ob = rec["observations"]
+    pass_pt = np.flatnonzero(rec["points"]["kind"] != KIND_CONTROL)[::every]
+    assert len(pass_pt) > 0
+    first = np.searchsorted(ob["point"], pass_pt)   # (sorted by point)
+    extra = ob[first].copy()
+    extra["x"] += 0.002
+    rec["observations"] = np.insert(ob, first + 1, extra)
+    rewrite(path, rec)
+    return len(first)
+
+
+def test_two_rays_of_one_photo_reduce_as_dense(small_block, tmp_path):
+    """The unrolled 6-parameter build (:func:`sapgo.normals._schur6`) with two rays of one
+    photo against the dense reduction."""
+    assert _two_rays_of_one_photo(small_block) > 0
+    order_project(small_block)
+    m_ref, d_ref = dense(small_block)
+    m, d, _ = streamed(small_block, tmp_path)
+    scale = np.abs(np.diag(m_ref))
+    assert (np.abs(m - m_ref) <= 1e-9 * np.sqrt(np.outer(scale, scale))).all()
+    np.testing.assert_allclose(d, d_ref, rtol=1e-8, atol=1e-9 * np.abs(d_ref).max())
+
+
+def test_two_rays_of_one_photo_tree_equals_band(small_block, tmp_path):
+    """The tree's fronts (:func:`sapgo.solve.fronts._schur_blocks6`) with two rays of one
+    photo: the same adjustment as the band's."""
+    import shutil
+
+    import sapgo
+
+    _two_rays_of_one_photo(small_block)
+    tree = tmp_path / "tree.h5"
+    shutil.copy(small_block, tree)
+    tight = dict(tol_position=1e-9, tol_angle=1e-11, progress=False)
+    band = sapgo.adjust(small_block, sapgo.Options(solver="band", **tight))
+    tr = sapgo.adjust(tree, sapgo.Options(solver="tree", **tight))
+    assert tr.solver == "tree" and band.solver == "band"
+    assert abs(tr.sigma0 - band.sigma0) <= 1e-9 * band.sigma0
+    with Project(small_block) as a, Project(tree) as b:
+        ia, ib = np.argsort(a.read_field("points", "id")), np.argsort(b.read_field("points", "id"))
+        xa = a.solution("point_corr")[ia] + a.read_field("points", "xyz")[ia]
+        xb = b.solution("point_corr")[ib] + b.read_field("points", "xyz")[ib]
+        sa, sb = a.solution("point_sigma")[ia], b.solution("point_sigma")[ib]
+        ja = np.argsort(a.read_field("stations", "id"))
+        jb = np.argsort(b.read_field("stations", "id"))
+        ea, eb = a.solution("station_sigma")[ja], b.solution("station_sigma")[jb]
+    np.testing.assert_allclose(xb, xa, rtol=0, atol=1e-7)
+    # the precision comes from the normal matrix itself (a wrong one still converges)
+    np.testing.assert_allclose(sb, sa, rtol=1e-8)
+    np.testing.assert_allclose(eb, ea, rtol=1e-8)
