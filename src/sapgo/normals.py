@@ -295,7 +295,6 @@ def _schur6(k, base, split, band, ovf_band, st_all, g, nbar, nbt):
                             + g[q, u, 1] * nbar[t, v, 1] + g[q, u, 2] * nbar[t, v, 2]
 
 
-
 #: Doubles of a point's kept system (:func:`_keep_point`): the Cholesky factor of its
 #: (damped) 3 x 3 block, its right-hand side, its coordinates and the block's diagonal.
 KEPT_POINT = 18
@@ -413,50 +412,42 @@ def build_points(j0, j_stop, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start
             _inverse3(lo, ninv)
             _rays6(k, base, split, band, rhs, ovf_band, ovf_rhs, w_all, a_all, l_all, nbar,
                    h, ninv, g, nbt, st_all)
-            if dg is not None and dg.shape[0] > 0:
-                for q in range(k):
-                    r = st_all[q] - base
-                    drow = dg[r] if r < split else ovf_dg[r - split]
-                    pq = w_all[q]
-                    for u in range(6):
-                        drow[u] += pq * (a_all[q, 0, u] * a_all[q, 0, u]
-                                         + a_all[q, 1, u] * a_all[q, 1, u])
-            _schur6(k, base, split, band, ovf_band, st_all, g, nbar, nbt)
-            if ng > 0:
-                _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal,
-                              xyz, a_all, l_all, w_all, st_all, g, lo, h, base, split, bord,
-                              ovf_bord, cnn, ccg, cdiag, slot, tcols, ngp, ggp, e, b_all, o_all)
-            continue
-        for q in range(k):
-            r = st_all[q] - base
-            row = band[r] if r < split else ovf_band[r - split]
-            rrow = rhs[r] if r < split else ovf_rhs[r - split]
-            _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, row, rrow, g, col, tmp)
-            if dg is not None and dg.shape[0] > 0:
+        else:
+            for q in range(k):
+                r = st_all[q] - base
+                row = band[r] if r < split else ovf_band[r - split]
+                rrow = rhs[r] if r < split else ovf_rhs[r - split]
+                _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, row, rrow, g, col, tmp)
+                for c in range(3):   # (Nbar transposed: the update below runs along its rows)
+                    for v in range(npar):
+                        nbt[q, c, v] = nbar[q, v, c]
+        if dg is not None and dg.shape[0] > 0:
+            for q in range(k):
+                r = st_all[q] - base
                 drow = dg[r] if r < split else ovf_dg[r - split]
                 pq = w_all[q]
                 for u in range(npar):
                     drow[u] += pq * (a_all[q, 0, u] * a_all[q, 0, u]
                                      + a_all[q, 1, u] * a_all[q, 1, u])
-            for c in range(3):   # (Nbar transposed: the update below runs along its rows)
-                for v in range(npar):
-                    nbt[q, c, v] = nbar[q, v, c]
         # Schur complement into the band rows: M[s_q, s_t] -= G_q Nbar_t'
-        for q in range(k):
-            r = st_all[q] - base
-            row = band[r] if r < split else ovf_band[r - split]
-            for t in range(q, k):
-                off = npar * (st_all[t] - st_all[q])
-                for u in range(npar):   # (the rank-3 update, its three terms hoisted)
-                    g0, g1, g2 = g[q, u, 0], g[q, u, 1], g[q, u, 2]
-                    for v in range(npar):
-                        row[u, off + v] -= g0 * nbt[t, 0, v] + g1 * nbt[t, 1, v] \
-                            + g2 * nbt[t, 2, v]
-                if st_all[t] == st_all[q] and t != q:   # (two rays of one photo: both ways)
-                    for u in range(npar):
+        if npar == 6:
+            _schur6(k, base, split, band, ovf_band, st_all, g, nbar, nbt)
+        else:
+            for q in range(k):
+                r = st_all[q] - base
+                row = band[r] if r < split else ovf_band[r - split]
+                for t in range(q, k):
+                    off = npar * (st_all[t] - st_all[q])
+                    for u in range(npar):   # (the rank-3 update, its three terms hoisted)
+                        g0, g1, g2 = g[q, u, 0], g[q, u, 1], g[q, u, 2]
                         for v in range(npar):
-                            row[v, off + u] -= g[q, u, 0] * nbar[t, v, 0] \
-                                + g[q, u, 1] * nbar[t, v, 1] + g[q, u, 2] * nbar[t, v, 2]
+                            row[u, off + v] -= g0 * nbt[t, 0, v] + g1 * nbt[t, 1, v] \
+                                + g2 * nbt[t, 2, v]
+                    if st_all[t] == st_all[q] and t != q:   # (two rays of one photo: both ways)
+                        for u in range(npar):
+                            for v in range(npar):
+                                row[v, off + u] -= g[q, u, 0] * nbar[t, v, 0] \
+                                    + g[q, u, 1] * nbar[t, v, 1] + g[q, u, 2] * nbar[t, v, 2]
         if ng > 0:
             _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal, xyz,
                           a_all, l_all, w_all, st_all, g, lo, h, base, split, bord, ovf_bord,

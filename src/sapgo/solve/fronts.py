@@ -113,52 +113,34 @@ def build_front(j0, j1, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_
         _solve3(lo, cc, h)
         if npar == 6:   # (the loops over a station's parameters unrolled)
             _inverse3(lo, ninv)
-            for q in range(k):
-                s0 = 6 * st_all[q]
-                if c0 <= s0 < c1:
-                    _ray_terms6(q, w_all, a_all, l_all, nbar, h, ninv,
-                                front[s0 - c0:s0 - c0 + 6, s0 - c0:s0 - c0 + 6],
-                                rhs[s0:s0 + 6], g, nbt)
-                elif c1 <= s0 < c2:
-                    _ray_terms6(q, w_all, a_all, l_all, nbar, h, ninv,
-                                upd[s0 - c1:s0 - c1 + 6, s0 - c1:s0 - c1 + 6],
-                                rhs[s0:s0 + 6], g, nbt)
-                else:
-                    _ray_terms6(q, w_all, a_all, l_all, nbar, h, ninv, spare, spare_rhs, g,
-                                nbt)
-            for q in range(k):
-                sq = 6 * st_all[q]
-                if c0 <= sq < c1:
-                    _schur_blocks6(front, c0, g, nbt, q, k, st_all)
-                elif c1 <= sq < c2:
-                    _schur_blocks6(upd, c1, g, nbt, q, k, st_all)
-            if ng > 0:
-                _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams,
-                              cal, xyz, a_all, l_all, w_all, st_all, g, lo, h, 0, nf, bord,
-                              bord, cnn, ccg, cdiag, slot, tcols, ngp, ggp, e, b_all, o_all)
-            continue
         for q in range(k):
             s0 = npar * st_all[q]
             if c0 <= s0 < c1:
-                _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar,
-                           front[s0 - c0:s0 - c0 + npar, s0 - c0:s0 - c0 + npar],
-                           rhs[s0:s0 + npar], g, col, tmp)
+                diag = front[s0 - c0:s0 - c0 + npar, s0 - c0:s0 - c0 + npar]
             elif c1 <= s0 < c2:
-                _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar,
-                           upd[s0 - c1:s0 - c1 + npar, s0 - c1:s0 - c1 + npar],
-                           rhs[s0:s0 + npar], g, col, tmp)
+                diag = upd[s0 - c1:s0 - c1 + npar, s0 - c1:s0 - c1 + npar]
             else:
-                _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, spare, spare_rhs, g,
-                           col, tmp)
+                diag = spare
+            drhs = rhs[s0:s0 + npar] if c0 <= s0 < c2 else spare_rhs
+            if npar == 6:
+                _ray_terms6(q, w_all, a_all, l_all, nbar, h, ninv, diag, drhs, g, nbt)
+            else:
+                _ray_terms(q, w_all, a_all, l_all, nbar, h, lo, npar, diag, drhs, g, col, tmp)
         # Schur complement into the lower triangle: rays are in ascending station order, so
         # the later station's rows and the earlier's columns (a diagonal block in full;
         # two rays of one station add X and X')
         for q in range(k):
             sq = npar * st_all[q]
             if c0 <= sq < c1:
-                _schur_blocks(front, c0, g, nbar, q, k, st_all, npar)
+                dst, off = front, c0
             elif c1 <= sq < c2:
-                _schur_blocks(upd, c1, g, nbar, q, k, st_all, npar)
+                dst, off = upd, c1
+            else:
+                continue
+            if npar == 6:
+                _schur_blocks6(dst, off, g, nbt, q, k, st_all)
+            else:
+                _schur_blocks(dst, off, g, nbar, q, k, st_all, npar)
         if ng > 0:
             _border_point(j, k, pt_kind, pt_csig, ctrl_mask, eo, cam_of_station, cams, cal,
                           xyz, a_all, l_all, w_all, st_all, g, lo, h, 0, nf, bord, bord, cnn,
