@@ -1057,7 +1057,8 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
     map_dtype = np.dtype([("old", "<i8"), ("new", "<i8")])
 
     excluded_points, n_excluded_points = [], 0
-    attrs = {k: p.file.attrs[k] for k in p.file.attrs if k != "uuid"}
+    fa = p.file.attrs
+    attrs = {k: fa[k] for k in fa if k != "uuid"}
     history = append_history(attrs.get("history", "[]"), {
         "command": "order", "ordering": name, "band_width": b, "band_width_before": b_before})
     attrs.update(ordered=True, ordering=name, band_width=b, history=history,
@@ -1070,7 +1071,7 @@ def _order(p, work, method, memory, chunk, solver="auto", leaf_stations=None, ou
     with ExternalSorter(pt_dtype, ["kmin", "kmax", "id", "old"], memory // 2, work,
                         "points") as pts_sort, \
             ProjectWriter(out or p.path, attrs, truth=has_truth, tmp_suffix=".order.tmp",
-                          sizes={n: len(p.file[n]) for n in (*RECORD_DTYPES, *TRUTH_DTYPES)
+                          sizes={n: p.length(n) for n in (*RECORD_DTYPES, *TRUTH_DTYPES)
                                  if n in p.file}, memory=in_memory) as w:
         if in_memory and not has_solution:   # (one pass over whole arrays, no sorter)
             n_excluded_points = _records_in_memory(p, w, st_active, pos, n_st, reset,

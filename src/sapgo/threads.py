@@ -29,7 +29,6 @@ is refused with :class:`~sapgo.errors.ParameterError`. Without ``/proc`` (not Li
 
 from __future__ import annotations
 
-import glob
 import os
 import threading
 import time
@@ -87,9 +86,9 @@ def _procs_running():
 
 def _own_running():
     n = 0
-    for path in glob.glob("/proc/self/task/*/stat"):
+    for tid in os.listdir("/proc/self/task"):   # (glob's pattern matching: 2x the look)
         try:
-            with open(path, "rb") as f:
+            with open(f"/proc/self/task/{tid}/stat", "rb") as f:
                 s = f.read()
         except OSError:   # (a thread that ended meanwhile)
             continue
