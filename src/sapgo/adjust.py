@@ -2793,8 +2793,8 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
     summary.threads = {"threads": _threads.parts(),
                        **{k: _threads.STATS[k] - looks[k] for k in ("checks", "busy")}}
     width = N_CAMERA if blk.cams[:, AP_SET].any() else PHOTO_CAMERA_NARROW
-    solution_bytes = 8 * (p_read.n_stations * (18 + 2 * width) + p_read.n_points * 6
-                          + p_read.n_observations * 6)
+    n_st, n_pt, n_ob = p_read.n_stations, p_read.n_points, p_read.n_observations
+    solution_bytes = 8 * (n_st * (18 + 2 * width) + n_pt * 6 + n_ob * 6)
     # a run in memory: the cameras, stations and points the run holds (the image's own,
     # not read from it again)
     held = None if mem is None else {"cameras": p_read.cameras(),
@@ -2815,32 +2815,33 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
                     del q.file.attrs[key]
             cams = q.cameras() if held is None else held["cameras"]
             g = q.new_solution(cams)
-            for a, b in q.chunks("stations", opts.chunk_points):
+            sol = q.new_datasets
+            for a, b in paging.rows(n_st, opts.chunk_points):
                 eo = (q.read_field("stations", "eo", a, b) if held is None
                       else held["eo"][a:b])
-                g["station_corr"][a:b] = blk.eo[a:b] - eo
+                sol["station_corr"][a:b] = blk.eo[a:b] - eo
             cams0 = camera_array(cams)
             n_cam = len(cams0)
-            g["camera_corr"][:] = blk.cams[:n_cam] - cams0
+            sol["camera_corr"][:] = blk.cams[:n_cam] - cams0
             # each photo's camera row as adjusted (its own with per-photo calibration)
             rc = blk.row_camera if len(blk.row_camera) else np.arange(n_cam)
-            pcc = g["photo_camera_corr"]   # (narrower without additional parameters)
-            for a, b in q.chunks("stations", opts.chunk_points):
+            pcc = sol["photo_camera_corr"]   # (narrower without additional parameters)
+            for a, b in paging.rows(n_st, opts.chunk_points):
                 rows = blk.camera[a:b].astype(np.int64)
                 pcc[a:b] = (blk.cams[rows] - cams0[rc[rows]])[:, :pcc.shape[1]]
-            for a, b in q.chunks("points", opts.chunk_points):
+            for a, b in paging.rows(n_pt, opts.chunk_points):
                 xyz = (q.read_field("points", "xyz", a, b) if held is None
                        else held["xyz"][a:b])
-                g["point_corr"][a:b] = xyz_ds[a:b] - xyz
-            for a, b in q.chunks("observations", opts.chunk_points):
-                g["residuals"][a:b] = res_ds[a:b]
-            for a, b in q.chunks("stations", opts.chunk_points):
-                g["station_sigma"][a:b] = station_sigma[a:b]
-            for a, b in q.chunks("points", opts.chunk_points) if psig is not None else ():
-                g["point_sigma"][a:b] = psig[a:b]
-            for a, b in (q.chunks("observations", opts.chunk_points) if quality is not None
+                sol["point_corr"][a:b] = xyz_ds[a:b] - xyz
+            for a, b in paging.rows(n_ob, opts.chunk_points):
+                sol["residuals"][a:b] = res_ds[a:b]
+            for a, b in paging.rows(n_st, opts.chunk_points) if not no_precision else ():
+                sol["station_sigma"][a:b] = station_sigma[a:b]   # (else zeros: the fill)
+            for a, b in paging.rows(n_pt, opts.chunk_points) if psig is not None else ():
+                sol["point_sigma"][a:b] = psig[a:b]
+            for a, b in (paging.rows(n_ob, opts.chunk_points) if quality is not None
                          else ()):
-                g["obs_quality"][a:b] = quality[a:b]
+                sol["obs_quality"][a:b] = quality[a:b]
             if len(blk.rejected):  # flagged, never deleted
                 obs_ds = q.file["observations"]
                 for i in blk.rejected.tolist():
