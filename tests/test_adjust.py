@@ -455,6 +455,37 @@ def test_a_project_of_an_older_version_adjusts_alike(small_block, tmp_path, fiel
     assert (got[:, width:] == 0).all()
 
 
+def test_records_of_another_layout_read_and_adjust_alike(small_block, tmp_path):
+    """Record datasets whose HDF5 type is not the schema's (fields in another order, big
+    endian: what another writer may make) are read into the schema's layout (HDF5 converts
+    the members by name): the same records, and the same adjustment (the kernels took
+    only native arrays: a numba type error before)."""
+    import h5py
+
+    other = tmp_path / "other.h5"
+    shutil.copy(small_block, other)
+    with h5py.File(other, "r+") as f:
+        for name in ("points", "observations"):
+            rec = f[name][()]
+            names = list(reversed(rec.dtype.names))
+            dt = np.dtype([(n, rec.dtype.fields[n][0].newbyteorder(">")) for n in names])
+            out = np.zeros(len(rec), dt)
+            for n in names:
+                out[n] = rec[n]
+            del f[name]
+            f.create_dataset(name, data=out)
+    with h5py.File(other, "r") as f:
+        assert f["points"].dtype.names[0] == "station_max"
+    want, got = read_records(small_block), read_records(other)
+    for name in ("points", "observations"):
+        assert got[name].dtype == want[name].dtype
+        np.testing.assert_array_equal(got[name], want[name])
+    a = sapgo.adjust(small_block, sapgo.Options(progress=False))
+    b = sapgo.adjust(other, sapgo.Options(progress=False))
+    assert a.iterations == b.iterations
+    assert b.sigma0 == pytest.approx(a.sigma0, rel=1e-12)
+
+
 @pytest.mark.parametrize("control", [True, False])
 def test_fixed_station_parameters_equal_dense_least_squares(small_block, tmp_path, control):
     """Station parameters held fixed (``--datum fix``) are true constraints: the same

@@ -526,6 +526,21 @@ def _schema_dtype(ds, name):
     return None
 
 
+def _memory_dtype(ds, name):
+    """The dtype records of dataset ``ds`` (``name``) are read into: the schema's for a
+    record dataset of the schema's fields, in whatever order and byte order the file
+    stores them (HDF5 converts compound members by name), so that the kernels always get
+    the native layout; else the file's own (an older version's narrower cameras)."""
+    dt = _schema_dtype(ds, name)
+    if dt is not None:
+        return dt
+    dt = ds.dtype
+    expected = RECORD_DTYPES.get(name) or TRUTH_DTYPES.get(name)
+    if expected is not None and dt.names is not None and set(dt.names) == set(expected.names):
+        return expected
+    return dt
+
+
 def _dtype_matches(actual, expected):
     if actual.names is None or set(actual.names) != set(expected.names):
         return False
@@ -896,7 +911,7 @@ class Project:
         types = self._types.get((name, field))
         if types is None:
             dt = (self._rows(name, ds, 0, 0).dtype if field is not None
-                  else _schema_dtype(ds, name) or ds.dtype)
+                  else _memory_dtype(ds, name))
             mem = dt if field is None else np.dtype([(field, dt.fields[field][0])])
             types = self._types[name, field] = (mem, _htype(mem))
         mem, htype = types
