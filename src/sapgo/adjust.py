@@ -614,7 +614,7 @@ def _load_block(p: Project) -> _Block:
     names = {1: "full", 2: "horizontal", 3: "vertical"}
     counts = {v: 0 for v in names.values()}
     for a, b in p.chunks("points"):
-        pts = p.read("points", a, b)
+        pts = p.read("points", a, b, copy=False)
         act = pts["status"] == STATUS_ACTIVE
         kind = pts["kind"][act]
         blk.n_points += int(act.sum())
@@ -626,9 +626,10 @@ def _load_block(p: Project) -> _Block:
             counts[name] += int((kind == k).sum())
     blk.n_control = counts
     for a, b in p.chunks("observations"):
-        blk.n_rays += int((p.read_field("observations", "status", a, b) == STATUS_ACTIVE).sum())
+        blk.n_rays += int((p.read_field("observations", "status", a, b, copy=False)
+                           == STATUS_ACTIVE).sum())
     for a, b in p.chunks("station_priors"):
-        pr = p.read("station_priors", a, b)
+        pr = p.read("station_priors", a, b, copy=False)
         act = blk.station_active[pr["station"]]
         if act.any():  # the rank of each weight matrix (validated positive semi-definite)
             ev = np.linalg.eigvalsh(pr["weight"][act])

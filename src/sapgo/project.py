@@ -526,6 +526,12 @@ def _schema_dtype(ds, name):
     return None
 
 
+def _read_only(view):
+    """``view`` (of records held in memory), marked read only."""
+    view.flags.writeable = False
+    return view
+
+
 def _memory_dtype(ds, name):
     """The dtype records of dataset ``ds`` (``name``) are read into: the schema's for a
     record dataset of the schema's fields, in whatever order and byte order the file
@@ -875,11 +881,13 @@ class Project:
         self.point_chunk_room = int(expected_bytes)   # (what is left: spent as kept)
         return int(expected_bytes)
 
-    def read(self, name, start=0, stop=None):
-        """Records ``start:stop`` of dataset ``name`` (e.g. ``"points"``, ``"truth/points"``)."""
+    def read(self, name, start=0, stop=None, copy=True):
+        """Records ``start:stop`` of dataset ``name`` (e.g. ``"points"``, ``"truth/points"``).
+        ``copy=False``: records held in memory come as a read-only view of them (a caller
+        that only looks: the checks, the counts)."""
         held = self._held.get(name)
         if held is not None:
-            return held[start:stop].copy()
+            return held[start:stop].copy() if copy else _read_only(held[start:stop])
         ds = self._dataset(name)
         if self._read_only and ds.ndim == 1:
             n = self.__len_of(name)
@@ -888,10 +896,11 @@ class Project:
         stop = ds.shape[0] if stop is None else stop
         return self._checked(ds, start, stop, lambda: ds[start:stop])
 
-    def read_field(self, name, field, start=0, stop=None):
+    def read_field(self, name, field, start=0, stop=None, copy=True):
         held = self._held.get(name)
         if held is not None:
-            return held[field][start:stop].copy()
+            v = held[field][start:stop]
+            return v.copy() if copy else _read_only(v)
         ds = self._dataset(name)
         if self._read_only and ds.ndim == 1:
             n = self.__len_of(name)

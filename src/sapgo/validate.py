@@ -153,7 +153,7 @@ def check_values(project: Project, ordered_layout=True):
             )
     cam_of_station = np.zeros(n_st, np.int32)   # (40 MB at 10 000 000 photos)
     for a, b in project.chunks("stations"):
-        st = project.read("stations", a, b)
+        st = project.read("stations", a, b, copy=False)
         _check_finite("stations", a, st["id"], "eo", st["eo"])
         i = _first_bad((st["camera"] < 0) | (st["camera"] >= n_cam))
         if i >= 0:
@@ -162,7 +162,7 @@ def check_values(project: Project, ordered_layout=True):
         cam_of_station[a:b] = st["camera"]
     _check_station_spread(project)
     for a, b in project.chunks("station_priors"):
-        pr = project.read("station_priors", a, b)
+        pr = project.read("station_priors", a, b, copy=False)
         i = _first_bad((pr["station"] < 0) | (pr["station"] >= n_st))
         if i >= 0:
             raise DataError(f"station_priors record {a + i}: station {pr['station'][i]} "
@@ -192,7 +192,7 @@ def check_values(project: Project, ordered_layout=True):
             last = st[-1]
     expected_start = 0
     for a, b in project.chunks("points"):
-        pts = project.read("points", a, b)
+        pts = project.read("points", a, b, copy=False)
         ids = pts["id"]
         _check_finite("points", a, ids, "xyz", pts["xyz"])
         i = _first_bad((np.abs(pts["xyz"]) > MAX_COORDINATE).any(axis=1))
@@ -226,7 +226,7 @@ def check_values(project: Project, ordered_layout=True):
                             f"{int(starts[-1] + counts[-1])} observations but /observations "
                             f"has {project.n_observations} records: the project is damaged")
         owners = project.read_field("observations", "point", int(starts[0]),
-                                    int(starts[-1] + counts[-1]))
+                                    int(starts[-1] + counts[-1]), copy=False)
         i = _first_bad(owners != np.repeat(np.arange(a, b), counts))
         if i >= 0:
             raise DataError(f"observations record {int(starts[0]) + i}: its point "
@@ -238,7 +238,7 @@ def check_values(project: Project, ordered_layout=True):
     reach_of_camera = FORMAT_REACH * np.maximum(cams["format_x"], cams["format_y"])
     x0_of_camera, y0_of_camera = cams["x0"], cams["y0"]
     for a, b in project.chunks("observations"):
-        obs = project.read("observations", a, b)
+        obs = project.read("observations", a, b, copy=False)
         pt = obs["point"]
         i = _first_bad((pt < 0) | (pt >= n_pt))
         if i >= 0:
@@ -321,7 +321,7 @@ def _check_station_spread(project):
     step = max(1, -(-n_st // SPREAD_SAMPLE))
     sample = []
     for a, b in project.chunks("stations"):
-        pos = project.read_field("stations", "eo", a, b)[:, 3:6]
+        pos = project.read_field("stations", "eo", a, b, copy=False)[:, 3:6]
         i = _first_bad((np.abs(pos) > MAX_COORDINATE).any(axis=1))
         if i >= 0:
             sid = project.read_field("stations", "id", a + i, a + i + 1)[0]
