@@ -2856,7 +2856,7 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
             g.attrs["run"] = run["run"]
             timings["commit"] = time.perf_counter() - t_commit - t_prec   # (precision apart)
             timings["total"] = time.perf_counter() - t_start
-            g.create_dataset("report", data=json.dumps(summary.to_dict()))
+            g.create_dataset("report", data=summary.to_json(indent=None))
             _fault("commit-write")
             q.commit_solution()
             q.add_history({"command": "adjust", "iterations": len(log),

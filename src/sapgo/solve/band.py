@@ -1104,8 +1104,12 @@ def inverse_stations(kb, band_width):
 
 #: Bytes of the selected inversion's window of ``Z`` at most, when a larger block of stations
 #: (their points' precision at once, :func:`covariance_blocks`' ``on_block``) asks for more
-#: than the band needs.
-INVERSE_WINDOW_BYTES = 64 << 20
+#: than the band needs. The window's band is what the inversion's products read: beyond the
+#: cache it ran at half its rate (measured, precision pass of the adjustment, medians of 9
+#: and 3 runs: 1 000 photos of band width 22 31.5 ms with 64 MiB, 26.8 with 8, 25.6 with 4,
+#: 26.4 with 2; 10 000 photos of band width 42 367 ms with 64 MiB, 336 with 8, 340 with 4,
+#: 377 with 2, where the points' calls grow too many).
+INVERSE_WINDOW_BYTES = 8 << 20
 
 
 #: Flops of the selected inversion (``2 n u^2``) per observation of the points below which
