@@ -936,3 +936,14 @@ def test_rejected_observations_get_the_test_they_would_have_brought_back(tmp_pat
     assert r.sigma0 == pytest.approx(sigma0_back, rel=1e-4)
     got = _statistic(back, int(sid[ob["station"][i]]), int(pid[ob["point"][i]]))
     assert got == pytest.approx(np.sqrt(t2) / sigma0_back, rel=1e-3)
+
+
+def test_the_stored_report_equals_the_summary_as_asdict_gives_it(small_block):
+    """The commit writes the report from the summary's fields without asdict's deep copy:
+    the same JSON, and the report stored in the project is that JSON."""
+    s = sapgo.adjust(small_block, sapgo.Options(progress=False))
+    assert json.loads(s.to_json()) == json.loads(json.dumps(dataclasses.asdict(s)))
+    with Project(small_block, "r") as p:
+        stored = json.loads(p.file["solution/report"][()])
+    assert stored["iterations"] == s.iterations and stored["sigma0"] == s.sigma0
+    assert stored["iteration_log"] == json.loads(json.dumps(s.iteration_log))

@@ -98,3 +98,27 @@ def test_a_bad_sapgo_threads_is_refused_in_one_line(monkeypatch, value):
         threads.parts()
     with pytest.raises(sapgo.errors.ParameterError, match="SAPGO_THREADS"):
         sapgo.Options().check()
+
+
+def test_blas_limits_sets_the_libraries_threads_and_puts_them_back():
+    from threadpoolctl import threadpool_info
+
+    from sapgo import blas
+    from sapgo.blas import blas_limits
+
+    with blas_limits(1):   # (the libraries are looked up at the first use, once a process)
+        pass
+    known = {lib.filepath for lib in blas._CONTROLLER[0]}
+
+    def blas_threads():   # (as threadpoolctl sees them afresh)
+        return [i["num_threads"] for i in threadpool_info()
+                if i["user_api"] == "blas" and i["filepath"] in known]
+
+    before = blas_threads()
+    assert before
+    with blas_limits(1):
+        assert blas_threads() == [1] * len(before)
+        with blas_limits(2):
+            assert blas_threads() == [2] * len(before)
+        assert blas_threads() == [1] * len(before)
+    assert blas_threads() == before
