@@ -1120,6 +1120,13 @@ INVERSE_WINDOW_BYTES = 8 << 20
 #: other, 3.4 s side by side; the 200 x 200 block (band width 203, 2 million flops an
 #: observation), 10.8 s against 16.3 s.
 OVERLAP_FLOPS_PER_OBSERVATION = 300_000
+#: Observations of the points at least, for the points to go beside the inversion: below,
+#: one after the other, the inversion's BLAS and then the points on every thread were
+#: faster (measured, precision pass of the adjustment, medians of 9 runs in 8 interleaved
+#: rounds: 1 000 photos in strips, 8 940 observations, 18.6 ms against 21.6 side by side;
+#: 10 000 photos, 89 400 observations, 0.36-0.37 s one after the other against 0.27-0.29
+#: side by side).
+OVERLAP_MIN_OBSERVATIONS = 30_000
 
 
 def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=None,
@@ -1143,7 +1150,7 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     the two do not overlap): then it may take every thread. Stations
     of ``k`` parameters (``factor_ds`` n x k x kb) give k x k blocks. ``observations``: how
     many image observations ``on_block`` will visit, for the choice of
-    :data:`OVERLAP_FLOPS_PER_OBSERVATION`."""
+    :data:`OVERLAP_FLOPS_PER_OBSERVATION` and :data:`OVERLAP_MIN_OBSERVATIONS`."""
     from concurrent.futures import ThreadPoolExecutor
 
     kb = factor_ds.shape[1]
@@ -1159,6 +1166,7 @@ def covariance_blocks(factor_ds, n_st, band_width, step=256, out=None, on_block=
     # band after it, copied over first), the inversion's BLAS on one thread beside it (on
     # two it was slower, measured); else one window, shifted when the rows reach its start
     overlap = (on_block is not None and threads > 1
+               and observations >= OVERLAP_MIN_OBSERVATIONS
                and 2.0 * n * u * u < OVERLAP_FLOPS_PER_OBSERVATION * observations)
     margin = 0
     if overlap:
