@@ -382,3 +382,34 @@ def test_first_inner_constraint_pass_on_threads_equals_one_thread(free_block, tm
     assert np.abs(a[0]).max() > 0 and np.abs(a[1]).max() > 0
     np.testing.assert_allclose(a[0], b[0], rtol=1e-10, atol=0)
     np.testing.assert_allclose(a[1], b[1], rtol=1e-10, atol=0)
+
+
+@pytest.mark.parametrize("room", [None, 0])
+def test_second_inner_constraint_pass_from_the_first_ones_rays(free_block, tmp_path,
+                                                              monkeypatch, room):
+    """The S-transform's second pass works from the rays' ``Nbar`` and the points' factors
+    its first pass kept (:func:`sapgo.normals.datum_columns_kept`, with the first pass on
+    threads or, with no room for the copies, on one): the same arithmetic, so the same
+    stations' and points' precision to the bit as the pass that linearises every ray again
+    (nothing kept)."""
+    if room is not None:
+        monkeypatch.setattr(sapgo.freenet, "PRIVATE_SUMS_BYTES", room)
+    path, _ = free_block
+    calls = []
+    kept = sapgo.normals.datum_columns_kept
+    monkeypatch.setattr(sapgo.normals, "datum_columns_kept",
+                        lambda *a: calls.append(1) or kept(*a))
+    out = {}
+    for keep in (sapgo.freenet.KEEP_COLUMNS_BYTES, 0):
+        monkeypatch.setattr(sapgo.freenet, "KEEP_COLUMNS_BYTES", keep)
+        run = tmp_path / f"keep{keep}.h5"
+        shutil.copy(path, run)
+        sapgo.adjust(run, sapgo.Options(progress=False))
+        with Project(run) as p:
+            out[keep] = (p.solution("station_sigma"), p.solution("point_sigma"))
+        assert bool(calls) == bool(keep)
+        calls.clear()
+    a, b = out.values()
+    assert np.abs(a[0]).max() > 0 and np.abs(a[1]).max() > 0
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])

@@ -29,7 +29,10 @@ vector of sapgo's unknowns, :func:`sapgo.geometry.turn`)::
    with ``K = (G H)^-1`` and ``B = Q G'`` (7 columns), found by one solve of the full
    normal equations with 7 right-hand sides: the points' part reduced into the stations
    (:func:`sapgo.normals.datum_columns`), the stations' solved with the factor (band or
-   tree), the points' back-substituted. Three streaming passes over the points.
+   tree), the points' back-substituted. Three streaming passes over the points, of
+   which only the first linearises the rays where what it finds fits in memory
+   (:data:`KEEP_COLUMNS_BYTES`; no border): the second works from its ``Nbar`` and
+   point factors, the third from the second's columns.
 
 With self-calibration (a border) the solve goes through the bordered system (the points
 reduced into the border as well, the border solved with its Schur complement); the cameras'
@@ -48,7 +51,8 @@ from .normals import PointChunk, datum_columns, datum_columns_parallel, datum_su
 #: The station parameters held for a free network's adjustment: all six of one photo.
 ALL_SIX = 0b111111
 #: :func:`inner_precision` keeps the points' datum columns of its second pass for its third
-#: (2 x 21 doubles a point) up to this many bytes, else works them out again.
+#: (2 x 21 doubles a point), and its first pass's rays for the second, each up to this many
+#: bytes, else works them out again.
 KEEP_COLUMNS_BYTES = 64 << 20
 
 
@@ -202,36 +206,53 @@ def _border_x(work, blk, opts):
 PRIVATE_SUMS_BYTES = 64 << 20
 
 
-def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g):
+def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g, rays=None):
     """One pass of :func:`sapgo.normals.datum_columns` over the points (``r_g``, ``x_g``:
     the border's reduced right-hand sides and solution, border x 7); ``on_chunk(a, b, c,
-    h, b_pt)`` after each chunk (``b_pt``: the points' columns, with ``x_st``)."""
+    h, b_pt)`` after each chunk (``b_pt``: the points' columns, with ``x_st``).
+
+    ``rays`` (a list, no border): the pass without ``x_st`` appends to it each chunk with
+    its rays' ``Nbar`` and its points' factors (``keep_nbar``, ``keep_lo``); the pass with
+    ``x_st`` given the filled list works from them (:func:`sapgo.normals.
+    datum_columns_kept`: the same numbers, no chunk read and no ray linearised again)."""
     from .adjust import _point_error
     from .geometry import N_CALIBRATION
-    from .normals import BEHIND_CAMERA
+    from .normals import BEHIND_CAMERA, datum_columns_kept
 
+    if x_st is not None and rays:
+        for a, b, c, h, keep_nbar, keep_lo in rays:
+            b_pt = np.zeros_like(h)
+            _threads.adapt()
+            datum_columns_kept(_threads.parts(), c.pt_start, c.nobs, c.active, c.obs_station,
+                               c.obs_active, h, x_st, b_pt, keep_nbar, keep_lo)
+            on_chunk(a, b, c, h, b_pt)
+        return
     cal = blk.cal if blk.n_border else np.zeros((0, N_CALIBRATION), np.int64)
 
     for a, b, c in _chunks(p, work, blk, opts):
         h = point_rows(c.xyz, centre)
         h[c.active != 0] = 0.0
         b_pt = np.zeros_like(h)
+        keep = () if rays is None or x_st is not None else (
+            np.empty((len(c.obs_station), blk.npar, 3)), np.empty((b - a, 3, 3)))
         args = (c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
                 c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, blk.camera,
                 blk.cams, blk.ctrl_mask, c.max_rays, h, x_st, r_st, b_pt, blk.behind_ok,
                 blk.fixed, cal, r_g, x_g)
         if x_st is None and (_threads.parts() * 8 * (r_st.size + r_g.size)
                              > PRIVATE_SUMS_BYTES):   # (sums into the stations' rows)
-            bad = datum_columns(*args)
+            bad = datum_columns(*args, *keep)
         elif x_st is None:   # (each thread's sums in a copy of its own)
             _threads.adapt()
             bad = datum_sums_parallel(_threads.parts(), *args[:18], r_st, blk.behind_ok,
-                                      blk.fixed, cal, r_g)
+                                      blk.fixed, cal, r_g, *keep)
         else:
             _threads.adapt()
             bad = datum_columns_parallel(_threads.parts(), *args)
         if bad:
             raise _point_error(p, c, bad - 1, BEHIND_CAMERA, blk)
+        if keep:
+            rays.append((a, b, c, h, *keep))
         on_chunk(a, b, c, h, b_pt)
 
 
@@ -261,7 +282,11 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
     ng = blk.n_border
     r_st = np.zeros((n, k, 7))
     r_g = np.zeros((ng, 7))
-    _point_pass(p, work, blk, opts, centre, None, r_st, lambda *x: None, r_g, r_g)
+    # the first pass's rays kept for the second (no border): 8 (3 npar + 8) bytes an
+    # observation and 9 doubles a point, up to KEEP_COLUMNS_BYTES
+    rays = [] if not ng and 8 * ((3 * k + 8) * p.n_observations + 9 * p.n_points) \
+        <= KEEP_COLUMNS_BYTES else None
+    _point_pass(p, work, blk, opts, centre, None, r_st, lambda *x: None, r_g, r_g, rays)
     x_st = np.ascontiguousarray(_solve_stations(work, blk, opts, r_st.copy()))   # (in place)
     x_g = np.zeros((ng, 7))
     if ng:
@@ -278,7 +303,9 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
         if kept is not None:
             kept.append((a, b, types.SimpleNamespace(active=c.active), h, b_pt))
 
-    _point_pass(p, work, blk, opts, centre, x_st, r_st, add_gb, r_g, x_g)
+    _point_pass(p, work, blk, opts, centre, x_st, r_st, add_gb, r_g, x_g, rays)
+    rays = None
+
     def delta(h, bq):   # -H K B' - B K H' + H K (G B) K H'
         hk = h @ kk
         return (np.einsum("irc,cd,isd->irs", hk, gb, hk)

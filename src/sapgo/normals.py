@@ -1370,14 +1370,14 @@ def datum_columns_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, 
 def datum_sums_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start,
                         pt_nobs, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
                         cam_of_station, cams, ctrl_mask, max_rays, h_pt, r_st, behind_ok,
-                        st_fixed, cal, r_g):
+                        st_fixed, cal, r_g, keep_nbar=None, keep_lo=None):
     """:func:`datum_columns` without the stations' solution (the pass that sums into the
     stations' and the border's reduced right-hand sides ``r_st`` and ``r_g``) on
     ``nthreads`` threads: each run of points (cut as :func:`datum_columns_parallel` cuts
     them) sums into a copy of its own, and the copies are added in run order -- the same
     sums for the same count of runs, whatever threads run them. The caller sees that
     ``nthreads`` copies fit in memory. The first point that cannot be linearised (index +
-    1), else 0."""
+    1), else 0. ``keep_nbar``, ``keep_lo``: as :func:`datum_columns` keeps them."""
     n = pt_xyz.shape[0]
     nt = max(1, min(nthreads, n))
     for j in range(1, n):
@@ -1391,12 +1391,21 @@ def datum_sums_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_
         a, b = cut[t], cut[t + 1]
         if b > a:
             o0, o1 = pt_start[a], pt_start[b - 1] + pt_nobs[b - 1]
-            k = datum_columns(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b],
-                              pt_rot[a:b], pt_start[a:b] - o0, pt_nobs[a:b], pt_active[a:b],
-                              obs_station[o0:o1], obs_xy[o0:o1], obs_sigma[o0:o1],
-                              obs_active[o0:o1], eo, cam_of_station, cams, ctrl_mask,
-                              max_rays, h_pt[a:b], None, rs[t], h_pt[a:b], behind_ok,
-                              st_fixed, cal, rg[t], rg[t])
+            if keep_lo is None:
+                k = datum_columns(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b],
+                                  pt_rot[a:b], pt_start[a:b] - o0, pt_nobs[a:b],
+                                  pt_active[a:b], obs_station[o0:o1], obs_xy[o0:o1],
+                                  obs_sigma[o0:o1], obs_active[o0:o1], eo, cam_of_station,
+                                  cams, ctrl_mask, max_rays, h_pt[a:b], None, rs[t],
+                                  h_pt[a:b], behind_ok, st_fixed, cal, rg[t], rg[t])
+            else:
+                k = datum_columns(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b],
+                                  pt_rot[a:b], pt_start[a:b] - o0, pt_nobs[a:b],
+                                  pt_active[a:b], obs_station[o0:o1], obs_xy[o0:o1],
+                                  obs_sigma[o0:o1], obs_active[o0:o1], eo, cam_of_station,
+                                  cams, ctrl_mask, max_rays, h_pt[a:b], None, rs[t],
+                                  h_pt[a:b], behind_ok, st_fixed, cal, rg[t], rg[t],
+                                  keep_nbar[o0:o1], keep_lo[a:b])
             if k > 0:
                 bad[t] = a + k
     for t in range(nt):
@@ -1412,7 +1421,7 @@ def datum_sums_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_
 def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt_active,
                   obs_station, obs_xy, obs_sigma, obs_active, eo, cam_of_station, cams,
                   ctrl_mask, max_rays, h_pt, x_st, r_st, b_pt, behind_ok, st_fixed, cal,
-                  r_g, x_g):
+                  r_g, x_g, keep_nbar=None, keep_lo=None):
     """The points' share of a solve of the full normal equations ``N [x_s; x_g; x_p] =
     [0; 0; h]`` for several right-hand sides at once (columns), ``h`` on the points only
     (``h_pt``, chunk points x 3 x c; a free network's inner constraints,
@@ -1426,7 +1435,12 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     solution, stations x npar x c, and ``x_g`` the border's, border x c): the points',
     ``x_p = Ndd^-1 (h - sum Nbar' x_s - Nbar_g' x_g)``, into ``b_pt`` (chunk points x 3 x
     c). The normals as the build forms them (undamped; fixed station parameters' columns
-    zero). Returns the first point that cannot be linearised (index + 1), else 0."""
+    zero). Returns the first point that cannot be linearised (index + 1), else 0.
+
+    ``keep_nbar`` (observations x npar x 3) and ``keep_lo`` (points x 3 x 3), given to the
+    pass without ``x_st`` and without a border: each active ray's ``Nbar`` at its
+    observation's row and each active point's Cholesky factor of ``Ndd``, from which
+    :func:`datum_columns_kept` gives the second pass's ``x_p`` without linearising again."""
     npar = r_st.shape[1]
     nc = h_pt.shape[2]
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all, o_all = _workspace(max_rays, npar)
@@ -1446,6 +1460,17 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                           st_all, nn, cc, b_all, o_all, 0.0, behind_ok, st_fixed)
         if k < 0 or not _chol3(nn, lo):
             return j + 1
+        if keep_lo is not None:
+            for r in range(3):
+                for c in range(3):
+                    keep_lo[j, r, c] = lo[r, c]
+            q = 0
+            for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+                if obs_active[i]:   # (the q-th active observation is the q-th ray)
+                    for u in range(npar):
+                        for r in range(3):
+                            keep_nbar[i, u, r] = nbar[q, u, r]
+                    q += 1
         nt = 0
         for q in range(k if ng > 0 else 0):   # Nbar_g = sum p E' B over the point's rays
             s = st_all[q]
@@ -1501,3 +1526,58 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             for r in range(3):
                 ngp[c1, r] = 0.0
     return 0
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _datum_columns_kept(pt_start, pt_nobs, pt_active, obs_station, obs_active, h_pt, x_st,
+                        b_pt, keep_nbar, keep_lo):
+    """:func:`datum_columns`' pass with ``x_st`` (no border) from what its first pass
+    kept: ``x_p = Ndd^-1 (h - sum Nbar' x_s)`` of each active point into ``b_pt``."""
+    npar = x_st.shape[1]
+    nc = h_pt.shape[2]
+    col = np.empty(3)
+    sol = np.empty(3)
+    for j in range(pt_start.shape[0]):
+        if pt_active[j] != 0:
+            continue
+        for c in range(nc):
+            for r in range(3):
+                col[r] = h_pt[j, r, c]
+            for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+                if not obs_active[i]:
+                    continue
+                s = obs_station[i]
+                for r in range(3):
+                    x = 0.0
+                    for u in range(npar):
+                        x += keep_nbar[i, u, r] * x_st[s, u, c]
+                    col[r] -= x
+            _solve3(keep_lo[j], col, sol)
+            for r in range(3):
+                b_pt[j, r, c] = sol[r]
+
+
+@njit(cache=True, error_model="numpy", nogil=True, parallel=True)
+def datum_columns_kept(nthreads, pt_start, pt_nobs, pt_active, obs_station, obs_active, h_pt,
+                       x_st, b_pt, keep_nbar, keep_lo):
+    """The second pass of :func:`datum_columns` (with ``x_st``, no border) from the
+    ``Nbar`` and the factors of ``Ndd`` its first pass kept (``keep_nbar``, ``keep_lo``):
+    the same arithmetic on the same numbers, without linearising the rays again; on
+    ``nthreads`` threads, the points cut as :func:`point_sigmas_parallel` cuts them."""
+    n = pt_start.shape[0]
+    nt = max(1, min(nthreads, n))
+    for j in range(1, n):
+        if pt_start[j] < pt_start[j - 1] + pt_nobs[j - 1]:
+            nt = 1
+    if nt < 2:
+        _datum_columns_kept(pt_start, pt_nobs, pt_active, obs_station, obs_active, h_pt,
+                            x_st, b_pt, keep_nbar, keep_lo)
+        return
+    cut = _runs(pt_start, pt_nobs, nt)
+    for t in prange(nt):
+        a, b = cut[t], cut[t + 1]
+        if b > a:
+            o0, o1 = pt_start[a], pt_start[b - 1] + pt_nobs[b - 1]
+            _datum_columns_kept(pt_start[a:b] - o0, pt_nobs[a:b], pt_active[a:b],
+                                obs_station[o0:o1], obs_active[o0:o1], h_pt[a:b], x_st,
+                                b_pt[a:b], keep_nbar[o0:o1], keep_lo[a:b])
