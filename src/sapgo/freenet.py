@@ -282,9 +282,10 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
     ng = blk.n_border
     r_st = np.zeros((n, k, 7))
     r_g = np.zeros((ng, 7))
-    # the first pass's rays kept for the second (no border): 8 (3 npar + 8) bytes an
-    # observation and 9 doubles a point, up to KEEP_COLUMNS_BYTES
-    rays = [] if not ng and 8 * ((3 * k + 8) * p.n_observations + 9 * p.n_points) \
+    # the first pass's rays kept for the second (no border), up to KEEP_COLUMNS_BYTES:
+    # an observation's Nbar and its chunk's arrays, 8 (3 npar + 8) bytes, and a point's
+    # factor of Ndd, its rows h and its chunk's arrays, 52 doubles
+    rays = [] if not ng and 8 * ((3 * k + 8) * p.n_observations + 52 * p.n_points) \
         <= KEEP_COLUMNS_BYTES else None
     _point_pass(p, work, blk, opts, centre, None, r_st, lambda *x: None, r_g, r_g, rays)
     x_st = np.ascontiguousarray(_solve_stations(work, blk, opts, r_st.copy()))   # (in place)
