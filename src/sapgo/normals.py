@@ -1507,12 +1507,7 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
                                    + ngp[c1, 2] * sol[2])
             else:
                 for q in range(k):
-                    s = st_all[q]
-                    for r in range(3):
-                        x = 0.0
-                        for u in range(npar):
-                            x += nbar[q, u, r] * x_st[s, u, c]
-                        col[r] -= x
+                    _minus_nbar_x(nbar, q, x_st, st_all[q], c, col)
                 for t in range(nt):
                     c1 = touched[t]
                     for r in range(3):
@@ -1528,12 +1523,22 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     return 0
 
 
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
+def _minus_nbar_x(nbar, q, x_st, s, c, col):
+    """``col -= Nbar_q' x_s[:, c]``: one ray's station term of a point's datum column
+    (``nbar[q]`` is the ray's 6x3 or npar x 3 block, ``s`` its station)."""
+    for r in range(3):
+        x = 0.0
+        for u in range(x_st.shape[1]):
+            x += nbar[q, u, r] * x_st[s, u, c]
+        col[r] -= x
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def _datum_columns_kept(pt_start, pt_nobs, pt_active, obs_station, obs_active, h_pt, x_st,
                         b_pt, keep_nbar, keep_lo):
     """:func:`datum_columns`' pass with ``x_st`` (no border) from what its first pass
     kept: ``x_p = Ndd^-1 (h - sum Nbar' x_s)`` of each active point into ``b_pt``."""
-    npar = x_st.shape[1]
     nc = h_pt.shape[2]
     col = np.empty(3)
     sol = np.empty(3)
@@ -1546,12 +1551,7 @@ def _datum_columns_kept(pt_start, pt_nobs, pt_active, obs_station, obs_active, h
             for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
                 if not obs_active[i]:
                     continue
-                s = obs_station[i]
-                for r in range(3):
-                    x = 0.0
-                    for u in range(npar):
-                        x += keep_nbar[i, u, r] * x_st[s, u, c]
-                    col[r] -= x
+                _minus_nbar_x(keep_nbar, i, x_st, obs_station[i], c, col)
             _solve3(keep_lo[j], col, sol)
             for r in range(3):
                 b_pt[j, r, c] = sol[r]
