@@ -301,6 +301,46 @@ def test_the_fold_kernel_finds_the_first_fold_the_plain_loop_finds():
     assert 0 < found < 12
 
 
+def test_the_mirrored_fold_check_finds_what_the_whole_grid_finds():
+    """Radial distortion alone with the principal point at 0 (BAL's cameras): the kernel
+    solves one quadrant of the (exactly symmetric) grid and mirrors it; the first fold
+    found is the plain loop's over the whole grid, on barrel and pincushion lenses of
+    growing strength (k1, k2), forward and backward, formats not square; a principal point
+    off 0, a decentring term or a grid not symmetric take the whole grid."""
+    from sapgo.project import CAMERA_DTYPE
+    from sapgo.validate import _fold_at, _mirrored, fold_grid
+
+    def plain(xs, ys, row, backward):
+        for i, x in enumerate(xs):
+            for j, y in enumerate(ys):
+                _, _, j00, j01, j10, j11 = brown.py_func(x, y, row)
+                if not j00 * j11 - j01 * j10 > 0.0:
+                    return i * len(ys) + j
+                if not backward and not undistort.py_func(row[1] + x, row[2] + y, row)[2]:
+                    return i * len(ys) + j
+        return -1
+
+    xs, ys = 115.0 * fold_grid(), 80.0 * fold_grid()
+    found = 0
+    for k1, k2 in ((-4e-5, 0.0), (-1.5e-5, 0.0), (-1e-6, 0.0), (1e-6, -3e-10), (1e-5, 0.0),
+                   (-2e-5, 2e-9), (3e-6, -1e-9)):
+        for backward in (False, True):
+            rec = np.zeros(1, CAMERA_DTYPE)[0]
+            rec["focal_length"], rec["k1"], rec["k2"] = 152.0, k1, k2
+            row = camera_array(np.asarray(rec).reshape(1))[0]
+            row[MODEL] = 1.0 if backward else 0.0
+            assert _mirrored(xs, ys, row)
+            want = plain(xs, ys, row, backward)
+            assert _fold_at(xs, ys, row, backward) == want
+            found += want >= 0
+            for k, v in ((1, 0.01), (6, 1e-7)):   # x0; p1
+                other = row.copy()
+                other[k] = v
+                assert not _mirrored(xs, ys, other)
+    assert 0 < found < 14
+    assert not _mirrored(np.linspace(-115, 115, 40), ys, row)
+
+
 def test_every_cameras_fold_in_one_kernel_as_one_camera_at_a_time():
     """validate's fold check of all cameras at once (one parallel kernel) against the grid
     of each camera walked alone (:func:`_fold_at` over ``linspace(-h, h, 41)``), on cameras

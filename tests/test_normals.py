@@ -152,6 +152,42 @@ def test_parallel_update_equals_the_one_thread_kernel(p1_block, threads):
     assert st1[7] == st2[7] == bad + 1 and st1[8] == st2[8] != 0
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3, 50])
+def test_parallel_point_costs_equal_the_one_thread_kernel_and_the_obvious_sum(p1_block,
+                                                                              threads):
+    """point_costs_parallel (the cost at the starting values) sums by run what point_costs
+    sums on one thread (to rounding), and its image term is the plain sum of p |v|^2 over
+    the active rays of the active points (an inactive point and an inactive ray among them),
+    their residuals projected one by one."""
+    from sapgo.geometry import observed, project
+    from sapgo.normals import point_costs, point_costs_parallel
+
+    blk, c = _whole_chunk(p1_block)
+    c.active[len(c.xyz) // 3] = 1
+    c.obs_active[c.pt_start[len(c.xyz) // 2]] = False
+    args = (c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
+            c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, blk.camera, blk.cams,
+            blk.ctrl_mask)
+    one = point_costs(*args)
+    par = point_costs_parallel(threads, *args)
+    np.testing.assert_allclose(par, one, rtol=1e-12)
+    ref = 0.0
+    for j in range(len(c.xyz)):
+        if c.active[j]:
+            continue
+        xyz = c.xyz[j].copy()
+        fixed = blk.ctrl_mask[c.kind[j]].astype(bool) & (c.csig[j] == 0.0)
+        xyz[fixed] = c.ctrl[j][fixed]
+        for i in range(c.pt_start[j], c.pt_start[j] + c.nobs[j]):
+            if c.obs_active[i]:
+                cam = blk.cams[blk.camera[c.obs_station[i]]]
+                x, y = project(blk.eo[c.obs_station[i]], xyz, cam)
+                ox, oy = observed(c.obs_xy[i, 0], c.obs_xy[i, 1], cam)
+                ref += ((x - ox) ** 2 + (y - oy) ** 2) / c.obs_sigma[i] ** 2
+    assert ref > 0.0
+    np.testing.assert_allclose(par[0], ref, rtol=1e-12)
+
+
 @pytest.mark.parametrize("threads", [2, 3, 50])
 def test_parallel_point_sigmas_equal_the_one_thread_kernel(p1_block, threads):
     """point_sigmas_parallel gives each run its own points and its own observations: the

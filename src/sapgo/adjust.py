@@ -74,7 +74,7 @@ from .normals import (
     PointChunk,
     build_points_parallel,
     control_rotations,
-    point_costs,
+    point_costs_parallel,
     update_points_parallel,
 )
 from .ordering import order_project
@@ -1560,9 +1560,11 @@ def _cost(p: Project, work, blk: _Block, opts: Options):
         c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
                        blk.rejected_points)
         reweight(c, work, opts)
-        img, ctl = point_costs(c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
-                               c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active,
-                               blk.eo, blk.camera, blk.cams, blk.ctrl_mask)
+        _threads.adapt()
+        img, ctl = point_costs_parallel(
+            _threads.parts(), c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
+            c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
+            blk.camera, blk.cams, blk.ctrl_mask)
         if not math.isfinite(img):
             raise _nonfinite_error(p, c, blk)
         vpv += img + ctl

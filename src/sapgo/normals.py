@@ -1333,6 +1333,32 @@ def point_costs(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, pt
 
 
 @njit(cache=True, error_model="numpy", nogil=True, parallel=True)
+def point_costs_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start,
+                         pt_nobs, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
+                         cam_of_station, cams, ctrl_mask):
+    """:func:`point_costs` on ``nthreads`` threads, the points cut into runs of about equal
+    observations (:func:`_runs`); the runs' sums added in run order (the same sums for the
+    same thread count; BAL problem-49's 31 843 rays: 3.1 ms on one thread)."""
+    n = pt_xyz.shape[0]
+    nt = max(1, min(nthreads, n))
+    cut = _runs(pt_start, pt_nobs, nt)
+    img = np.zeros(nt)
+    ctl = np.zeros(nt)
+    for t in prange(nt):
+        a, b = cut[t], cut[t + 1]
+        img[t], ctl[t] = point_costs(pt_xyz[a:b], pt_kind[a:b], pt_ctrl[a:b], pt_csig[a:b],
+                                     pt_rot[a:b], pt_start[a:b], pt_nobs[a:b],
+                                     pt_active[a:b], obs_station, obs_xy, obs_sigma,
+                                     obs_active, eo, cam_of_station, cams, ctrl_mask)
+    vpv_img = 0.0
+    vpv_ctl = 0.0
+    for t in range(nt):
+        vpv_img += img[t]
+        vpv_ctl += ctl[t]
+    return vpv_img, vpv_ctl
+
+
+@njit(cache=True, error_model="numpy", nogil=True, parallel=True)
 def datum_columns_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start,
                            pt_nobs, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
                            cam_of_station, cams, ctrl_mask, max_rays, h_pt, x_st, r_st, b_pt,
