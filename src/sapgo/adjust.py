@@ -65,6 +65,7 @@ from .geometry import (
     camera_array,
     project_observations,
     turned,
+    with_rotations,
 )
 from .normals import (
     BAD_LAYOUT,
@@ -1224,6 +1225,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
         _init_rows(band, rhs, new_base, base + cap, new_base + cap, blk, priors)
         base = new_base
 
+    eo_k = with_rotations(blk.eo)   # (each station's rotation once, not at every ray)
     with _progress(opts.progress and rows is None, p.n_points, "build") as bar:
         for a, b in ranges:
             c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
@@ -1236,7 +1238,7 @@ def build(p: Project, work, blk: _Block, opts: Options, xyz=None, iteration=0, s
                 _threads.adapt()
                 j, status, bad = build_points_parallel(
                     j, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.smin, c.smax,
-                    c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
+                    c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, eo_k,
                     blk.camera, blk.cams, blk.ctrl_mask, band, rhs, base,
                     c.max_rays, ovf_band, ovf_rhs, normals.PARALLEL_MIN_POINTS, blk.cal,
                     bord, ovf_bord, cnn_t, ccg_t, cdiag_t, lam, blk.behind_ok, blk.fixed,
@@ -1345,6 +1347,7 @@ def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, st
     xyz_in, xyz_out_ds, res_ds = work.xyz_current, work.xyz_next, work.res_next
     if eo_next is None:
         eo_next = next_orientations(blk.eo, delta)
+    eo_k, eo_next = with_rotations(blk.eo), with_rotations(eo_next)
     # the build's systems of this state and damping (:func:`_kept_systems`)
     kept = getattr(work, "kept", None)
     if kept is None or kept[2] != lam or dtheta is not None:
@@ -1363,7 +1366,7 @@ def update_range(p: Project, work, blk: _Block, delta, opts: Options, a0, b0, st
         update_points_parallel(
             _threads.parts(),
             c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active, c.obs_station,
-            c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, delta, blk.camera,
+            c.obs_xy, c.obs_sigma, c.obs_active, eo_k, delta, blk.camera,
             blk.cams, blk.ctrl_mask, c.max_rays, xyz_out, res_out,
             stats, lam, blk.behind_ok, cams_new, dtheta, blk.fixed, eo_next,
             kept[0][a:b], kept[1][c.o0:c.o1],
@@ -1556,6 +1559,7 @@ def _cost(p: Project, work, blk: _Block, opts: Options):
     priors): the cost Ceres reports."""
     vpv = 0.0
     xyz_ds = work.xyz_current
+    eo_k = with_rotations(blk.eo)
     for a, b in p.chunks("points", opts.chunk_points):
         c = PointChunk(p, a, b, xyz_ds[a:b], blk.camera, blk.cam_sigma, blk.frame, blk.rejected,
                        blk.rejected_points)
@@ -1563,7 +1567,7 @@ def _cost(p: Project, work, blk: _Block, opts: Options):
         _threads.adapt()
         img, ctl = point_costs_parallel(
             _threads.parts(), c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
-            c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo,
+            c.active, c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, eo_k,
             blk.camera, blk.cams, blk.ctrl_mask)
         if not math.isfinite(img):
             raise _nonfinite_error(p, c, blk)

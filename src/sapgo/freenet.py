@@ -216,7 +216,7 @@ def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g, rays
     ``x_st`` given the filled list works from them (:func:`sapgo.normals.
     datum_columns_kept`: the same numbers, no chunk read and no ray linearised again)."""
     from .adjust import _point_error
-    from .geometry import N_CALIBRATION
+    from .geometry import N_CALIBRATION, with_rotations
     from .normals import BEHIND_CAMERA, datum_columns_kept
 
     if x_st is not None and rays:
@@ -228,7 +228,7 @@ def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g, rays
             on_chunk(a, b, c, h, b_pt)
         return
     cal = blk.cal if blk.n_border else np.zeros((0, N_CALIBRATION), np.int64)
-
+    eo_k = with_rotations(blk.eo)   # (each station's rotation once, not at every ray)
     for a, b, c in _chunks(p, work, blk, opts):
         h = point_rows(c.xyz, centre)
         h[c.active != 0] = 0.0
@@ -236,7 +236,7 @@ def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g, rays
         keep = () if rays is None or x_st is not None else (
             np.empty((len(c.obs_station), blk.npar, 3)), np.empty((b - a, 3, 3)))
         args = (c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
-                c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, blk.eo, blk.camera,
+                c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, eo_k, blk.camera,
                 blk.cams, blk.ctrl_mask, c.max_rays, h, x_st, r_st, b_pt, blk.behind_ok,
                 blk.fixed, cal, r_g, x_g)
         if x_st is None and (_threads.parts() * 8 * (r_st.size + r_g.size)

@@ -197,6 +197,46 @@ def _rot9(omega, phi, kappa):
             sp, -cp * sw, cp * cw)
 
 
+#: Columns of an orientation row that carries its rotation (:func:`with_rotations`):
+#: omega, phi, kappa, X, Y, Z, then the nine elements of ``M`` row by row.
+EO_ROTATION = 15
+#: :func:`with_rotations` appends the rotations for blocks of up to this many stations
+#: (72 bytes a station; beyond, the kernels take the bare rows, whose arrays may be paged).
+ROTATION_STATIONS = 250_000
+
+
+@njit(cache=True, error_model="numpy")
+def rotation9(eo):
+    """The nine elements of ``M`` of the orientation row ``eo``: its own columns 6 .. 14
+    where it carries them (:func:`with_rotations`), else :func:`_rot9` of its angles (six
+    sines and cosines: a fifth of :func:`linearize`'s time, measured)."""
+    if eo.shape[0] >= EO_ROTATION:
+        return (eo[6], eo[7], eo[8], eo[9], eo[10], eo[11], eo[12], eo[13], eo[14])
+    return _rot9(eo[0], eo[1], eo[2])
+
+
+@njit(cache=True, error_model="numpy")
+def _fill_rotations(eo, out):
+    for s in range(eo.shape[0]):
+        for u in range(6):
+            out[s, u] = eo[s, u]
+        m = _rot9(eo[s, 0], eo[s, 1], eo[s, 2])
+        for k in range(9):
+            out[s, 6 + k] = m[k]
+
+
+def with_rotations(eo):
+    """The orientations ``eo`` (n x 6) for the kernels: each row with its rotation matrix
+    appended (n x :data:`EO_ROTATION`, :func:`rotation9`), computed once instead of at every
+    ray; ``eo`` itself beyond :data:`ROTATION_STATIONS` stations. The same numbers either
+    way (the same function computes them)."""
+    if eo.ndim != 2 or eo.shape[1] != 6 or len(eo) > ROTATION_STATIONS:
+        return eo
+    out = np.empty((len(eo), EO_ROTATION))
+    _fill_rotations(np.ascontiguousarray(eo, dtype=np.float64), out)
+    return out
+
+
 @njit(cache=True, error_model="numpy")
 def _opk9(m):
     """(omega, phi, kappa) of the nine elements of a rotation ``M = R3 R2 R1`` (row by
@@ -329,7 +369,7 @@ def project(eo, xyz, c):
     """Image coordinates (mm) of object point ``xyz`` seen from station ``eo`` with camera
     row ``c``."""
     f = c[0]
-    m = _rot9(eo[0], eo[1], eo[2])
+    m = rotation9(eo)
     dx = xyz[0] - eo[3]
     dy = xyz[1] - eo[4]
     dz = xyz[2] - eo[5]
@@ -359,7 +399,7 @@ def linearize(eo, xyz, c, a, b):
     # q = M d, and its derivatives by the rotation vector theta of the attitude
     # (M' = M R(-theta), :func:`turn`): dq/dtheta = M [d]x, column k = M (e_k x ... ):
     # [d]x = [[0, -d2, d1], [d2, 0, -d0], [-d1, d0, 0]]
-    m = _rot9(eo[0], eo[1], eo[2])
+    m = rotation9(eo)
     d0, d1, d2 = xyz[0] - eo[3], xyz[1] - eo[4], xyz[2] - eo[5]
     q = (m[0] * d0 + m[1] * d1 + m[2] * d2, m[3] * d0 + m[4] * d1 + m[5] * d2,
          m[6] * d0 + m[7] * d1 + m[8] * d2)
@@ -465,7 +505,7 @@ def camera_partials(eo, xyz, c, e, ox, oy):
     measurement with the opposite sign (the corrected measurement is subtracted). Returns
     False in the principal plane (no projection)."""
     f = c[0]
-    m = _rot9(eo[0], eo[1], eo[2])
+    m = rotation9(eo)
     d0, d1, d2 = xyz[0] - eo[3], xyz[1] - eo[4], xyz[2] - eo[5]
     u = m[0] * d0 + m[1] * d1 + m[2] * d2
     v = m[3] * d0 + m[4] * d1 + m[5] * d2
@@ -530,7 +570,7 @@ def _add_ray(eo, x, y, c, a, r):
     """Add the ray from station ``eo`` through image point (x, y) of camera row ``c`` to the
     normal system (the image point freed of distortion first); False (nothing added) when
     the distortion cannot be inverted there."""
-    m = _rot9(eo[0], eo[1], eo[2])
+    m = rotation9(eo)
     i0, i1, ok = undistort(x, y, c)
     if not ok:
         return False

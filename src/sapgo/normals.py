@@ -712,7 +712,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
     nbar, a_all, l_all, w_all, st_all, nn, cc, lo, xyz, b_all, o_all = _workspace(max_rays, npar)
     cams_v = cams if cams_new is None else cams_new
     eps = np.empty(3)
-    e_new = np.empty(6)
+    e_new = np.empty(eo_next.shape[1])   # (with its rotation: geometry.with_rotations)
     # per camera row: its fields up to the last one the step moves (0: none)
     moved = np.zeros(cams.shape[0], np.int64)
     if dtheta is not None:
@@ -785,7 +785,7 @@ def update_points(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
         for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
             s = obs_station[i]
             cam = cam_of_station[s]
-            for u in range(6):   # (the attitude turned by the rotation vector)
+            for u in range(e_new.shape[0]):   # (the attitude turned by the rotation vector)
                 e_new[u] = eo_next[s, u]
             # rejected observations get their residual too (how far off they are); only the
             # active ones count in the statistics
