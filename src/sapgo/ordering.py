@@ -34,7 +34,8 @@ from numba import njit
 from . import paging
 from .lock import writes_project
 from .errors import ParameterError
-from .extsort import DEFAULT_MEMORY, ExternalSorter, _key_order, parse_memory, rechunk
+from .extsort import (DEFAULT_MEMORY, ExternalSorter, _key_order, parse_memory, rechunk,
+                      records_at)
 from .project import (
     CHECKSUM,
     CHUNK_RECORDS,
@@ -987,11 +988,11 @@ def _records_in_memory(p, w, st_active, pos, n_st, reset, has_truth, tree, node_
     r["status"] = np.where(c.point_active, STATUS_ACTIVE, STATUS_EXCLUDED)
     r["station_min"] = np.where(c.point_active, smin, -1)
     r["station_max"] = smax
-    r = r[order]
+    r = records_at(r, order)
     r["obs_start"] = np.concatenate([[0], np.cumsum(r["n_obs"][:-1])]) if n_pt else 0
     w.append("points", r)
     if has_truth:
-        w.append("truth/points", p.read("truth/points")[order])
+        w.append("truth/points", records_at(p.read("truth/points"), order))
     if tree is not None:   # the points of each node (by their first station)
         km = kmin[order]
         km = km[km < tree.n_active]
@@ -1006,8 +1007,16 @@ def _records_in_memory(p, w, st_active, pos, n_st, reset, has_truth, tree, node_
     o["status"][rejected] = STATUS_REJECTED
     o["point"] = point
     o["station"] = new_st
-    w.append("observations", o[_key_order([point, new_st,
-                                           np.arange(c.o0, c.o1, dtype=np.int64)])])
+    # (the observations' own index last: distinct keys; gathered point by point in the new
+    # order first, each point's rays a run, nearly sorted)
+    near = None
+    if np.array_equal(c.starts, np.cumsum(c.counts) - c.counts) and \
+            int(c.counts.sum()) == len(point):   # (each observation in one point's run)
+        counts = c.counts[order]
+        near = np.repeat(c.starts[order] - (np.cumsum(counts) - counts), counts)
+        near += np.arange(len(near), dtype=np.int64)
+    w.append("observations", records_at(o, _key_order(
+        [point, new_st, np.arange(c.o0, c.o1, dtype=np.int64)], near)))
     ids = c.pts["id"][~c.point_active]
     excluded_points.extend(int(i) for i in ids[:LISTED_IDS])
     return len(ids)
