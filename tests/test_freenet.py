@@ -4,6 +4,7 @@ the approximations by a similarity (the least change of the points), and the inv
 the bordered normal matrix ``[[N, G'], [G, 0]]`` (the pseudo-inverse in the points' norm)
 -- on the band and on the tree."""
 
+import importlib
 import shutil
 
 import h5py
@@ -384,21 +385,28 @@ def test_first_inner_constraint_pass_on_threads_equals_one_thread(free_block, tm
     np.testing.assert_allclose(a[1], b[1], rtol=1e-10, atol=0)
 
 
-@pytest.mark.parametrize("room", [None, 0])
+@pytest.mark.parametrize("room, systems", [(None, True), (0, True), (None, False)])
 def test_second_inner_constraint_pass_from_the_first_ones_rays(free_block, tmp_path,
-                                                              monkeypatch, room):
+                                                              monkeypatch, room, systems):
     """The S-transform's second pass works from the rays' ``Nbar`` and the points' factors
     its first pass kept (:func:`sapgo.normals.datum_columns_kept`, with the first pass on
-    threads or, with no room for the copies, on one): the same arithmetic, so the same
-    stations' and points' precision to the bit as the pass that linearises every ray again
-    (nothing kept)."""
+    threads or, with no room for the copies, on one), and the first pass itself from the
+    points' systems the precision pass's build kept (``systems``:
+    :func:`sapgo.normals.datum_sums_kept`; without them it linearises the rays): the same
+    arithmetic, so the same stations' and points' precision to the bit as the passes that
+    linearise every ray again (nothing kept)."""
     if room is not None:
         monkeypatch.setattr(sapgo.freenet, "PRIVATE_SUMS_BYTES", room)
+    if not systems:
+        monkeypatch.setattr(importlib.import_module("sapgo.adjust"), "KEPT_SYSTEMS_BYTES", 0)
     path, _ = free_block
-    calls = []
+    calls, sums = [], []
     kept = sapgo.normals.datum_columns_kept
     monkeypatch.setattr(sapgo.normals, "datum_columns_kept",
                         lambda *a: calls.append(1) or kept(*a))
+    for name in ("datum_sums_kept", "_datum_sums_kept"):
+        fn = getattr(sapgo.normals, name)
+        monkeypatch.setattr(sapgo.normals, name, lambda *a, fn=fn: sums.append(1) or fn(*a))
     out = {}
     for keep in (sapgo.freenet.KEEP_COLUMNS_BYTES, 0):
         monkeypatch.setattr(sapgo.freenet, "KEEP_COLUMNS_BYTES", keep)
@@ -408,7 +416,9 @@ def test_second_inner_constraint_pass_from_the_first_ones_rays(free_block, tmp_p
         with Project(run) as p:
             out[keep] = (p.solution("station_sigma"), p.solution("point_sigma"))
         assert bool(calls) == bool(keep)
+        assert bool(sums) == bool(keep and systems)
         calls.clear()
+        sums.clear()
     a, b = out.values()
     assert np.abs(a[0]).max() > 0 and np.abs(a[1]).max() > 0
     np.testing.assert_array_equal(a[0], b[0])

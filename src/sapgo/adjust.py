@@ -2698,18 +2698,25 @@ def _commit(path, p_read: Project, work: Work, blk: _Block, log, converged, opts
         correlations = reliability = None
     else:
         kept = _kept_pass(blk, log, mode) if correlations is not None else None
+        systems = None   # (the points' systems of this state, when its build keeps them)
         if kept is not None:   # (snooping's last pass: of this state, nothing changed)
             (station_sigma, psig, quality), correlations = kept
         else:
+            fresh = blk.refactor   # (the precision pass builds this state's normals anew)
             station_sigma, psig, quality = _precision(p_read, work, blk, opts,
                                                       last["sigma0"], correlations, mode,
                                                       run=run, iteration=len(log))
+            held = getattr(work, "kept", None)
+            if fresh and blk.tree is None and held is not None and held[2] == 0.0 \
+                    and len(held[0]) == p_read.n_points:
+                systems = held[:2]
         if mode != "full":   # (the stations' alone: no points, no observations' quality)
             psig = quality = None
         if blk.free:
             from .freenet import inner_precision
 
-            inner_precision(p_read, work, blk, opts, last["sigma0"], station_sigma, psig)
+            inner_precision(p_read, work, blk, opts, last["sigma0"], station_sigma, psig,
+                            systems)
         reliability = None
         if quality is not None:
             _note_planted(p_read, blk, quality, run)

@@ -206,7 +206,8 @@ def _border_x(work, blk, opts):
 PRIVATE_SUMS_BYTES = 64 << 20
 
 
-def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g, rays=None):
+def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g, rays=None,
+                systems=None):
     """One pass of :func:`sapgo.normals.datum_columns` over the points (``r_g``, ``x_g``:
     the border's reduced right-hand sides and solution, border x 7); ``on_chunk(a, b, c,
     h, b_pt)`` after each chunk (``b_pt``: the points' columns, with ``x_st``).
@@ -214,10 +215,15 @@ def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g, rays
     ``rays`` (a list, no border): the pass without ``x_st`` appends to it each chunk with
     its rays' ``Nbar`` and its points' factors (``keep_nbar``, ``keep_lo``); the pass with
     ``x_st`` given the filled list works from them (:func:`sapgo.normals.
-    datum_columns_kept`: the same numbers, no chunk read and no ray linearised again)."""
+    datum_columns_kept`: the same numbers, no chunk read and no ray linearised again).
+    ``systems`` (with ``rays``): the build's kept systems of this state, undamped
+    (``keep_pt``, ``keep_nbar``, :func:`sapgo.adjust._kept_systems`), from which the pass
+    without ``x_st`` sums too (:func:`sapgo.normals.datum_sums_kept`), and whose factors and
+    ``Nbar`` it hands to the second pass: no ray linearised at all."""
     from .adjust import _point_error
     from .geometry import N_CALIBRATION, with_rotations
-    from .normals import BEHIND_CAMERA, datum_columns_kept
+    from .normals import (BEHIND_CAMERA, _datum_sums_kept, datum_columns_kept,
+                          datum_sums_kept)
 
     if x_st is not None and rays:
         for a, b, c, h, keep_nbar, keep_lo in rays:
@@ -229,18 +235,31 @@ def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g, rays
         return
     cal = blk.cal if blk.n_border else np.zeros((0, N_CALIBRATION), np.int64)
     eo_k = with_rotations(blk.eo)   # (each station's rotation once, not at every ray)
+    private = _threads.parts() * 8 * (r_st.size + r_g.size) <= PRIVATE_SUMS_BYTES
     for a, b, c in _chunks(p, work, blk, opts):
         h = point_rows(c.xyz, centre)
         h[c.active != 0] = 0.0
         b_pt = np.zeros_like(h)
+        if x_st is None and rays is not None and systems is not None:
+            keep_pt, keep_nbar = systems[0][a:b], systems[1][c.o0:c.o1]
+            if private:   # (as datum_sums_parallel sums, else as datum_columns)
+                _threads.adapt()
+                datum_sums_kept(_threads.parts(), c.pt_start, c.nobs, c.active,
+                                c.obs_station, c.obs_active, h, r_st, keep_pt, keep_nbar)
+            else:
+                _datum_sums_kept(c.pt_start, c.nobs, c.active, c.obs_station, c.obs_active,
+                                 h, r_st, keep_pt, keep_nbar)
+            rays.append((a, b, c, h, keep_nbar,
+                         np.ascontiguousarray(keep_pt[:, :9]).reshape(b - a, 3, 3)))
+            on_chunk(a, b, c, h, b_pt)
+            continue
         keep = () if rays is None or x_st is not None else (
             np.empty((len(c.obs_station), blk.npar, 3)), np.empty((b - a, 3, 3)))
         args = (c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs, c.active,
                 c.obs_station, c.obs_xy, c.obs_sigma, c.obs_active, eo_k, blk.camera,
                 blk.cams, blk.ctrl_mask, c.max_rays, h, x_st, r_st, b_pt, blk.behind_ok,
                 blk.fixed, cal, r_g, x_g)
-        if x_st is None and (_threads.parts() * 8 * (r_st.size + r_g.size)
-                             > PRIVATE_SUMS_BYTES):   # (sums into the stations' rows)
+        if x_st is None and not private:   # (sums into the stations' rows)
             bad = datum_columns(*args, *keep)
         elif x_st is None:   # (each thread's sums in a copy of its own)
             _threads.adapt()
@@ -256,11 +275,13 @@ def _point_pass(p, work, blk, opts, centre, x_st, r_st, on_chunk, r_g, x_g, rays
         on_chunk(a, b, c, h, b_pt)
 
 
-def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
+def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig, systems=None):
     """The precision of the minimal constraints' datum (``station_sigma``, n x 6 in
     omega, phi, kappa, X, Y, Z, and ``psig``, the points' file, both from the precision
     pass of the current state) S-transformed to the inner constraints on the object points
-    (the module's comment), in place. Returns the 7 x 7 ``K = (G H)^-1``."""
+    (the module's comment), in place. Returns the 7 x 7 ``K = (G H)^-1``. ``systems``: the
+    points' systems the precision pass's build of this state kept, undamped (``keep_pt``,
+    ``keep_nbar``; :func:`_point_pass`), or None."""
     from .quality import in_angles
 
     n, k = len(blk.station_ids), blk.npar
@@ -287,7 +308,8 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig):
     # factor of Ndd, its rows h and its chunk's arrays, 52 doubles
     rays = [] if not ng and 8 * ((3 * k + 8) * p.n_observations + 52 * p.n_points) \
         <= KEEP_COLUMNS_BYTES else None
-    _point_pass(p, work, blk, opts, centre, None, r_st, lambda *x: None, r_g, r_g, rays)
+    _point_pass(p, work, blk, opts, centre, None, r_st, lambda *x: None, r_g, r_g, rays,
+                systems)
     x_st = np.ascontiguousarray(_solve_stations(work, blk, opts, r_st.copy()))   # (in place)
     x_g = np.zeros((ng, 7))
     if ng:

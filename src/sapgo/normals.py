@@ -1583,6 +1583,62 @@ def _datum_columns_kept(pt_start, pt_nobs, pt_active, obs_station, obs_active, h
                 b_pt[j, r, c] = sol[r]
 
 
+@njit(cache=True, error_model="numpy", nogil=True)
+def _datum_sums_kept(pt_start, pt_nobs, pt_active, obs_station, obs_active, h_pt, r_st,
+                     keep_pt, keep_nbar):
+    """:func:`datum_columns`' pass without ``x_st`` (no border) from the build's kept
+    systems of the same state, undamped (:func:`_keep_point`: each point's factor of
+    ``Ndd`` by rows in ``keep_pt[j, :9]``, each active ray's ``Nbar`` at its observation's
+    row of ``keep_nbar``): ``r_s -= sum Nbar Ndd^-1 h`` into ``r_st``, the same arithmetic
+    on the same numbers, no ray linearised."""
+    npar = r_st.shape[1]
+    nc = h_pt.shape[2]
+    lo = np.empty((3, 3))
+    col = np.empty(3)
+    sol = np.empty(3)
+    for j in range(pt_start.shape[0]):
+        if pt_active[j] != 0:
+            continue
+        for r in range(3):
+            for c in range(3):
+                lo[r, c] = keep_pt[j, 3 * r + c]
+        for c in range(nc):
+            for r in range(3):
+                col[r] = h_pt[j, r, c]
+            _solve3(lo, col, sol)
+            for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
+                if not obs_active[i]:
+                    continue
+                s = obs_station[i]
+                for u in range(npar):
+                    x = 0.0
+                    for r in range(3):
+                        x += keep_nbar[i, u, r] * sol[r]
+                    r_st[s, u, c] -= x
+
+
+@njit(cache=True, error_model="numpy", nogil=True, parallel=True)
+def datum_sums_kept(nthreads, pt_start, pt_nobs, pt_active, obs_station, obs_active, h_pt,
+                    r_st, keep_pt, keep_nbar):
+    """:func:`datum_sums_parallel` (no border) from the build's kept systems
+    (:func:`_datum_sums_kept`): the points cut into the same runs, each run's sums in a
+    copy of its own, added in run order -- the same sums bit for bit."""
+    n = pt_start.shape[0]
+    nt = max(1, min(nthreads, n))
+    for j in range(1, n):
+        if pt_start[j] < pt_start[j - 1] + pt_nobs[j - 1]:
+            nt = 1
+    cut = _runs(pt_start, pt_nobs, nt)
+    rs = np.zeros((nt, r_st.shape[0], r_st.shape[1], r_st.shape[2]))
+    for t in prange(nt):
+        a, b = cut[t], cut[t + 1]
+        if b > a:
+            _datum_sums_kept(pt_start[a:b], pt_nobs[a:b], pt_active[a:b], obs_station,
+                             obs_active, h_pt[a:b], rs[t], keep_pt[a:b], keep_nbar)
+    for t in range(nt):
+        r_st += rs[t]
+
+
 @njit(cache=True, error_model="numpy", nogil=True, parallel=True)
 def datum_columns_kept(nthreads, pt_start, pt_nobs, pt_active, obs_station, obs_active, h_pt,
                        x_st, b_pt, keep_nbar, keep_lo):
