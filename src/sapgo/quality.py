@@ -16,6 +16,7 @@ from numba import njit
 
 from . import paging
 from . import threads as _threads
+from .geometry import with_rotations
 from .normals import PointChunk, point_sigmas_parallel
 from .project import STATUS_ACTIVE
 from .report import station_correlations
@@ -106,6 +107,7 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
         cal, sig_b = blk.cal, np.ascontiguousarray(blk.border_cov, dtype=np.float64)
     psig = work.array("point_sigma.bin", (p_read.n_points, 3))
     quality = work.array("quality.bin", (p_read.n_observations, len(QUALITY_COLUMNS)))
+    eo_k = with_rotations(blk.eo)   # (each station's rotation once, not at every ray)
 
     def points_of(start, stop, zb, base, alone=False):
         p0, p1 = int(first[start]), int(first[stop])
@@ -114,7 +116,7 @@ def quality_sweep(p_read, work, blk, opts, sigma0, correlations=None):
         for a in range(p0, p1, opts.chunk_points):
             points_quality(p_read, work, blk, opts, a, min(p1, a + opts.chunk_points), sigma0,
                            psig, quality, correlations, zb, base, None, xw, start, cal, sig_b,
-                           threads=_threads.parts() if alone else 1)
+                           threads=_threads.parts() if alone else 1, eo=eo_k)
 
     k = blk.npar
     cov = work.array("cov.bin", (n_st, k, k))
@@ -216,7 +218,7 @@ def _in_angles(blocks, opk, fixed, out):
 
 def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correlations,
                     zb, base, stations=None, xw=None, xlo=0, cal=None, sig_b=None, lock=None,
-                    threads=1):
+                    threads=1, eo=None):
     """Points ``a .. b`` (a chunk): their standard deviations into ``psig`` and their
     observations' quality into ``quality`` (:func:`sapgo.normals.point_sigmas` with the
     stations' cofactors ``zb`` from ``base``). ``stations(obs_station, obs_active)`` gives
@@ -226,7 +228,8 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
     obs_active)`` giving ``(zb, stations, orientations, cameras, xw)`` (a tiled front's
     inverse gathered over the chunk's stations). ``threads``: the kernel's threads
     (:func:`sapgo.normals.point_sigmas_parallel`; more than one only where nothing else
-    runs beside it)."""
+    runs beside it). ``eo``: the stations' orientations for the kernel (with their
+    rotations, :func:`sapgo.geometry.with_rotations`; default ``blk.eo``)."""
     c = PointChunk(p_read, a, b, work.xyz_current[a:b], blk.camera, blk.cam_sigma, blk.frame,
                    blk.rejected)
     weight = reweight(c, work, opts)
@@ -243,7 +246,8 @@ def points_quality(p_read, work, blk, opts, a, b, sigma0, psig, quality, correla
     if callable(zb):
         zb, st, eo, camera, xw, fixed = zb(c.obs_station, seen)
     else:
-        st, eo, camera, fixed = ((c.obs_station, blk.eo, blk.camera, blk.fixed)
+        st, eo, camera, fixed = ((c.obs_station, blk.eo if eo is None else eo, blk.camera,
+                                  blk.fixed)
                                  if stations is None else
                                  stations(c.obs_station, seen))
     point_sigmas_parallel(threads, c.xyz, c.kind, c.ctrl, c.csig, c.rot, c.pt_start, c.nobs,
