@@ -294,8 +294,8 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig, systems=Non
     centre = tot / max(cnt, 1)
     gh = np.zeros((7, 7))
     for _, _, c in _chunks(p, work, blk, opts):
-        h = point_rows(c.xyz[c.active == 0], centre)
-        gh += np.einsum("irc,ird->cd", h, h)
+        h = point_rows(c.xyz[c.active == 0], centre).reshape(-1, 7)
+        gh += h.T @ h   # (one product: a third of einsum's time)
     kk = np.linalg.inv(gh)
     # B = Q G': the stations' part through the factor, the points' by back-substitution;
     # with self-calibration the border's through its Schur complement S (S^-1 the
@@ -335,8 +335,9 @@ def inner_precision(p, work, blk, opts, sigma0, station_sigma, psig, systems=Non
                 - np.einsum("irc,isc->irs", hk, bq) - np.einsum("irc,isc->irs", bq, hk))
 
     def delta_diagonal(h, bq):   # delta's diagonal alone (a point's 3 variances)
-        hk = h @ kk
-        return np.einsum("ird,ird->ir", hk @ gb, hk) - 2.0 * np.einsum("ird,ird->ir", hk, bq)
+        hk = (h.reshape(-1, 7) @ kk).reshape(h.shape)   # (one product, not one a point)
+        hg = (hk.reshape(-1, 7) @ gb).reshape(h.shape)
+        return (hg * hk).sum(axis=2) - 2.0 * (hk * bq).sum(axis=2)
 
     def fix_points(a, b, c, h, b_pt):
         d = delta_diagonal(h, b_pt)

@@ -169,6 +169,16 @@ def band_width_of(pos, edges):
     return 1 + _edge_spans(pos, edges, paging.zeros(len(pos), np.int64))
 
 
+def band_and_profile(pos, edges):
+    """``(band_width_of(pos, edges), profile_of(pos, edges))`` from one pass over the
+    edges."""
+    if len(edges[0]) == 0:
+        return 1, 0
+    reach = paging.zeros(len(pos), np.int64)
+    span = _edge_spans(pos, edges, reach)
+    return 1 + span, sum(int(reach[a:b].sum()) for a, b in paging.rows(len(reach)))
+
+
 def profile_of(pos, edges):
     """Sum over stations of the distance to their farthest earlier neighbour (tie-breaker)."""
     if len(edges[0]) == 0:
@@ -846,7 +856,7 @@ def score_orders(cands, active, edges, keep="best"):
         full[len(perm):] = tail
         del perm
         pos = paging.inverse(full)
-        scored[name] = (band_width_of(pos, edges), profile_of(pos, edges), full, pos)
+        scored[name] = (*band_and_profile(pos, edges), full, pos)
         if keep is None:
             continue
         if keep == "best":

@@ -143,8 +143,9 @@ class StripComparison:
         code, inv = np.unique(pair[:m, 0] * base + pair[:m, 1], return_inverse=True)
         key = np.column_stack([code // base, code % base])
         n = np.bincount(inv.ravel(), minlength=len(key))
-        sq = np.zeros((len(key), 3))
-        np.add.at(sq, inv.ravel(), diff[:m] ** 2)
+        d2 = diff[:m] ** 2   # (bincount adds in the order np.add.at does, ten times faster)
+        sq = np.column_stack([np.bincount(inv.ravel(), weights=d2[:, c], minlength=len(key))
+                              for c in range(3)])
         for (sa, sb), nn, s in zip(key.tolist(), n.tolist(), sq):
             acc = self.acc.setdefault((sa, sb), [0, 0.0, 0.0, 0.0])
             acc[0] += nn
