@@ -270,22 +270,25 @@ def test_partials_by_the_photos_intrinsics_by_complex_step(rng, dist):
     np.testing.assert_array_equal(moved[[1, 2, 5, 6, 7]], c[[1, 2, 5, 6, 7]])
 
 
+def _first_fold_plain(xs, ys, row, backward):
+    """The fold kernel's grid walked in Python (its functions' Python code, ``undistort``
+    compiled): the index of the first fold, or -1."""
+    for i, x in enumerate(xs):
+        for j, y in enumerate(ys):
+            _, _, j00, j01, j10, j11 = brown.py_func(x, y, row)
+            if not j00 * j11 - j01 * j10 > 0.0:
+                return i * len(ys) + j
+            if not backward and not undistort(row[1] + x, row[2] + y, row)[2]:
+                return i * len(ys) + j
+    return -1
+
+
 def test_the_fold_kernel_finds_the_first_fold_the_plain_loop_finds():
     """validate's grid kernel against the same grid walked in Python (the kernels' own
     Python functions), on barrel and pincushion distortions of growing strength, forward
     and backward, some of which fold inside the format."""
     from sapgo.project import CAMERA_DTYPE
     from sapgo.validate import _fold_at
-
-    def plain(xs, ys, row, backward):
-        for i, x in enumerate(xs):
-            for j, y in enumerate(ys):
-                _, _, j00, j01, j10, j11 = brown.py_func(x, y, row)
-                if not j00 * j11 - j01 * j10 > 0.0:
-                    return i * len(ys) + j
-                if not backward and not undistort(row[1] + x, row[2] + y, row)[2]:
-                    return i * len(ys) + j
-        return -1
 
     xs, ys = np.linspace(-115, 115, 41), np.linspace(-115, 115, 41)
     found = 0
@@ -295,7 +298,7 @@ def test_the_fold_kernel_finds_the_first_fold_the_plain_loop_finds():
             rec["focal_length"], rec["k1"], rec["p1"] = 152.0, k1, 1e-6
             row = camera_array(np.asarray(rec).reshape(1))[0]
             row[MODEL] = 1.0 if backward else 0.0
-            want = plain(xs, ys, row, backward)
+            want = _first_fold_plain(xs, ys, row, backward)
             assert _fold_at(xs, ys, row, backward) == want
             found += want >= 0
     assert 0 < found < 12
@@ -310,16 +313,6 @@ def test_the_mirrored_fold_check_finds_what_the_whole_grid_finds():
     from sapgo.project import CAMERA_DTYPE
     from sapgo.validate import _fold_at, _mirrored, fold_grid
 
-    def plain(xs, ys, row, backward):
-        for i, x in enumerate(xs):
-            for j, y in enumerate(ys):
-                _, _, j00, j01, j10, j11 = brown.py_func(x, y, row)
-                if not j00 * j11 - j01 * j10 > 0.0:
-                    return i * len(ys) + j
-                if not backward and not undistort.py_func(row[1] + x, row[2] + y, row)[2]:
-                    return i * len(ys) + j
-        return -1
-
     xs, ys = 115.0 * fold_grid(), 80.0 * fold_grid()
     found = 0
     for k1, k2 in ((-4e-5, 0.0), (-1.5e-5, 0.0), (-1e-6, 0.0), (1e-6, -3e-10), (1e-5, 0.0),
@@ -330,7 +323,7 @@ def test_the_mirrored_fold_check_finds_what_the_whole_grid_finds():
             row = camera_array(np.asarray(rec).reshape(1))[0]
             row[MODEL] = 1.0 if backward else 0.0
             assert _mirrored(xs, ys, row)
-            want = plain(xs, ys, row, backward)
+            want = _first_fold_plain(xs, ys, row, backward)
             assert _fold_at(xs, ys, row, backward) == want
             found += want >= 0
             for k, v in ((1, 0.01), (6, 1e-7)):   # x0; p1

@@ -825,6 +825,18 @@ def _runs(pt_start, pt_nobs, nt):
     return cut
 
 
+@njit(cache=True, error_model="numpy", nogil=True)
+def _thread_runs(nthreads, pt_start, pt_nobs):
+    """:func:`_runs` for ``nthreads`` threads (at most one a point): one run where the
+    points' observations do not follow each other (each point's after the one before)."""
+    n = pt_start.shape[0]
+    nt = max(1, min(nthreads, n))
+    for j in range(1, n):
+        if pt_start[j] < pt_start[j - 1] + pt_nobs[j - 1]:
+            nt = 1
+    return _runs(pt_start, pt_nobs, nt)
+
+
 @njit(cache=True, error_model="numpy", nogil=True, parallel=True)
 def point_sigmas_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start,
                           pt_nobs, pt_active, obs_station, obs_xy, obs_sigma, obs_active, eo,
@@ -1367,12 +1379,8 @@ def datum_columns_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, 
     points' own columns ``b_pt`` and nothing shared) on ``nthreads`` threads, the points cut
     into runs of about equal observations as :func:`point_sigmas_parallel` cuts them; the
     first point that cannot be linearised (index + 1), else 0."""
-    n = pt_xyz.shape[0]
-    nt = max(1, min(nthreads, n))
-    for j in range(1, n):
-        if pt_start[j] < pt_start[j - 1] + pt_nobs[j - 1]:
-            nt = 1
-    cut = _runs(pt_start, pt_nobs, nt)
+    cut = _thread_runs(nthreads, pt_start, pt_nobs)
+    nt = cut.shape[0] - 1
     bad = np.zeros(nt, np.int64)
     for t in prange(nt):
         a, b = cut[t], cut[t + 1]
@@ -1404,12 +1412,8 @@ def datum_sums_parallel(nthreads, pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_
     sums for the same count of runs, whatever threads run them. The caller sees that
     ``nthreads`` copies fit in memory. The first point that cannot be linearised (index +
     1), else 0. ``keep_nbar``, ``keep_lo``: as :func:`datum_columns` keeps them."""
-    n = pt_xyz.shape[0]
-    nt = max(1, min(nthreads, n))
-    for j in range(1, n):
-        if pt_start[j] < pt_start[j - 1] + pt_nobs[j - 1]:
-            nt = 1
-    cut = _runs(pt_start, pt_nobs, nt)
+    cut = _thread_runs(nthreads, pt_start, pt_nobs)
+    nt = cut.shape[0] - 1
     bad = np.zeros(nt, np.int64)
     rs = np.zeros((nt, r_st.shape[0], r_st.shape[1], r_st.shape[2]))
     rg = np.zeros((nt, r_g.shape[0], r_g.shape[1]))
@@ -1521,12 +1525,7 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             if x_st is None:
                 _solve3(lo, col, sol)
                 for q in range(k):
-                    s = st_all[q]
-                    for u in range(npar):
-                        x = 0.0
-                        for r in range(3):
-                            x += nbar[q, u, r] * sol[r]
-                        r_st[s, u, c] -= x
+                    _minus_nbar_sol(nbar, q, sol, r_st, st_all[q], c)
                 for t in range(nt):
                     c1 = touched[t]
                     r_g[c1, c] -= (ngp[c1, 0] * sol[0] + ngp[c1, 1] * sol[1]
@@ -1547,6 +1546,17 @@ def datum_columns(pt_xyz, pt_kind, pt_ctrl, pt_csig, pt_rot, pt_start, pt_nobs, 
             for r in range(3):
                 ngp[c1, r] = 0.0
     return 0
+
+
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
+def _minus_nbar_sol(nbar, q, sol, r_st, s, c):
+    """``r_st[s, :, c] -= Nbar_q sol``: one ray's share of its station's reduced right-hand
+    side of a datum column (``sol = Ndd^-1 h`` of its point)."""
+    for u in range(r_st.shape[1]):
+        x = 0.0
+        for r in range(3):
+            x += nbar[q, u, r] * sol[r]
+        r_st[s, u, c] -= x
 
 
 @njit(cache=True, error_model="numpy", nogil=True, inline="always")
@@ -1591,7 +1601,6 @@ def _datum_sums_kept(pt_start, pt_nobs, pt_active, obs_station, obs_active, h_pt
     ``Ndd`` by rows in ``keep_pt[j, :9]``, each active ray's ``Nbar`` at its observation's
     row of ``keep_nbar``): ``r_s -= sum Nbar Ndd^-1 h`` into ``r_st``, the same arithmetic
     on the same numbers, no ray linearised."""
-    npar = r_st.shape[1]
     nc = h_pt.shape[2]
     lo = np.empty((3, 3))
     col = np.empty(3)
@@ -1607,14 +1616,8 @@ def _datum_sums_kept(pt_start, pt_nobs, pt_active, obs_station, obs_active, h_pt
                 col[r] = h_pt[j, r, c]
             _solve3(lo, col, sol)
             for i in range(pt_start[j], pt_start[j] + pt_nobs[j]):
-                if not obs_active[i]:
-                    continue
-                s = obs_station[i]
-                for u in range(npar):
-                    x = 0.0
-                    for r in range(3):
-                        x += keep_nbar[i, u, r] * sol[r]
-                    r_st[s, u, c] -= x
+                if obs_active[i]:
+                    _minus_nbar_sol(keep_nbar, i, sol, r_st, obs_station[i], c)
 
 
 @njit(cache=True, error_model="numpy", nogil=True, parallel=True)
@@ -1623,12 +1626,8 @@ def datum_sums_kept(nthreads, pt_start, pt_nobs, pt_active, obs_station, obs_act
     """:func:`datum_sums_parallel` (no border) from the build's kept systems
     (:func:`_datum_sums_kept`): the points cut into the same runs, each run's sums in a
     copy of its own, added in run order -- the same sums bit for bit."""
-    n = pt_start.shape[0]
-    nt = max(1, min(nthreads, n))
-    for j in range(1, n):
-        if pt_start[j] < pt_start[j - 1] + pt_nobs[j - 1]:
-            nt = 1
-    cut = _runs(pt_start, pt_nobs, nt)
+    cut = _thread_runs(nthreads, pt_start, pt_nobs)
+    nt = cut.shape[0] - 1
     rs = np.zeros((nt, r_st.shape[0], r_st.shape[1], r_st.shape[2]))
     for t in prange(nt):
         a, b = cut[t], cut[t + 1]
